@@ -1,0 +1,469 @@
+"""Corotational linear tetrahedral FEM (Mueller & Gross 2004) in Warp kernels, float64.
+
+For a linear tetrahedron with rest shape-function gradients g_0..g_3 (g_0 = -g_1-g_2-g_3),
+the deformation gradient is F = sum_i x_i g_i^T. Its polar decomposition F = R S gives
+the element rotation R. The corotated elastic force and the corotated stiffness are
+
+    f_i   = -V R sigma(eps) g_i,        eps = sym(R^T F - I)
+    (K p)_i = V R sigma(sym(sum_j (R^T p_j) g_j^T)) g_i
+
+with sigma(eps) = 2 mu eps + lambda tr(eps) I. A rigid rotation of the rest shape gives
+F = Q, R = Q, eps = 0: no force (plain linear FEM would give one). K is the positive
+semidefinite stiffness (K = -df/dx with R frozen), so the system matrix of eq. (1) is
+
+    A = M - dt B - dt^2 (df/dx) = (1 + dt alpha) M + (dt beta + dt^2) K
+
+with Rayleigh damping B = -(alpha M + beta K). Nodes marked fixed are filtered out
+(their rows and columns replaced by the identity) so that A stays symmetric positive
+definite and CG never moves them.
+
+Host code (:class:`CorotationalFEM`) owns the arrays and launches; the kernels hold the
+arithmetic. The matrix-free product with A and the sparse assembly of A (a Warp BSR
+matrix of 3x3 blocks, handed to CHOLMOD as scipy CSC) use the same element formulas.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sps
+import warp as wp
+import warp.sparse as wps
+
+from .material import MaterialTable
+from .mesh import TetMesh
+
+_F64 = wp.float64
+
+
+@wp.func
+def shape_gradients(Dm_inv: wp.mat33d, k: int):
+    """Gradient of the linear shape function of local node k (rows of Dm^-1; g_0 = -sum)."""
+    if k == 0:
+        return -wp.vec3d(
+            Dm_inv[0, 0] + Dm_inv[1, 0] + Dm_inv[2, 0],
+            Dm_inv[0, 1] + Dm_inv[1, 1] + Dm_inv[2, 1],
+            Dm_inv[0, 2] + Dm_inv[1, 2] + Dm_inv[2, 2],
+        )
+    return wp.vec3d(Dm_inv[k - 1, 0], Dm_inv[k - 1, 1], Dm_inv[k - 1, 2])
+
+
+@wp.func
+def stress(eps: wp.mat33d, mu: wp.float64, lam: wp.float64):
+    tr = eps[0, 0] + eps[1, 1] + eps[2, 2]
+    return _F64(2.0) * mu * eps + lam * tr * wp.identity(n=3, dtype=wp.float64)
+
+
+@wp.func
+def rotation_from(F: wp.mat33d):
+    """Rotation of the polar decomposition, robust to inverted elements.
+
+    From the SVD F = U S V^T: R = U D V^T with D = diag(1, 1, det(U V^T)) applied on the
+    smallest singular value, so R is a proper rotation even when det F <= 0.
+    """
+    U = wp.mat33d()
+    s = wp.vec3d()
+    V = wp.mat33d()
+    wp.svd3(F, U, s, V)
+    R = U * wp.transpose(V)
+    if wp.determinant(R) < _F64(0.0):
+        k = 0
+        if s[1] < s[k]:
+            k = 1
+        if s[2] < s[k]:
+            k = 2
+        for r in range(3):
+            U[r, k] = -U[r, k]
+        R = U * wp.transpose(V)
+    return R
+
+
+@wp.kernel
+def element_rotations_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    tets: wp.array(dtype=wp.vec4i),
+    Dm_inv: wp.array(dtype=wp.mat33d),
+    R_out: wp.array(dtype=wp.mat33d),
+):
+    e = wp.tid()
+    t = tets[e]
+    x0 = x[t[0]]
+    Ds = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
+    R_out[e] = rotation_from(Ds * Dm_inv[e])
+
+
+@wp.kernel
+def elastic_force_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    tets: wp.array(dtype=wp.vec4i),
+    Dm_inv: wp.array(dtype=wp.mat33d),
+    volume: wp.array(dtype=wp.float64),
+    mu: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    R: wp.array(dtype=wp.mat33d),
+    f: wp.array(dtype=wp.vec3d),
+):
+    """f += -V R sigma(sym(R^T F - I)) g_i (accumulated; f must be initialised)."""
+    e = wp.tid()
+    t = tets[e]
+    x0 = x[t[0]]
+    Ds = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
+    Re = R[e]
+    G = wp.transpose(Re) * (Ds * Dm_inv[e]) - wp.identity(n=3, dtype=wp.float64)
+    eps = _F64(0.5) * (G + wp.transpose(G))
+    P = -volume[e] * (Re * stress(eps, mu[e], lam[e]))
+    for k in range(4):
+        wp.atomic_add(f, t[k], P * shape_gradients(Dm_inv[e], k))
+
+
+@wp.kernel
+def stiffness_product_kernel(
+    p: wp.array(dtype=wp.vec3d),
+    free: wp.array(dtype=wp.float64),
+    tets: wp.array(dtype=wp.vec4i),
+    Dm_inv: wp.array(dtype=wp.mat33d),
+    volume: wp.array(dtype=wp.float64),
+    mu: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    rho: wp.array(dtype=wp.float64),
+    R: wp.array(dtype=wp.mat33d),
+    k_coef: wp.float64,
+    m_coef: wp.float64,
+    out: wp.array(dtype=wp.vec3d),
+):
+    """out += k_coef K (free*p) + m_coef M_consistent (free*p), K corotated (accumulated)."""
+    e = wp.tid()
+    t = tets[e]
+    Dinv = Dm_inv[e]
+    Re = R[e]
+    Rt = wp.transpose(Re)
+    G = wp.mat33d()
+    psum = wp.vec3d()
+    for j in range(4):
+        pj = p[t[j]] * free[t[j]]
+        psum += pj
+        G += wp.outer(Rt * pj, shape_gradients(Dinv, j))
+    eps = _F64(0.5) * (G + wp.transpose(G))
+    P = (k_coef * volume[e]) * (Re * stress(eps, mu[e], lam[e]))
+    mc = m_coef * rho[e] * volume[e] / _F64(20.0)
+    for i in range(4):
+        pi = p[t[i]] * free[t[i]]
+        wp.atomic_add(out, t[i], P * shape_gradients(Dinv, i) + mc * (psum + pi))
+
+
+@wp.kernel
+def combine_kernel(
+    p: wp.array(dtype=wp.vec3d),
+    free: wp.array(dtype=wp.float64),
+    lumped_mass: wp.array(dtype=wp.float64),
+    m_coef: wp.float64,
+    Kp: wp.array(dtype=wp.vec3d),
+    alpha: wp.float64,
+    y: wp.array(dtype=wp.vec3d),
+    beta: wp.float64,
+    z: wp.array(dtype=wp.vec3d),
+):
+    """z = alpha * (filtered A p) + beta * y, with A p = m_coef m_i p_i + Kp_i on free nodes, p_i on fixed."""
+    i = wp.tid()
+    Ap = p[i]
+    if free[i] > _F64(0.0):
+        Ap = m_coef * lumped_mass[i] * p[i] + Kp[i]
+    z[i] = alpha * Ap + beta * y[i]
+
+
+@wp.kernel
+def element_blocks_kernel(
+    tets: wp.array(dtype=wp.vec4i),
+    free: wp.array(dtype=wp.float64),
+    Dm_inv: wp.array(dtype=wp.mat33d),
+    volume: wp.array(dtype=wp.float64),
+    mu: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    rho: wp.array(dtype=wp.float64),
+    R: wp.array(dtype=wp.mat33d),
+    k_coef: wp.float64,
+    m_coef: wp.float64,
+    consistent: int,
+    rows: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33d),
+):
+    """The 16 3x3 blocks of one element's contribution to the filtered A, as COO triplets.
+
+    K_ij = V R (mu (g_i.g_j) I + mu g_j g_i^T + lambda g_i g_j^T) R^T; mass m_coef rho V/20 (1+d_ij) I
+    (consistent) or m_coef rho V/4 I on the diagonal (lumped). Blocks touching a fixed node are zero.
+    """
+    e = wp.tid()
+    t = tets[e]
+    Dinv = Dm_inv[e]
+    Re = R[e]
+    V = volume[e]
+    I3 = wp.identity(n=3, dtype=wp.float64)
+    for i in range(4):
+        gi = shape_gradients(Dinv, i)
+        for j in range(4):
+            gj = shape_gradients(Dinv, j)
+            K0 = mu[e] * wp.dot(gi, gj) * I3 + mu[e] * wp.outer(gj, gi) + lam[e] * wp.outer(gi, gj)
+            blk = (k_coef * V) * (Re * K0 * wp.transpose(Re))
+            if consistent != 0:
+                w = _F64(1.0)
+                if i == j:
+                    w = _F64(2.0)
+                blk += (m_coef * rho[e] * V / _F64(20.0) * w) * I3
+            elif i == j:
+                blk += (m_coef * rho[e] * V / _F64(4.0)) * I3
+            k = e * 16 + i * 4 + j
+            rows[k] = t[i]
+            cols[k] = t[j]
+            values[k] = blk * (free[t[i]] * free[t[j]])
+
+
+@wp.kernel
+def fixed_identity_kernel(
+    free: wp.array(dtype=wp.float64),
+    offset: int,
+    rows: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33d),
+):
+    i = wp.tid()
+    rows[offset + i] = i
+    cols[offset + i] = i
+    values[offset + i] = (_F64(1.0) - free[i]) * wp.identity(n=3, dtype=wp.float64)
+
+
+@wp.kernel
+def diagonal_blocks_kernel(
+    tets: wp.array(dtype=wp.vec4i),
+    Dm_inv: wp.array(dtype=wp.mat33d),
+    volume: wp.array(dtype=wp.float64),
+    mu: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    rho: wp.array(dtype=wp.float64),
+    R: wp.array(dtype=wp.mat33d),
+    k_coef: wp.float64,
+    m_coef: wp.float64,
+    consistent: int,
+    diag: wp.array(dtype=wp.mat33d),
+):
+    """diag_i += the (i, i) 3x3 blocks of A = m_coef M + k_coef K (unfiltered)."""
+    e = wp.tid()
+    t = tets[e]
+    Re = R[e]
+    I3 = wp.identity(n=3, dtype=wp.float64)
+    mfac = _F64(0.25)
+    if consistent != 0:
+        mfac = _F64(0.1)
+    for i in range(4):
+        g = shape_gradients(Dm_inv[e], i)
+        K0 = mu[e] * wp.dot(g, g) * I3 + (mu[e] + lam[e]) * wp.outer(g, g)
+        blk = (k_coef * volume[e]) * (Re * K0 * wp.transpose(Re)) + (m_coef * rho[e] * volume[e] * mfac) * I3
+        wp.atomic_add(diag, t[i], blk)
+
+
+@wp.kernel
+def node_rotation_accumulate_kernel(
+    tets: wp.array(dtype=wp.vec4i),
+    volume: wp.array(dtype=wp.float64),
+    R: wp.array(dtype=wp.mat33d),
+    acc: wp.array(dtype=wp.mat33d),
+):
+    e = wp.tid()
+    t = tets[e]
+    for k in range(4):
+        wp.atomic_add(acc, t[k], volume[e] * R[e])
+
+
+@wp.kernel
+def orthonormalize_kernel(acc: wp.array(dtype=wp.mat33d), out: wp.array(dtype=wp.mat33d)):
+    i = wp.tid()
+    out[i] = rotation_from(acc[i])
+
+
+class CorotationalFEM:
+    """Rest-state data and per-step corotational operators of one tetrahedral body."""
+
+    def __init__(
+        self,
+        mesh: TetMesh,
+        materials: MaterialTable,
+        device,
+        *,
+        mass: str = "lumped",
+        fixed_nodes: np.ndarray | None = None,
+    ):
+        if mass not in ("lumped", "consistent"):
+            raise ValueError(f"mass must be 'lumped' or 'consistent', got {mass!r}")
+        self.device = wp.get_device(device)
+        self.materials = materials
+        self.consistent_mass = mass == "consistent"
+        self.set_mesh(mesh, fixed_nodes)
+
+    # ----------------------------------------------------------------- set-up
+    def set_mesh(self, mesh: TetMesh, fixed_nodes: np.ndarray | None = None) -> None:
+        """(Re)build all rest-state arrays for ``mesh`` (also after a topology change)."""
+        self.mesh = mesh
+        n, m = mesh.n_nodes, mesh.n_tets
+        X = mesh.points.astype(np.float64)
+        T = mesh.tets.astype(np.int32)
+        Dm = np.stack([X[T[:, 1]] - X[T[:, 0]], X[T[:, 2]] - X[T[:, 0]], X[T[:, 3]] - X[T[:, 0]]], axis=2)
+        vol = np.linalg.det(Dm) / 6.0
+        if np.any(vol <= 0.0):
+            bad = np.flatnonzero(vol <= 0.0)
+            raise ValueError(f"{len(bad)} tets with non-positive rest volume, e.g. {bad[:10].tolist()}")
+        mu, lam, rho = self.materials.element_arrays(mesh.material_ids)
+        lumped = np.zeros(n)
+        np.add.at(lumped, T.ravel(), np.repeat(rho * vol / 4.0, 4))
+        free = np.ones(n)
+        if fixed_nodes is not None and len(fixed_nodes):
+            free[np.asarray(fixed_nodes, dtype=np.int64)] = 0.0
+        d = self.device
+        self.n_nodes, self.n_tets = n, m
+        self.rest = wp.array(X, dtype=wp.vec3d, device=d)
+        self.tets = wp.array(T, dtype=wp.vec4i, device=d)
+        self.Dm_inv = wp.array(np.linalg.inv(Dm), dtype=wp.mat33d, device=d)
+        self.volume = wp.array(vol, dtype=wp.float64, device=d)
+        self.mu = wp.array(mu, dtype=wp.float64, device=d)
+        self.lam = wp.array(lam, dtype=wp.float64, device=d)
+        self.rho = wp.array(rho, dtype=wp.float64, device=d)
+        self.lumped_mass = wp.array(lumped, dtype=wp.float64, device=d)
+        self.free = wp.array(free, dtype=wp.float64, device=d)
+        self.fixed_nodes = np.flatnonzero(free == 0.0)
+        self.rotations = wp.array(np.tile(np.eye(3), (m, 1, 1)), dtype=wp.mat33d, device=d)
+        self._Kp = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self._rot_acc = wp.zeros(n, dtype=wp.mat33d, device=d)
+        self._node_rot = wp.zeros(n, dtype=wp.mat33d, device=d)
+        # COO triplets of A: 16 blocks per element + one diagonal block per node.
+        nt = 16 * m + n
+        self._rows = wp.zeros(nt, dtype=wp.int32, device=d)
+        self._cols = wp.zeros(nt, dtype=wp.int32, device=d)
+        self._vals = wp.zeros(nt, dtype=wp.mat33d, device=d)
+        self._bsr = wps.bsr_zeros(n, n, wp.mat33d, device=d)
+        self._triplet_map = None
+        self.total_mass = float(lumped.sum())
+
+    def set_fixed_nodes(self, fixed_nodes) -> None:
+        free = np.ones(self.n_nodes)
+        free[np.asarray(fixed_nodes, dtype=np.int64)] = 0.0
+        self.free.assign(free)
+        self.fixed_nodes = np.flatnonzero(free == 0.0)
+
+    # -------------------------------------------------------------- per step
+    def update_rotations(self, x: wp.array) -> None:
+        wp.launch(element_rotations_kernel, self.n_tets, [x, self.tets, self.Dm_inv, self.rotations], device=self.device)
+
+    def add_elastic_forces(self, x: wp.array, f: wp.array) -> None:
+        """f += elastic forces at positions x, with the current element rotations."""
+        wp.launch(
+            elastic_force_kernel,
+            self.n_tets,
+            [x, self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rotations, f],
+            device=self.device,
+        )
+
+    def system_product(self, p, y, z, alpha, beta, m_coef, k_coef) -> None:
+        """z = alpha * A p + beta * y with A = m_coef M + k_coef K, filtered on fixed nodes."""
+        self._Kp.zero_()
+        wp.launch(
+            stiffness_product_kernel,
+            self.n_tets,
+            [p, self.free, self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
+             float(k_coef), float(m_coef) if self.consistent_mass else 0.0, self._Kp],
+            device=self.device,
+        )
+        wp.launch(
+            combine_kernel,
+            self.n_nodes,
+            [p, self.free, self.lumped_mass, 0.0 if self.consistent_mass else float(m_coef), self._Kp,
+             float(alpha), y, float(beta), z],
+            device=self.device,
+        )
+
+    def stiffness_product(self, p: wp.array, out: wp.array) -> None:
+        """out = K p (unfiltered corotated stiffness, no mass): used for b and damping."""
+        out.zero_()
+        wp.launch(
+            stiffness_product_kernel,
+            self.n_tets,
+            [p, self._ones(), self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations, 1.0, 0.0, out],
+            device=self.device,
+        )
+
+    def _ones(self) -> wp.array:
+        if getattr(self, "_ones_arr", None) is None or self._ones_arr.shape[0] != self.n_nodes:
+            self._ones_arr = wp.full(self.n_nodes, 1.0, dtype=wp.float64, device=self.device)
+        return self._ones_arr
+
+    def mass_product(self, p: wp.array, out: wp.array) -> None:
+        """out = M p (lumped or consistent, unfiltered)."""
+        out.zero_()
+        if self.consistent_mass:
+            wp.launch(
+                stiffness_product_kernel,
+                self.n_tets,
+                [p, self._ones(), self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
+                 0.0, 1.0, out],
+                device=self.device,
+            )
+        else:
+            wp.launch(
+                combine_kernel,
+                self.n_nodes,
+                [p, self._ones(), self.lumped_mass, 1.0, out, 1.0, out, 0.0, out],
+                device=self.device,
+            )
+
+    def diagonal_blocks(self, m_coef: float, k_coef: float, out: wp.array) -> None:
+        """out = the 3x3 diagonal blocks of A = m_coef M + k_coef K (fixed nodes: identity)."""
+        out.zero_()
+        wp.launch(
+            diagonal_blocks_kernel,
+            self.n_tets,
+            [self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
+             float(k_coef), float(m_coef), int(self.consistent_mass), out],
+            device=self.device,
+        )
+
+    # ------------------------------------------------------------- assembly
+    def assemble(self, m_coef: float, k_coef: float) -> wps.BsrMatrix:
+        """Assemble the filtered A = m_coef M + k_coef K as a Warp BSR matrix (3x3 blocks).
+
+        The sparsity pattern is built once per topology (a Warp triplet map) and reused.
+        """
+        wp.launch(
+            element_blocks_kernel,
+            self.n_tets,
+            [self.tets, self.free, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
+             float(k_coef), float(m_coef), int(self.consistent_mass), self._rows, self._cols, self._vals],
+            device=self.device,
+        )
+        wp.launch(
+            fixed_identity_kernel, self.n_nodes, [self.free, 16 * self.n_tets, self._rows, self._cols, self._vals],
+            device=self.device,
+        )
+        if self._triplet_map is None:
+            self._triplet_map = wps.bsr_set_from_triplets(
+                self._bsr, self._rows, self._cols, self._vals, prune_numerical_zeros=False, build_mapping=True
+            )
+        else:
+            wps.bsr_set_from_mapped_values(self._bsr, self._triplet_map, self._vals)
+        return self._bsr
+
+    def assemble_scipy(self, m_coef: float, k_coef: float) -> sps.csc_matrix:
+        """The filtered A as a scipy CSC matrix (for CHOLMOD and direct solves)."""
+        A = self.assemble(m_coef, k_coef)
+        nnz = A.nnz_sync() if hasattr(A, "nnz_sync") else A.nnz
+        offsets = A.offsets.numpy()[: self.n_nodes + 1]
+        cols = A.columns.numpy()[:nnz]
+        vals = A.values.numpy()[:nnz]
+        n3 = 3 * self.n_nodes
+        return sps.bsr_matrix((vals, cols, offsets), shape=(n3, n3)).tocsc()
+
+    # ------------------------------------------------------------ rotations
+    def node_rotations(self) -> np.ndarray:
+        """Per-node rotations (n,3,3): volume-weighted average of the element rotations around
+        each node, projected back onto SO(3) (used to rotate the preconditioner, eq. 2)."""
+        self._rot_acc.zero_()
+        wp.launch(node_rotation_accumulate_kernel, self.n_tets, [self.tets, self.volume, self.rotations, self._rot_acc],
+                  device=self.device)
+        wp.launch(orthonormalize_kernel, self.n_nodes, [self._rot_acc, self._node_rot], device=self.device)
+        return self._node_rot.numpy()

@@ -1,0 +1,231 @@
+"""Backward Euler, linearised once per step (paper eq. 1, after Baraff & Witkin 1998).
+
+    (M - dt B - dt^2 K) dv = dt f(u_t, v_t) + dt^2 K v_t,   v += dv,   u += dt v
+
+With the corotated positive stiffness K (= -df/dx) and Rayleigh damping
+B = -(alpha M + beta K) this reads
+
+    A  = (1 + dt alpha) M + (dt beta + dt^2) K
+    b  = dt (f_elastic + f_gravity + f_external) - dt alpha M v - (dt beta + dt^2) K v
+
+A is solved matrix-free by PCG (:mod:`soft_tissue_sim.cg`); fixed nodes are filtered out
+of the system (zero right-hand side, identity rows) and keep zero velocity.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .cg import PCG
+from .corotational_fem import CorotationalFEM
+from .material import Damping, ParameterError
+
+
+@wp.kernel
+def _rhs_kernel(
+    f: wp.array(dtype=wp.vec3d),
+    Mv: wp.array(dtype=wp.vec3d),
+    Kv: wp.array(dtype=wp.vec3d),
+    free: wp.array(dtype=wp.float64),
+    dt: wp.float64,
+    c_m: wp.float64,
+    c_k: wp.float64,
+    b: wp.array(dtype=wp.vec3d),
+):
+    i = wp.tid()
+    b[i] = free[i] * (dt * f[i] - c_m * Mv[i] - c_k * Kv[i])
+
+
+@wp.kernel
+def _gravity_kernel(mass: wp.array(dtype=wp.float64), g: wp.vec3d, ext: wp.array(dtype=wp.vec3d),
+                    f: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    f[i] = mass[i] * g + ext[i]
+
+
+@wp.kernel
+def _update_kernel(
+    dv: wp.array(dtype=wp.vec3d),
+    free: wp.array(dtype=wp.float64),
+    dt: wp.float64,
+    v: wp.array(dtype=wp.vec3d),
+    x: wp.array(dtype=wp.vec3d),
+):
+    i = wp.tid()
+    vi = free[i] * (v[i] + dv[i])
+    v[i] = vi
+    x[i] = x[i] + dt * vi
+
+
+@wp.kernel
+def _energy_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    v: wp.array(dtype=wp.vec3d),
+    mass: wp.array(dtype=wp.float64),
+    g: wp.vec3d,
+    out: wp.array(dtype=wp.float64),
+):
+    i = wp.tid()
+    ke = wp.float64(0.5) * mass[i] * wp.dot(v[i], v[i])
+    pe = -mass[i] * wp.dot(g, x[i])
+    wp.atomic_add(out, 0, ke)
+    wp.atomic_add(out, 1, pe)
+
+
+@dataclass
+class StepStats:
+    """What one step did and cost. Times in milliseconds."""
+
+    step: int = 0
+    time: float = 0.0
+    iterations: int = 0
+    residual: float = 0.0
+    converged: bool = True
+    build_ms: float = 0.0
+    solve_ms: float = 0.0
+    total_ms: float = 0.0
+    precond_ms: float = 0.0
+    preconditioner: str = "none"
+    factor_age: int = -1
+    factorization_ms: float = 0.0
+    refresh_interval: float = 0.0
+    worker_error: str | None = None
+    extra: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d.update(d.pop("extra"))
+        return d
+
+
+class BackwardEuler:
+    """State (positions, velocities) and the linearised backward Euler step of one body."""
+
+    def __init__(self, fem: CorotationalFEM, dt: float, damping: Damping, gravity, preconditioner,
+                 tolerance: float = 1e-7, max_iterations: int = 1000):
+        dt = float(dt)
+        if not np.isfinite(dt) or dt <= 0.0:
+            raise ParameterError(f"time step dt must be > 0 and finite, got {dt}")
+        g = np.asarray(gravity, dtype=np.float64)
+        if g.shape != (3,) or not np.all(np.isfinite(g)):
+            raise ParameterError(f"gravity must be 3 finite numbers, got {gravity!r}")
+        self.fem = fem
+        self.device = fem.device
+        self.dt = dt
+        self.damping = damping
+        self.gravity = g
+        self.preconditioner = preconditioner
+        self.cg = PCG(fem.n_nodes, fem.device, tolerance, max_iterations)
+        self.step_index = 0
+        self.time = 0.0
+        self._allocate()
+        self.x = wp.clone(fem.rest)
+        self.v = wp.zeros_like(fem.rest)
+
+    # coefficients of A = m_coef M + k_coef K
+    @property
+    def m_coef(self) -> float:
+        return 1.0 + self.dt * self.damping.mass
+
+    @property
+    def k_coef(self) -> float:
+        return self.dt * self.damping.stiffness + self.dt * self.dt
+
+    def _allocate(self) -> None:
+        n, d = self.fem.n_nodes, self.device
+        self.f = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self.f_ext = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self.b = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self.dv = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self._Mv = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self._Kv = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self._energy = wp.zeros(2, dtype=wp.float64, device=d)
+
+    def set_state(self, x: np.ndarray, v: np.ndarray) -> None:
+        """Replace positions and velocities (e.g. after a topology change or a rollback)."""
+        if x.shape[0] != self.fem.n_nodes:
+            raise ValueError("state size does not match the mesh")
+        if x.shape[0] != self.f.shape[0]:
+            self._allocate()
+            self.cg.resize(x.shape[0])
+        self.x = wp.array(x, dtype=wp.vec3d, device=self.device)
+        self.v = wp.array(v, dtype=wp.vec3d, device=self.device)
+
+    def matvec(self, p: wp.array, out: wp.array) -> None:
+        self.fem.system_product(p, p, out, 1.0, 0.0, self.m_coef, self.k_coef)
+
+    def build(self) -> None:
+        """Rotations at u_t and the right-hand side b of eq. (1)."""
+        fem, dt = self.fem, self.dt
+        fem.update_rotations(self.x)
+        wp.launch(_gravity_kernel, fem.n_nodes, [fem.lumped_mass, wp.vec3d(*self.gravity), self.f_ext, self.f],
+                  device=self.device)
+        fem.add_elastic_forces(self.x, self.f)
+        fem.stiffness_product(self.v, self._Kv)
+        if self.damping.mass > 0.0:
+            fem.mass_product(self.v, self._Mv)
+        else:
+            self._Mv.zero_()
+        wp.launch(_rhs_kernel, fem.n_nodes,
+                  [self.f, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass, self.k_coef, self.b],
+                  device=self.device)
+
+    def step(self) -> StepStats:
+        t0 = time.perf_counter()
+        self.build()
+        self.preconditioner.begin_step(self)
+        t1 = time.perf_counter()
+        res = self.cg.solve(self.matvec, self.b, self.dv, self.preconditioner)
+        t2 = time.perf_counter()
+        wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
+                  device=self.device)
+        wp.synchronize_device(self.device)
+        t3 = time.perf_counter()
+        self.step_index += 1
+        self.time += self.dt
+        ps = self.preconditioner.stats()
+        return StepStats(
+            step=self.step_index,
+            time=self.time,
+            iterations=res.iterations,
+            residual=res.residual,
+            converged=res.converged,
+            build_ms=1000.0 * (t1 - t0),
+            solve_ms=1000.0 * (t2 - t1),
+            total_ms=1000.0 * (t3 - t0),
+            precond_ms=res.precond_ms,
+            preconditioner=self.preconditioner.name,
+            factor_age=int(ps.get("factor_age", -1)),
+            factorization_ms=float(ps.get("factorization_ms", 0.0)),
+            refresh_interval=float(ps.get("refresh_interval", 0.0)),
+            worker_error=ps.get("worker_error"),
+        )
+
+    def energy(self) -> tuple[float, float, float]:
+        """(kinetic, gravitational potential, elastic) energy at the current state."""
+        self._energy.zero_()
+        wp.launch(_energy_kernel, self.fem.n_nodes,
+                  [self.x, self.v, self.fem.lumped_mass, wp.vec3d(*self.gravity), self._energy], device=self.device)
+        ke, pe = self._energy.numpy()
+        return float(ke), float(pe), self.elastic_energy()
+
+    def elastic_energy(self) -> float:
+        """Corotated strain energy sum_e V (mu eps:eps + lambda/2 tr(eps)^2), on the host (diagnostics)."""
+        fem = self.fem
+        fem.update_rotations(self.x)
+        x = self.x.numpy()
+        T = fem.mesh.tets
+        R = fem.rotations.numpy()
+        Dinv = fem.Dm_inv.numpy()
+        Ds = np.stack([x[T[:, 1]] - x[T[:, 0]], x[T[:, 2]] - x[T[:, 0]], x[T[:, 3]] - x[T[:, 0]]], axis=2)
+        F = Ds @ Dinv
+        G = np.einsum("eji,ejk->eik", R, F) - np.eye(3)
+        eps = 0.5 * (G + np.transpose(G, (0, 2, 1)))
+        tr = np.trace(eps, axis1=1, axis2=2)
+        mu, lam, vol = fem.mu.numpy(), fem.lam.numpy(), fem.volume.numpy()
+        w = mu * np.einsum("eij,eij->e", eps, eps) + 0.5 * lam * tr * tr
+        return float(np.sum(w * vol))

@@ -1,0 +1,291 @@
+"""Scenes: YAML files in ``config/scenes/`` that name the components a simulation needs.
+
+The builder constructs exactly what a scene names: a scene without instruments or
+obstacles gets no contact solver, a scene without cutting gets no cutting machinery.
+
+Scene keys (all but ``mesh`` and ``materials`` optional)::
+
+    name: beam_2000
+    device: auto                  # auto (CUDA if present, else CPU) | cpu | cuda | cuda:N
+    mesh: {file: meshes/beam_2000.vtu}            # path relative to the scene file or the package
+      # or {generator: beam, n_long: 80, n_cross: 5, spacing: 0.01} / {generator: brain}
+      # optional: scale: 1.0, translate: [x, y, z]
+    materials: [{id: 0, young: 1.0e5, poisson: 0.3, density: 1000}]
+    mass: lumped                  # lumped | consistent
+    damping: {mass: 0.1, stiffness: 0.01}          # Rayleigh alpha [1/s], beta [s]
+    gravity: [0, 0, -9.81]
+    fixed: {axis: x, below: 0.0}  # or {box: {min: [..], max: [..]}} or {nodes: [..]}, or a list of these
+    time: {dt: 0.01}
+    solver: {tolerance: 1.0e-7, max_iterations: 1000,
+             preconditioner: async_ldlt,          # none | jacobi | async_ldlt | direct
+             ldlt: {rotate: true, refresh_every: 1, deterministic: false}}
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import weakref
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+import yaml
+
+from . import mesh as mesh_mod
+from .cg import BlockJacobiPreconditioner, HostPreconditioner, IdentityPreconditioner
+from .corotational_fem import CorotationalFEM
+from .implicit_integration import BackwardEuler, StepStats
+from .material import Damping, MaterialTable, ParameterError
+
+PACKAGE_ROOT = Path(__file__).resolve().parent.parent
+SCENES_DIR = PACKAGE_ROOT / "config" / "scenes"
+PRECONDITIONERS = ("none", "jacobi", "async_ldlt", "direct")
+_KNOWN_KEYS = {
+    "name", "description", "device", "mesh", "materials", "mass", "damping", "gravity", "fixed", "time",
+    "solver", "instruments", "obstacles", "contact", "cutting", "script", "guard",
+}
+
+
+def share_dirs() -> list[Path]:
+    """Where scenes and meshes may live: the source tree, then an installed share/ directory."""
+    dirs = [PACKAGE_ROOT]
+    try:  # a colcon / ament install
+        from ament_index_python.packages import get_package_share_directory
+
+        dirs.append(Path(get_package_share_directory("soft_tissue_sim")))
+    except Exception:  # noqa: BLE001 - ament index absent or package not installed: source tree only
+        pass
+    return dirs
+
+
+def resolve_path(name: str | os.PathLike, base: Path | None = None) -> Path:
+    """Find a scene or mesh file: as given, relative to ``base``, then in the package's dirs."""
+    p = Path(name)
+    candidates = [p] if p.is_absolute() else [Path.cwd() / p]
+    if base is not None and not p.is_absolute():
+        candidates.append(base / p)
+    for d in share_dirs():
+        candidates += [d / p, d / "config" / "scenes" / p, d / "meshes" / p.name]
+    for c in candidates:
+        if c.is_file():
+            return c.resolve()
+    raise FileNotFoundError(f"cannot find {str(name)!r} (looked in: {', '.join(str(c) for c in candidates)})")
+
+
+def resolve_device(name: str | None) -> str:
+    name = (name or "auto").strip()
+    if name == "auto":
+        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
+    if name.startswith("cuda") and wp.get_cuda_device_count() == 0:
+        raise ParameterError(f"device {name!r} asked for, but Warp sees no CUDA device")
+    if name not in ("cpu",) and not name.startswith("cuda"):
+        raise ParameterError(f"unknown device {name!r}: use auto, cpu, cuda or cuda:N")
+    return name
+
+
+def read_scene(scene) -> tuple[dict, Path | None]:
+    """A scene as a dict, and the directory it came from (for relative paths)."""
+    if isinstance(scene, dict):
+        return copy.deepcopy(scene), None
+    path = resolve_path(scene)
+    with open(path) as fh:
+        cfg = yaml.safe_load(fh)
+    if not isinstance(cfg, dict):
+        raise ParameterError(f"scene file {path} does not hold a mapping")
+    cfg.setdefault("name", path.stem)
+    return cfg, path.parent
+
+
+def build_mesh(spec, base: Path | None) -> mesh_mod.TetMesh:
+    if not isinstance(spec, dict):
+        raise ParameterError(f"scene 'mesh' must be a mapping, got {spec!r}")
+    if "file" in spec:
+        m = mesh_mod.load_mesh(resolve_path(spec["file"], base), material_key=spec.get("material_key"))
+    elif spec.get("generator") == "beam":
+        kw = {k: spec[k] for k in ("n_long", "n_cross", "length", "width", "spacing") if k in spec}
+        m = mesh_mod.beam_mesh(**kw)
+    elif spec.get("generator") == "brain":
+        m = mesh_mod.brain_mesh()
+    else:
+        raise ParameterError(f"scene 'mesh' needs 'file' or generator 'beam'/'brain', got {spec!r}")
+    scale = float(spec.get("scale", 1.0))
+    shift = np.asarray(spec.get("translate", [0.0, 0.0, 0.0]), dtype=np.float64)
+    if scale != 1.0 or np.any(shift):
+        if not (scale > 0.0 and math.isfinite(scale)):
+            raise ParameterError(f"mesh scale must be > 0, got {scale}")
+        m = mesh_mod.validate_mesh(m.points * scale + shift, m.tets, m.material_ids)
+    return m
+
+
+def select_fixed(points: np.ndarray, spec) -> np.ndarray:
+    """Node indices fixed by a scene's ``fixed`` entry (a mapping or a list of them)."""
+    if spec is None:
+        return np.zeros(0, dtype=np.int64)
+    items = spec if isinstance(spec, list) else [spec]
+    sel = np.zeros(len(points), dtype=bool)
+    scale = float(np.ptp(points, axis=0).max()) or 1.0
+    tol = 1e-9 * scale
+    for it in items:
+        if not isinstance(it, dict):
+            raise ParameterError(f"fixed entry must be a mapping, got {it!r}")
+        if "nodes" in it:
+            idx = np.asarray(it["nodes"], dtype=np.int64)
+            if idx.size and (idx.min() < 0 or idx.max() >= len(points)):
+                raise ParameterError(f"fixed node index out of range 0..{len(points) - 1}")
+            sel[idx] = True
+        elif "axis" in it:
+            ax = "xyz".index(it["axis"])
+            if "below" in it:
+                sel |= points[:, ax] <= float(it["below"]) + tol
+            if "above" in it:
+                sel |= points[:, ax] >= float(it["above"]) - tol
+        elif "box" in it:
+            lo = np.asarray(it["box"]["min"], dtype=float)
+            hi = np.asarray(it["box"]["max"], dtype=float)
+            sel |= np.all((points >= lo - tol) & (points <= hi + tol), axis=1)
+        else:
+            raise ParameterError(f"fixed entry needs 'nodes', 'axis' or 'box': {it!r}")
+    return np.flatnonzero(sel)
+
+
+def make_preconditioner(kind: str, options: dict, snapshot_fn):
+    if kind == "none":
+        return IdentityPreconditioner()
+    if kind == "jacobi":
+        return BlockJacobiPreconditioner()
+    if kind in ("async_ldlt", "direct"):
+        from .ldlt_preconditioner import AsyncLDLTPreconditioner
+
+        if kind == "direct":  # a fresh exact factor every step: the reference solution
+            inner = AsyncLDLTPreconditioner(snapshot_fn, rotate=False, refresh_every=1, deterministic=True)
+            inner.name = "direct"
+        else:
+            inner = AsyncLDLTPreconditioner(
+                snapshot_fn,
+                rotate=bool(options.get("rotate", True)),
+                refresh_every=int(options.get("refresh_every", 1)),
+                deterministic=bool(options.get("deterministic", False)),
+            )
+        return HostPreconditioner(inner)
+    raise ParameterError(f"unknown preconditioner {kind!r}: use one of {', '.join(PRECONDITIONERS)}")
+
+
+class Simulation:
+    """One soft body and the components its scene names. See :func:`load_scene`."""
+
+    def __init__(self, config: dict, base: Path | None = None, device: str | None = None):
+        unknown = set(config) - _KNOWN_KEYS
+        if unknown:
+            raise ParameterError(f"unknown scene keys: {sorted(unknown)}")
+        self.config = config
+        self.name = str(config.get("name", "scene"))
+        self.device = resolve_device(device or config.get("device", "auto"))
+        wp.init()
+        self.mesh = build_mesh(config.get("mesh"), base)
+        self.materials = MaterialTable.from_config(config.get("materials"))
+        damp = config.get("damping") or {}
+        self.damping = Damping(float(damp.get("mass", 0.0)), float(damp.get("stiffness", 0.0)))
+        fixed = select_fixed(self.mesh.points, config.get("fixed"))
+        self.fem = CorotationalFEM(self.mesh, self.materials, self.device, mass=config.get("mass", "lumped"),
+                                   fixed_nodes=fixed)
+        solver = dict(config.get("solver") or {})
+        dt = (config.get("time") or {}).get("dt", 0.01)
+        self.preconditioner = make_preconditioner(
+            str(solver.get("preconditioner", "async_ldlt")), dict(solver.get("ldlt") or {}), self._snapshot
+        )
+        self.integrator = BackwardEuler(
+            self.fem, dt, self.damping, config.get("gravity", [0.0, 0.0, -9.81]), self.preconditioner,
+            tolerance=float(solver.get("tolerance", 1e-7)),
+            max_iterations=int(solver.get("max_iterations", 1000)),
+        )
+        self._initial_mesh = self.mesh.copy()
+        self._initial_fixed = fixed.copy()
+        self.last_stats: StepStats | None = None
+        self._closed = False
+        self._finalizer = weakref.finalize(self, self.preconditioner.close)
+
+    # ----------------------------------------------------------- components
+    @property
+    def has_contact(self) -> bool:
+        return False
+
+    @property
+    def has_cutting(self) -> bool:
+        return False
+
+    def _snapshot(self):
+        """(A at the current state as scipy CSC, per-node rotations) for the LDL^T factorization."""
+        integ = self.integrator
+        return self.fem.assemble_scipy(integ.m_coef, integ.k_coef), self.fem.node_rotations()
+
+    # --------------------------------------------------------------- public
+    @property
+    def dt(self) -> float:
+        return self.integrator.dt
+
+    @property
+    def time(self) -> float:
+        return self.integrator.time
+
+    @property
+    def step_count(self) -> int:
+        return self.integrator.step_index
+
+    def step(self) -> StepStats:
+        if self._closed:
+            raise RuntimeError("simulation is closed")
+        self.last_stats = self.integrator.step()
+        return self.last_stats
+
+    def reset(self) -> None:
+        """Back to the initial mesh and state; the preconditioner starts afresh."""
+        self.preconditioner.invalidate()
+        if self.mesh.n_tets != self._initial_mesh.n_tets or self.mesh is not self.fem.mesh:
+            self.mesh = self._initial_mesh.copy()
+            self.fem.set_mesh(self.mesh, self._initial_fixed)
+        self.integrator.set_state(self._initial_mesh.points.copy(), np.zeros_like(self._initial_mesh.points))
+        self.integrator.step_index = 0
+        self.integrator.time = 0.0
+        self.last_stats = None
+
+    def positions(self) -> np.ndarray:
+        return self.integrator.x.numpy().copy()
+
+    def velocities(self) -> np.ndarray:
+        return self.integrator.v.numpy().copy()
+
+    def surface_triangles(self) -> np.ndarray:
+        return self.mesh.boundary_faces()
+
+    def energy(self) -> dict:
+        ke, pe, ee = self.integrator.energy()
+        return {"kinetic": ke, "gravity": pe, "elastic": ee, "total": ke + pe + ee}
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._finalizer()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def load_scene(scene, device: str | None = None, overrides: dict | None = None) -> Simulation:
+    """Build the simulation a scene describes.
+
+    ``scene``: a path to a YAML file (absolute, relative to the working directory, or a
+    name in ``config/scenes/``) or a dict with the same keys. ``device`` overrides the
+    scene's device. ``overrides`` is merged into the scene (one level deep per key).
+    """
+    cfg, base = read_scene(scene)
+    for k, v in (overrides or {}).items():
+        if isinstance(v, dict) and isinstance(cfg.get(k), dict):
+            cfg[k] = {**cfg[k], **v}
+        else:
+            cfg[k] = v
+    return Simulation(cfg, base, device)

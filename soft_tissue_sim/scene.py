@@ -191,15 +191,31 @@ class Simulation:
         self.fem = CorotationalFEM(self.mesh, self.materials, self.device, mass=config.get("mass", "lumped"),
                                    fixed_nodes=fixed)
         solver = dict(config.get("solver") or {})
+        tol, max_it = solver.get("tolerance", 1e-7), solver.get("max_iterations", 1000)
+        if not (isinstance(tol, (int, float)) and 0.0 < tol < 1.0):
+            raise ParameterError(f"solver tolerance must be in (0, 1), got {tol!r}")
+        if not (isinstance(max_it, int) and max_it >= 1):
+            raise ParameterError(f"solver max_iterations must be an integer >= 1, got {max_it!r}")
         dt = (config.get("time") or {}).get("dt", 0.01)
         self.preconditioner = make_preconditioner(
             str(solver.get("preconditioner", "async_ldlt")), dict(solver.get("ldlt") or {}), self._snapshot
         )
         self.integrator = BackwardEuler(
             self.fem, dt, self.damping, config.get("gravity", [0.0, 0.0, -9.81]), self.preconditioner,
-            tolerance=float(solver.get("tolerance", 1e-7)),
-            max_iterations=int(solver.get("max_iterations", 1000)),
+            tolerance=float(tol), max_iterations=int(max_it),
         )
+        # Optional components: built only when the scene names them.
+        self.contact = None
+        self.cutting = None
+        if config.get("instruments") or config.get("obstacles") or (config.get("contact") or {}).get("self_collision"):
+            from .contact import ContactSolver
+
+            self.contact = ContactSolver(self, config.get("contact") or {}, config.get("instruments") or [],
+                                         config.get("obstacles") or [])
+        if config.get("cutting"):
+            from .cutting import Cutter
+
+            self.cutting = Cutter(self, config["cutting"])
         self._initial_mesh = self.mesh.copy()
         self._initial_fixed = fixed.copy()
         self.last_stats: StepStats | None = None
@@ -209,11 +225,11 @@ class Simulation:
     # ----------------------------------------------------------- components
     @property
     def has_contact(self) -> bool:
-        return False
+        return self.contact is not None
 
     @property
     def has_cutting(self) -> bool:
-        return False
+        return self.cutting is not None
 
     def _snapshot(self):
         """(A at the current state as scipy CSC, per-node rotations) for the LDL^T factorization."""
@@ -236,12 +252,20 @@ class Simulation:
     def step(self) -> StepStats:
         if self._closed:
             raise RuntimeError("simulation is closed")
-        self.last_stats = self.integrator.step()
-        return self.last_stats
+        stats = self.integrator.step()  # free motion (no contact forces)
+        if self.contact is not None:
+            stats.extra.update(self.contact.step(self))  # LCP correction of x and v, eq. (3)-(4)
+        if self.cutting is not None:
+            stats.extra.update(self.cutting.step(self))  # blade motion -> mesh change + SMF, eq. (5)-(12)
+        self.last_stats = stats
+        return stats
 
     def reset(self) -> None:
         """Back to the initial mesh and state; the preconditioner starts afresh."""
         self.preconditioner.invalidate()
+        for comp in (self.contact, self.cutting):
+            if comp is not None:
+                comp.reset(self)
         if self.mesh.n_tets != self._initial_mesh.n_tets or self.mesh is not self.fem.mesh:
             self.mesh = self._initial_mesh.copy()
             self.fem.set_mesh(self.mesh, self._initial_fixed)

@@ -1,0 +1,135 @@
+"""Corotational FEM: invariance, assembly against the matrix-free product, material checks."""
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+import warp as wp
+
+from soft_tissue_sim.corotational_fem import CorotationalFEM
+from soft_tissue_sim.material import Material, MaterialTable, ParameterError
+from soft_tissue_sim.mesh import beam_mesh
+
+
+def rotation(axis, angle):
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+@pytest.fixture(scope="module")
+def fem():
+    mesh = beam_mesh(6, n_cross=3, spacing=0.01)
+    mat = MaterialTable({0: Material(1e5, 0.3, 1000.0)})
+    return CorotationalFEM(mesh, mat, "cpu")
+
+
+def forces(fem, x, rotate=True):
+    xw = wp.array(x, dtype=wp.vec3d, device="cpu")
+    if rotate:
+        fem.update_rotations(xw)
+    else:
+        fem.rotations.assign(np.tile(np.eye(3), (fem.n_tets, 1, 1)))
+    f = wp.zeros_like(xw)
+    fem.add_elastic_forces(xw, f)
+    return f.numpy()
+
+
+@pytest.mark.parametrize("axis", [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 2, -0.5]])
+def test_rigid_rotation_makes_no_elastic_force(fem, axis):
+    X = fem.mesh.points
+    Q = rotation(axis, np.pi / 2)
+    x = (X - X.mean(0)) @ Q.T + np.array([0.3, -0.1, 0.2])
+    # Force scale: a 1% stretch along x.
+    ref = np.abs(forces(fem, X * np.array([1.01, 1.0, 1.0]))).max()
+    f_corot = forces(fem, x, rotate=True)
+    f_linear = forces(fem, x, rotate=False)
+    assert np.abs(f_corot).max() < 1e-9 * ref
+    # Plain linear FEM (R = I) sees the rotation as a huge strain.
+    assert np.abs(f_linear).max() > 10 * ref
+
+
+def test_rotated_stretch_force_is_the_rotated_force(fem):
+    X = fem.mesh.points
+    stretched = X * np.array([1.02, 0.99, 1.0])
+    Q = rotation([0.3, -1.0, 0.4], 1.1)
+    f0 = forces(fem, stretched)
+    f1 = forces(fem, stretched @ Q.T)
+    np.testing.assert_allclose(f1, f0 @ Q.T, atol=1e-9 * np.abs(f0).max())
+
+
+def test_inverted_element_gets_a_proper_rotation(fem):
+    X = fem.mesh.points.copy()
+    x = X.copy()
+    x[:, 2] *= -1.0  # mirror: every element inverted
+    xw = wp.array(x, dtype=wp.vec3d, device="cpu")
+    fem.update_rotations(xw)
+    R = fem.rotations.numpy()
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
+    np.testing.assert_allclose(np.einsum("eji,ejk->eik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
+    assert np.all(np.isfinite(forces(fem, x)))
+
+
+@pytest.mark.parametrize("mass", ["lumped", "consistent"])
+def test_assembled_matrix_equals_matrix_free_product(mass):
+    mesh = beam_mesh(5, n_cross=3, spacing=0.01)
+    mat = MaterialTable({0: Material(2e5, 0.35, 1100.0)})
+    fixed = np.flatnonzero(mesh.points[:, 0] <= 1e-12)
+    f = CorotationalFEM(mesh, mat, "cpu", mass=mass, fixed_nodes=fixed)
+    rng = np.random.default_rng(0)
+    x = mesh.points + 0.002 * rng.standard_normal(mesh.points.shape)
+    f.update_rotations(wp.array(x, dtype=wp.vec3d))
+    m_coef, k_coef = 1.3, 2e-4
+    A = f.assemble_scipy(m_coef, k_coef)
+    p = rng.standard_normal(mesh.points.shape)
+    out = wp.zeros(mesh.n_nodes, dtype=wp.vec3d)
+    pw = wp.array(p, dtype=wp.vec3d)
+    f.system_product(pw, pw, out, 1.0, 0.0, m_coef, k_coef)
+    np.testing.assert_allclose(out.numpy().ravel(), A @ p.ravel(), rtol=1e-12, atol=1e-12 * np.abs(A @ p.ravel()).max())
+    # symmetric positive definite, fixed rows are identity
+    assert spla.norm(A - A.T) < 1e-12 * spla.norm(A)
+    dense = A.toarray()
+    assert np.linalg.eigvalsh(dense).min() > 0
+    for i in fixed:
+        np.testing.assert_array_equal(dense[3 * i:3 * i + 3, 3 * i:3 * i + 3], np.eye(3))
+    # the Jacobi blocks are the diagonal blocks of A on free nodes
+    D = wp.zeros(mesh.n_nodes, dtype=wp.mat33d)
+    f.diagonal_blocks(m_coef, k_coef, D)
+    free = np.setdiff1d(np.arange(mesh.n_nodes), fixed)
+    Dn = D.numpy()
+    for i in free[:10]:
+        np.testing.assert_allclose(Dn[i], dense[3 * i:3 * i + 3, 3 * i:3 * i + 3], rtol=1e-12)
+
+
+def test_total_mass_and_gravity_load():
+    mesh = beam_mesh(4, n_cross=3, spacing=0.02)
+    f = CorotationalFEM(mesh, MaterialTable({0: Material(1e5, 0.3, 900.0)}), "cpu", mass="consistent")
+    vol = 0.06 * 0.04 * 0.04
+    assert f.total_mass == pytest.approx(900.0 * vol, rel=1e-12)
+    ones = wp.array(np.tile([0.0, 0.0, 1.0], (mesh.n_nodes, 1)), dtype=wp.vec3d)
+    out = wp.zeros_like(ones)
+    f.mass_product(ones, out)  # consistent M applied to a uniform field = total mass
+    assert out.numpy()[:, 2].sum() == pytest.approx(900.0 * vol, rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    "kwargs, msg",
+    [
+        (dict(young=0.0, poisson=0.3, density=1000.0), "Young"),
+        (dict(young=-5.0, poisson=0.3, density=1000.0), "Young"),
+        (dict(young=1e5, poisson=0.5, density=1000.0), "Poisson"),
+        (dict(young=1e5, poisson=0.7, density=1000.0), "Poisson"),
+        (dict(young=1e5, poisson=0.3, density=0.0), "density"),
+        (dict(young=float("nan"), poisson=0.3, density=1000.0), "finite"),
+        (dict(young=1e5, poisson=0.3, density="soft"), "number"),
+    ],
+)
+def test_impossible_material_parameters_are_rejected(kwargs, msg):
+    with pytest.raises(ParameterError, match=msg):
+        Material(**kwargs)
+
+
+def test_undefined_material_id_is_named():
+    mesh = beam_mesh(3, n_cross=2, spacing=0.01)
+    mesh.material_ids[:] = 7
+    with pytest.raises(ParameterError, match=r"material ids \[7\]"):
+        MaterialTable({0: Material(1e5, 0.3, 1000.0)}).element_arrays(mesh.material_ids)

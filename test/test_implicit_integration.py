@@ -1,0 +1,172 @@
+"""Backward Euler + CG: analytic deflection, residuals, energy, reset, parameter checks."""
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+
+from soft_tissue_sim import ParameterError, load_scene
+
+
+def beam_scene(n_long, n_cross, preconditioner="jacobi", dt=0.01, young=1e5, poisson=0.3, damping=(0.5, 0.01),
+               tolerance=1e-7, length=None, width=None, max_iterations=3000, **extra):
+    mesh = {"generator": "beam", "n_long": n_long, "n_cross": n_cross}
+    if length is not None:
+        mesh.update(length=length, width=width)
+    else:
+        mesh["spacing"] = 0.01
+    cfg = {
+        "name": f"beam{n_cross}x{n_cross}x{n_long}",
+        "device": "cpu",
+        "mesh": mesh,
+        "materials": [{"id": 0, "young": young, "poisson": poisson, "density": 1000.0}],
+        "damping": {"mass": damping[0], "stiffness": damping[1]},
+        "gravity": [0.0, 0.0, -9.81],
+        "fixed": {"axis": "x", "below": 0.0},
+        "time": {"dt": dt},
+        "solver": {"preconditioner": preconditioner, "tolerance": tolerance, "max_iterations": max_iterations,
+                   "ldlt": {"deterministic": True}},
+    }
+    cfg.update(extra)
+    return cfg
+
+
+def test_cantilever_tip_deflection_converges_to_euler_bernoulli():
+    """Static sag of a clamped beam under its weight vs q L^4 / (8 E I), refined 3 times.
+
+    A few backward Euler steps with a huge dt from rest reach the static equilibrium.
+    Linear tets are too stiff in bending, so the error must fall with refinement.
+    """
+    L, a, E, rho, g = 0.4, 0.04, 2e7, 1000.0, 9.81
+    q = rho * g * a * a
+    w_eb = q * L**4 / (8 * E * a**4 / 12)
+    ratios = []
+    for n_cross, n_long in ((3, 21), (5, 41), (9, 81)):
+        cfg = beam_scene(n_long, n_cross, preconditioner="direct", dt=100.0, young=E, poisson=0.0,
+                         damping=(0.0, 0.0), tolerance=1e-10, length=L, width=a)
+        with load_scene(cfg) as sim:
+            for _ in range(3):
+                s = sim.step()
+                assert s.converged
+            x, X = sim.positions(), sim.mesh.points
+            tip = X[:, 0] > L - 1e-9
+            ratios.append(-(x - X)[tip, 2].mean() / w_eb)
+    errors = [abs(1 - r) for r in ratios]
+    assert errors[0] > errors[1] > errors[2], ratios
+    assert errors[2] < 0.10, ratios
+    assert all(r < 1.0 for r in ratios)  # linear tets are stiffer than the beam
+
+
+@pytest.mark.parametrize("mass", ["lumped", "consistent"])
+def test_cg_matches_a_direct_solve_of_the_assembled_system(mass):
+    cfg = beam_scene(16, 3, preconditioner="none", tolerance=1e-9, mass=mass)
+    with load_scene(cfg) as sim:
+        for _ in range(5):  # get some motion so that rotations and damping terms matter
+            sim.step()
+        integ = sim.integrator
+        integ.build()
+        A = sim.fem.assemble_scipy(integ.m_coef, integ.k_coef)
+        b = integ.b.numpy().ravel()
+        res = integ.cg.solve(integ.matvec, integ.b, integ.dv, integ.preconditioner)
+        x_cg = integ.dv.numpy().ravel()
+        x_direct = spla.spsolve(A, b)
+        assert res.converged and res.iterations > 5
+        assert np.linalg.norm(A @ x_cg - b) <= 1.01e-9 * np.linalg.norm(b)
+        assert np.linalg.norm(x_cg - x_direct) <= 1e-6 * np.linalg.norm(x_direct)
+
+
+@pytest.mark.parametrize("pre", ["none", "jacobi"])
+def test_step_reports_the_residual_it_reached(pre):
+    cfg = beam_scene(12, 3, preconditioner=pre, tolerance=1e-6)
+    with load_scene(cfg) as sim:
+        s = sim.step()
+        assert s.converged and 0 < s.iterations < 500 and s.residual <= 1e-6
+        assert s.total_ms >= s.solve_ms > 0 and s.build_ms > 0
+        assert s.preconditioner == pre
+
+
+def test_jacobi_needs_fewer_iterations_than_plain_cg_on_a_heterogeneous_body():
+    stiff = beam_scene(20, 3, preconditioner="none",
+                       materials=[{"id": 0, "young": 1e4, "poisson": 0.3, "density": 1000.0}])
+    it = {}
+    for pre in ("none", "jacobi"):
+        cfg = dict(stiff, solver={**stiff["solver"], "preconditioner": pre})
+        with load_scene(cfg) as sim:
+            it[pre] = sum(sim.step().iterations for _ in range(3))
+    assert it["jacobi"] < it["none"]
+
+
+def test_damped_energy_decays_and_stays_finite():
+    cfg = beam_scene(20, 3, preconditioner="jacobi", damping=(1.0, 0.02), young=5e4)
+    with load_scene(cfg) as sim:
+        energies = [sim.energy()["total"]]
+        for k in range(300):
+            s = sim.step()
+            assert s.converged
+            if k % 10 == 9:
+                energies.append(sim.energy()["total"])
+        assert np.all(np.isfinite(sim.positions())) and np.all(np.isfinite(sim.velocities()))
+        e = np.array(energies)
+        # each sample no higher than the previous one (up to round-off), and a clear overall loss
+        scale = abs(e).max()
+        assert np.all(np.diff(e) <= 1e-9 * scale), e
+        assert e[-1] < e[0] - 1e-3 * scale
+        # at rest at the end: kinetic energy is a tiny fraction of what was lost
+        assert sim.energy()["kinetic"] < 1e-3 * (e[0] - e[-1])
+
+
+def test_reset_restores_the_initial_state_exactly():
+    cfg = beam_scene(10, 3, preconditioner="jacobi")
+    with load_scene(cfg) as sim:
+        x0, v0 = sim.positions(), sim.velocities()
+        first = [sim.step().residual for _ in range(3)]
+        x3 = sim.positions()
+        assert not np.array_equal(x0, x3)
+        sim.reset()
+        np.testing.assert_array_equal(sim.positions(), x0)
+        np.testing.assert_array_equal(sim.velocities(), v0)
+        assert sim.step_count == 0 and sim.time == 0.0
+        again = [sim.step().residual for _ in range(3)]
+        assert again == first
+        np.testing.assert_array_equal(sim.positions(), x3)
+
+
+def test_fixed_nodes_do_not_move():
+    cfg = beam_scene(10, 3)
+    with load_scene(cfg) as sim:
+        fixed = sim.fem.fixed_nodes
+        assert len(fixed) == 9
+        X = sim.mesh.points.copy()
+        for _ in range(5):
+            sim.step()
+        np.testing.assert_array_equal(sim.positions()[fixed], X[fixed])
+        assert np.abs(sim.positions() - X).max() > 1e-5
+
+
+@pytest.mark.parametrize(
+    "change, msg",
+    [
+        ({"time": {"dt": 0.0}}, "dt"),
+        ({"time": {"dt": -0.01}}, "dt"),
+        ({"time": {"dt": float("nan")}}, "dt"),
+        ({"materials": [{"id": 0, "young": -1.0, "poisson": 0.3, "density": 1000.0}]}, "Young"),
+        ({"materials": [{"id": 0, "young": 1e5, "poisson": 0.5, "density": 1000.0}]}, "Poisson"),
+        ({"materials": [{"id": 0, "young": 1e5, "poisson": 0.3}]}, "density"),
+        ({"gravity": [0.0, float("nan"), 0.0]}, "gravity"),
+        ({"damping": {"mass": -1.0}}, "damping"),
+        ({"solver": {"preconditioner": "magic"}}, "preconditioner"),
+        ({"solver": {"tolerance": 0.0}}, "tolerance"),
+        ({"device": "tpu"}, "device"),
+        ({"viscosity": 3}, "unknown scene keys"),
+        ({"fixed": {"nodes": [10_000]}}, "out of range"),
+    ],
+)
+def test_impossible_scene_parameters_raise_clear_errors(change, msg):
+    cfg = beam_scene(4, 2)
+    cfg.update(change)
+    with pytest.raises((ParameterError, ValueError), match=msg):
+        load_scene(cfg)
+
+
+def test_missing_scene_file_is_named():
+    with pytest.raises(FileNotFoundError, match="no_such_scene.yaml"):
+        load_scene("no_such_scene.yaml")

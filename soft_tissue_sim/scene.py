@@ -283,6 +283,38 @@ class Simulation:
     def surface_triangles(self) -> np.ndarray:
         return self.mesh.boundary_faces()
 
+    # ------------------------------------------- instruments, contact, cutting
+    def instrument_names(self) -> list[str]:
+        return self.contact.instrument_names() if self.contact is not None else []
+
+    def set_instrument_pose(self, name, position, quaternion_xyzw, linear_velocity=None, angular_velocity=None):
+        """Pose (world frame) of a named instrument for the next step. Raises ValueError on bad input."""
+        if self.contact is None:
+            raise ValueError("this scene has no instruments")
+        self.contact.set_instrument_pose(name, position, quaternion_xyzw, linear_velocity, angular_velocity)
+
+    def instrument_wrench(self, name):
+        """(force, torque) ON the instrument from the last step's contacts, world frame, torque about
+        the instrument frame's origin [N, N m]."""
+        if self.contact is None:
+            raise ValueError("this scene has no instruments")
+        return self.contact.instrument_wrench(name)
+
+    def contact_points(self) -> np.ndarray:
+        return self.contact.contact_points() if self.contact is not None else np.zeros((0, 3))
+
+    def cut(self):
+        """Cut along the blade path since the last cut. Returns a CutResult (tets_changed, message)."""
+        if self.cutting is None:
+            raise ValueError("this scene has no cutting")
+        return self.cutting.cut(self)
+
+    def set_cutting(self, active: bool) -> None:
+        """Blade active: cut continuously while the instrument moves (like a pedal)."""
+        if self.cutting is None:
+            raise ValueError("this scene has no cutting")
+        self.cutting.set_active(bool(active))
+
     def energy(self) -> dict:
         ke, pe, ee = self.integrator.energy()
         return {"kinetic": ke, "gravity": pe, "elastic": ee, "total": ke + pe + ee}

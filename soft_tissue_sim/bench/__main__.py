@@ -1,0 +1,24 @@
+"""``python -m soft_tissue_sim.bench <benchmark> [options]``: runs soft_tissue_sim.bench.<benchmark>."""
+
+import importlib
+import sys
+
+BENCHMARKS = {
+    "solvers": "solvers",  # error against run time for every solver (issue: async LDL^T)
+    "cut-beam": "cut_beam",  # the paper's cut beam table and the SMF overhead
+    "stability": "stability",  # extreme cases, every solver
+    "scaling": "scaling",  # cost against mesh size
+}
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] not in BENCHMARKS:
+        print(f"usage: python -m soft_tissue_sim.bench {{{'|'.join(BENCHMARKS)}}} [options]", file=sys.stderr)
+        return 2
+    mod = importlib.import_module(f"soft_tissue_sim.bench.{BENCHMARKS[argv[0]]}")
+    return mod.main(argv[1:]) or 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

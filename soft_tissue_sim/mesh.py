@@ -1,0 +1,402 @@
+"""Linear tetrahedral meshes: validation, meshio I/O, surface extraction, generators.
+
+Conventions: ``points`` (n, 3) float64, ``tets`` (m, 4) int32 positively oriented
+(``det[x1-x0, x2-x0, x3-x0] > 0``), ``material_ids`` (m,) int32. Pure numpy + meshio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import math
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "MeshError",
+    "TetMesh",
+    "tet_quality",
+    "validate_mesh",
+    "load_mesh",
+    "save_mesh",
+    "beam_mesh",
+    "brain_mesh",
+    "cli",
+]
+
+# Faces of a positively oriented tet (local indices), each with its right-hand normal outward.
+_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
+_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
+_MATERIAL_KEYS = ("material_id", "material", "gmsh:physical", "medit:ref", "MaterialIds")
+# meshio cell types that fill volume; anything else (triangle, line, vertex...) is ignored on load.
+_VOLUME_TYPES = ("tetra", "hexahedron", "wedge", "pyramid")
+
+
+class MeshError(ValueError):
+    """A mesh (or mesh file) is unusable; the message names the problem and the cells."""
+
+
+def _list(idx, limit: int = 10) -> str:
+    """'[3, 7, 9]' or '[0, 1, ..., 9] and 25 more (35 in all)'."""
+    idx = [int(i) for i in np.asarray(idx).ravel()]
+    if len(idx) <= limit:
+        return str(idx)
+    return f"{idx[:limit]} and {len(idx) - limit} more ({len(idx)} in all)"
+
+
+@dataclass
+class TetMesh:
+    """A linear tetrahedral mesh (no validation here: use :func:`validate_mesh`)."""
+
+    points: np.ndarray
+    tets: np.ndarray
+    material_ids: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.points = np.ascontiguousarray(self.points, dtype=np.float64)
+        self.tets = np.ascontiguousarray(self.tets, dtype=np.int32)
+        if self.material_ids is None:
+            self.material_ids = np.zeros(len(self.tets), dtype=np.int32)
+        self.material_ids = np.ascontiguousarray(self.material_ids, dtype=np.int32)
+        if self.points.ndim != 2 or self.points.shape[1] != 3:
+            raise MeshError(f"points must have shape (n, 3), got {self.points.shape}")
+        if self.tets.ndim != 2 or self.tets.shape[1] != 4:
+            raise MeshError(f"tets must have shape (m, 4), got {self.tets.shape}")
+        if self.material_ids.shape != (len(self.tets),):
+            raise MeshError(f"material_ids must have shape ({len(self.tets)},), got {self.material_ids.shape}")
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def n_tets(self) -> int:
+        return int(self.tets.shape[0])
+
+    def copy(self) -> "TetMesh":
+        return TetMesh(self.points.copy(), self.tets.copy(), self.material_ids.copy())
+
+    def signed_volumes(self) -> np.ndarray:
+        """(m,) signed volumes, det[x1-x0, x2-x0, x3-x0] / 6."""
+        return _signed_volumes(self.points, self.tets)
+
+    def centroids(self) -> np.ndarray:
+        """(m, 3) tet centroids."""
+        return self.points[self.tets].mean(axis=1)
+
+    def boundary_faces(self) -> np.ndarray:
+        """(k, 3) int32 faces used by exactly one tet, right-hand normal pointing out of it."""
+        faces = self.tets[:, _FACES].reshape(-1, 3)
+        key = np.sort(faces, axis=1)
+        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        return np.ascontiguousarray(faces[cnt[inv.ravel()] == 1], dtype=np.int32)
+
+    def edges(self) -> np.ndarray:
+        """(e, 2) unique edges, each as (i, j) with i < j, rows sorted."""
+        e = np.sort(self.tets[:, _EDGES].reshape(-1, 2), axis=1)
+        return np.unique(e, axis=0).astype(np.int32)
+
+
+def _signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    x = np.asarray(points, dtype=np.float64)[np.asarray(tets)]
+    d = x[:, 1:] - x[:, :1]  # rows: x1-x0, x2-x0, x3-x0
+    return np.einsum("ij,ij->i", d[:, 0], np.cross(d[:, 1], d[:, 2])) / 6.0
+
+
+def tet_quality(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(m,) shape quality 6*sqrt(2)*V / l_rms^3: 1 regular, 0 flat, < 0 inverted (scale free)."""
+    points = np.asarray(points, dtype=np.float64)
+    tets = np.asarray(tets).reshape(-1, 4)
+    x = points[tets]
+    e = x[:, _EDGES[:, 1]] - x[:, _EDGES[:, 0]]
+    l_rms = np.sqrt(np.einsum("ijk,ijk->i", e, e) / 6.0)
+    vol = _signed_volumes(points, tets)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = 6.0 * math.sqrt(2.0) * vol / l_rms**3
+    return np.where(l_rms > 0.0, q, 0.0)
+
+
+def validate_mesh(points, tets, material_ids=None, *, min_quality: float = 1e-6) -> TetMesh:
+    """Check a mesh and return a clean :class:`TetMesh`; raise :class:`MeshError` naming the bad cells.
+
+    Nodes used by no tet are dropped (with a warning) and tet indices remapped.
+    """
+    try:
+        points = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise MeshError(f"points are not numeric: {e}") from None
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MeshError(f"points must have shape (n, 3), got {points.shape}")
+    tets = np.asarray(tets)
+    if tets.ndim != 2 or tets.shape[1] != 4:
+        raise MeshError(f"tets must have shape (m, 4), got {tets.shape}")
+    if tets.shape[0] == 0:
+        raise MeshError("mesh has no tetrahedra")
+    if tets.dtype.kind not in "iu":
+        if tets.dtype.kind != "f" or not np.all(np.isfinite(tets)) or np.any(tets != np.round(tets)):
+            raise MeshError(f"tet node indices must be integers, got dtype {tets.dtype}")
+    tets = tets.astype(np.int64)
+    m = tets.shape[0]
+
+    bad_nodes = np.flatnonzero(~np.all(np.isfinite(points), axis=1))
+    if bad_nodes.size:
+        raise MeshError(f"non-finite (NaN/inf) coordinates at nodes {_list(bad_nodes)}")
+    bad = np.flatnonzero(np.any((tets < 0) | (tets >= len(points)), axis=1))
+    if bad.size:
+        raise MeshError(f"node index out of range [0, {len(points)}) in tets {_list(bad)}")
+    s = np.sort(tets, axis=1)
+    bad = np.flatnonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))
+    if bad.size:
+        raise MeshError(f"repeated node inside one tet in tets {_list(bad)}")
+    _, first, inv = np.unique(s, axis=0, return_index=True, return_inverse=True)
+    bad = np.flatnonzero(first[inv.ravel()] != np.arange(m))
+    if bad.size:
+        raise MeshError(
+            f"duplicated tets (same nodes as an earlier tet) {_list(bad)}; first copies {_list(first[inv.ravel()][bad])}"
+        )
+
+    if material_ids is None:
+        mat = np.zeros(m, dtype=np.int32)
+    else:
+        mat = np.asarray(material_ids)
+        if mat.ndim == 2 and mat.shape[1] == 1:
+            mat = mat[:, 0]
+        if mat.shape != (m,):
+            raise MeshError(f"material_ids must have shape ({m},), got {mat.shape}")
+        if mat.dtype.kind not in "iu":
+            if mat.dtype.kind != "f" or not np.all(np.isfinite(mat)) or np.any(mat != np.round(mat)):
+                raise MeshError(f"material ids must be integers, got dtype {mat.dtype}")
+        if mat.size and (mat.min() < np.iinfo(np.int32).min or mat.max() > np.iinfo(np.int32).max):
+            raise MeshError("material ids do not fit in int32")
+        mat = mat.astype(np.int32)
+
+    q = tet_quality(points, tets)
+    degenerate = np.abs(q) < min_quality
+    bad = np.flatnonzero(~degenerate & (q < 0.0))
+    if bad.size:
+        raise MeshError(f"inverted tets (negative volume) {_list(bad)}")
+    bad = np.flatnonzero(degenerate)
+    if bad.size:
+        raise MeshError(f"degenerate tets (|quality| < {min_quality:g}) {_list(bad)}; min |quality| {np.abs(q).min():.3g}")
+
+    used = np.zeros(len(points), dtype=bool)
+    used[tets.ravel()] = True
+    if not used.all():
+        n_drop = int((~used).sum())
+        warnings.warn(f"dropping {n_drop} node(s) used by no tetrahedron: {_list(np.flatnonzero(~used))}", stacklevel=2)
+        remap = np.cumsum(used) - 1
+        points, tets = points[used], remap[tets]
+    return TetMesh(points.copy(), tets.astype(np.int32), mat)
+
+
+def load_mesh(path, material_key: str | None = None) -> TetMesh:
+    """Read any meshio format; keep the 'tetra' blocks; material ids from cell data; validate."""
+    import meshio
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        raw = meshio.read(str(path))
+    except (Exception, SystemExit) as e:  # meshio raises ReadError, ValueError..., or sys.exit(1)
+        raise MeshError(f"cannot read mesh file {path}: {type(e).__name__}: {e}") from None
+
+    types = [b.type for b in raw.cells]
+    counts = {t: sum(len(b.data) for b in raw.cells if b.type == t) for t in dict.fromkeys(types)}
+    have = ", ".join(f"{t} ({n})" for t, n in counts.items()) or "no cells"
+    if "tetra10" in counts:
+        raise MeshError(f"{path}: quadratic tetrahedra (tetra10) are not supported, only linear 'tetra'; file has {have}")
+    other = [t for t in counts if t in _VOLUME_TYPES and t != "tetra"]
+    if other:
+        raise MeshError(f"{path}: only linear tetrahedra are supported, file also has {have}")
+    if "tetra" not in counts:
+        raise MeshError(f"{path}: no tetrahedra ('tetra' cells) in file; it has {have}")
+
+    blocks = [i for i, t in enumerate(types) if t == "tetra"]
+    tets = np.concatenate([raw.cells[i].data for i in blocks])
+    if material_key is not None and material_key not in raw.cell_data:
+        raise MeshError(f"{path}: no cell data {material_key!r}; it has {sorted(raw.cell_data)}")
+    key = material_key or next((k for k in _MATERIAL_KEYS if k in raw.cell_data), None)
+    mat = None
+    if key is not None:
+        parts = []
+        for i in blocks:
+            a = np.asarray(raw.cell_data[key][i])
+            if a.ndim == 2 and a.shape[1] == 1:
+                a = a[:, 0]
+            if a.shape != (len(raw.cells[i].data),):
+                raise MeshError(f"{path}: cell data {key!r} has shape {a.shape}, expected one value per tet")
+            parts.append(a)
+        mat = np.concatenate(parts)
+    try:
+        return validate_mesh(raw.points, tets, mat)
+    except MeshError as e:
+        raise MeshError(f"{path}: {e}") from None
+
+
+def save_mesh(mesh: TetMesh, path, file_format: str | None = None) -> None:
+    """Write with meshio (format from the suffix unless ``file_format``), cell data 'material_id'.
+
+    '.msh' defaults to Gmsh 2.2 (meshio's 4.1 writer drops the physical tags); Gmsh files
+    also get 'gmsh:physical' / 'gmsh:geometrical' set to the material id.
+    """
+    import meshio
+
+    path = str(path)
+    mat = np.asarray(mesh.material_ids, dtype=np.int32)
+    cell_data = {"material_id": [mat]}
+    if file_format is None and path.lower().endswith(".msh"):
+        file_format = "gmsh22"
+    if (file_format or "").startswith("gmsh"):
+        cell_data["gmsh:physical"] = [mat]
+        cell_data["gmsh:geometrical"] = [mat]
+    out = meshio.Mesh(np.asarray(mesh.points, dtype=np.float64), [("tetra", np.asarray(mesh.tets, dtype=np.int32))],
+                      cell_data=cell_data)
+    meshio.write(path, out, file_format=file_format)
+
+
+# ---------------------------------------------------------------------------- generators
+
+
+def _grid_tets(shape: tuple[int, int, int]) -> np.ndarray:
+    """Kuhn split of an (a, b, c)-node grid (node id = (i*b + j)*c + k): 6 tets per cell, all
+    along the (0,0,0)-(1,1,1) diagonal, so the split is conforming; positive for a
+    right-handed grid mapping."""
+    a, b, c = shape
+    ii, jj, kk = np.meshgrid(np.arange(a - 1), np.arange(b - 1), np.arange(c - 1), indexing="ij")
+    base = ((ii * b + jj) * c + kk).ravel()
+    step = np.array([b * c, c, 1])
+    tets = []
+    for perm in itertools.permutations(range(3)):
+        o1 = step[perm[0]]
+        o2 = o1 + step[perm[1]]
+        o3 = step.sum()
+        # parity of the permutation decides the orientation of (0, e_p0, e_p0+e_p1, 111)
+        odd = sum(perm[i] > perm[j] for i in range(3) for j in range(i + 1, 3)) % 2
+        offs = (0, o1, o3, o2) if odd else (0, o1, o2, o3)
+        tets.append(np.stack([base + o for o in offs], axis=1))
+    # cell-major order: the 6 tets of one cell are consecutive
+    return np.stack(tets, axis=1).reshape(-1, 4).astype(np.int32)
+
+
+def _positive(name: str, value) -> float:
+    x = float(value)
+    if not (math.isfinite(x) and x > 0.0):
+        raise MeshError(f"{name} must be finite and > 0, got {value!r}")
+    return x
+
+
+def _count(name: str, value, low: int = 2) -> int:
+    if isinstance(value, bool) or int(value) != value or int(value) < low:
+        raise MeshError(f"{name} must be an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+def beam_mesh(n_long: int, n_cross: int = 5, length: float | None = None, width: float | None = None,
+              spacing: float = 0.01) -> TetMesh:
+    """Square beam, long axis x from 0 (clamped end) to ``length``, section centred on y = z = 0.
+
+    ``n_long`` nodes along x, ``n_cross`` x ``n_cross`` in the section; ``length`` defaults to
+    (n_long-1)*spacing, ``width`` to (n_cross-1)*spacing. Each hex cell is split into 6 tets.
+    Paper beams: n_long 48 / 64 / 80 -> 1,200 / 1,600 / 2,000 nodes.
+    """
+    n_long, n_cross = _count("n_long", n_long), _count("n_cross", n_cross)
+    spacing = _positive("spacing", spacing)
+    length = _positive("length", (n_long - 1) * spacing if length is None else length)
+    width = _positive("width", (n_cross - 1) * spacing if width is None else width)
+    x = np.linspace(0.0, length, n_long)
+    y = np.linspace(-0.5 * width, 0.5 * width, n_cross)
+    X, Y, Z = np.meshgrid(x, y, y, indexing="ij")
+    points = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    return validate_mesh(points, _grid_tets((n_long, n_cross, n_cross)))
+
+
+# Brain-like dome: footprint semi-axes, centre height, rim height fraction, tumour.
+BRAIN_SEMI_AXES = (0.07, 0.055)
+BRAIN_HEIGHT = 0.05
+BRAIN_RIM = 0.35
+BRAIN_TUMOUR_CENTRE = (0.01, 0.0, 0.6 * BRAIN_HEIGHT)
+BRAIN_TUMOUR_RADIUS = 0.014
+_DISK_BLEND = 0.75  # < 1 keeps the square-to-disk map regular at the corners
+
+
+def brain_mesh() -> TetMesh:
+    """Brain-like dome (1,734 nodes, 7,680 tets) on a flat base z = 0; tumour tets have id 1.
+
+    A 17 x 17 x 6 node grid mapped to a rounded footprint (square blended 3:1 towards the
+    elliptical square-to-disk map, semi-axes 0.07 x 0.055 m) and a height 0.05 m at the
+    centre falling smoothly to 35 % at the rim. Material 1: tets whose centroid lies within
+    0.014 m of (0.01, 0, 0.03); the rest 0.
+    """
+    nu, nv, nw = 17, 17, 6
+    u, v, w = np.meshgrid(np.linspace(-1, 1, nu), np.linspace(-1, 1, nv), np.linspace(0, 1, nw), indexing="ij")
+    xd = u * np.sqrt(1.0 - 0.5 * v**2)  # elliptical square-to-disk map
+    yd = v * np.sqrt(1.0 - 0.5 * u**2)
+    xf = (1.0 - _DISK_BLEND) * u + _DISK_BLEND * xd
+    yf = (1.0 - _DISK_BLEND) * v + _DISK_BLEND * yd
+    bump = (1.0 - u**2) * (1.0 - v**2)  # 1 at the centre, 0 on the rim
+    h = BRAIN_HEIGHT * (BRAIN_RIM + (1.0 - BRAIN_RIM) * bump)
+    points = np.stack([BRAIN_SEMI_AXES[0] * xf.ravel(), BRAIN_SEMI_AXES[1] * yf.ravel(), (w * h).ravel()], axis=1)
+    tets = _grid_tets((nu, nv, nw))
+    c = points[tets].mean(axis=1)
+    inside = np.linalg.norm(c - np.asarray(BRAIN_TUMOUR_CENTRE), axis=1) < BRAIN_TUMOUR_RADIUS
+    return validate_mesh(points, tets, inside.astype(np.int32), min_quality=0.05)
+
+
+# ---------------------------------------------------------------------------- command line
+
+
+def _info(mesh: TetMesh, path) -> str:
+    ids, counts = np.unique(mesh.material_ids, return_counts=True)
+    q = tet_quality(mesh.points, mesh.tets)
+    lo, hi = mesh.points.min(axis=0), mesh.points.max(axis=0)
+    fmt = lambda a: "(" + ", ".join(f"{x:.6g}" for x in a) + ")"  # noqa: E731
+    return "\n".join([
+        f"file          {path}",
+        f"nodes         {mesh.n_nodes}",
+        f"tets          {mesh.n_tets}",
+        "material ids  " + ", ".join(f"{i}: {n}" for i, n in zip(ids, counts)),
+        f"bbox          min {fmt(lo)} max {fmt(hi)}",
+        f"volume        {mesh.signed_volumes().sum():.6g}",
+        f"surface faces {len(mesh.boundary_faces())}",
+        f"quality       min {q.min():.4f} mean {q.mean():.4f}",
+    ])
+
+
+def cli(argv=None) -> int:
+    """``python -m soft_tissue_sim mesh beam|brain|info ...``."""
+    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim mesh", description="generate or inspect tet meshes")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    b = sub.add_parser("beam", help="structured beam along x, clamped end at x = 0")
+    b.add_argument("--long", type=int, required=True, help="nodes along the beam (x)")
+    b.add_argument("--cross", type=int, default=5, help="nodes per side of the square section")
+    b.add_argument("--spacing", type=float, default=0.01, help="node spacing [m]")
+    b.add_argument("--length", type=float, default=None, help="beam length [m] (default (long-1)*spacing)")
+    b.add_argument("--width", type=float, default=None, help="section width [m] (default (cross-1)*spacing)")
+    b.add_argument("--out", required=True, help="output file (any meshio format, e.g. .vtu)")
+    r = sub.add_parser("brain", help="brain-like dome with a tumour (material 1)")
+    r.add_argument("--out", required=True)
+    i = sub.add_parser("info", help="print nodes, tets, materials, bbox, quality of a mesh file")
+    i.add_argument("file")
+    i.add_argument("--material-key", default=None)
+    args = ap.parse_args(argv)
+    try:
+        if args.cmd == "info":
+            print(_info(load_mesh(args.file, args.material_key), args.file))
+            return 0
+        if args.cmd == "beam":
+            mesh = beam_mesh(args.long, args.cross, args.length, args.width, args.spacing)
+        else:
+            mesh = brain_mesh()
+    except (MeshError, FileNotFoundError) as e:
+        ap.exit(2, f"error: {e}\n")
+    out = Path(args.out)
+    if out.parent and not out.parent.exists():
+        os.makedirs(out.parent, exist_ok=True)
+    save_mesh(mesh, out)
+    print(_info(mesh, out))
+    return 0

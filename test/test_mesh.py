@@ -1,0 +1,351 @@
+"""Tet meshes: validation errors, meshio round trips, generators, surface orientation, CLI."""
+
+import warnings
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+
+from soft_tissue_sim.mesh import (
+    MeshError,
+    TetMesh,
+    beam_mesh,
+    brain_mesh,
+    cli,
+    load_mesh,
+    save_mesh,
+    tet_quality,
+    validate_mesh,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+REGULAR = np.array([[1, 1, 1], [-1, 1, -1], [1, -1, -1], [-1, -1, 1]], dtype=float)  # positive order
+
+
+@pytest.fixture(scope="module")
+def brain():
+    return brain_mesh()
+
+
+def small():
+    return beam_mesh(3, n_cross=2, spacing=0.01)  # 12 nodes, 12 tets
+
+
+# ---------------------------------------------------------------- quality
+
+
+def test_tet_quality_regular_flat_inverted():
+    t = np.array([[0, 1, 2, 3]])
+    assert tet_quality(REGULAR, t)[0] == pytest.approx(1.0, abs=1e-12)
+    rng = np.random.default_rng(0)
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    q *= np.sign(np.linalg.det(q))  # proper rotation
+    assert tet_quality(0.003 * REGULAR @ q.T + 5.0, t)[0] == pytest.approx(1.0, abs=1e-12)
+    flat = REGULAR.copy()
+    flat[3] = (flat[0] + flat[1] + flat[2]) / 3 + 1e-9
+    assert abs(tet_quality(flat, t)[0]) < 1e-8
+    assert tet_quality(REGULAR, np.array([[0, 2, 1, 3]]))[0] == pytest.approx(-1.0, abs=1e-12)
+    # a Kuhn tet of a cube: V = 1/6, l_rms^2 = 10/6
+    kuhn = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 1, 1]], float)
+    assert tet_quality(kuhn, t)[0] == pytest.approx(np.sqrt(2) / (10 / 6) ** 1.5)
+
+
+# ---------------------------------------------------------------- validation
+
+
+def _bad_cases():
+    m = small()
+    P, T = m.points, m.tets.astype(np.int64)
+    cases = {}
+    cases["no_tets"] = (P, np.zeros((0, 4), int), "no tetrahedra", None)
+    cases["points_shape"] = (P[:, :2], T, "points must have shape (n, 3)", None)
+    cases["tets_shape"] = (P, T[:, :3], "tets must have shape (m, 4)", None)
+    p = P.copy()
+    p[7, 1] = np.nan
+    p[9, 2] = np.inf
+    cases["nan"] = (p, T, "non-finite", "[7, 9]")
+    t = T.copy()
+    t[5, 2] = len(P)
+    cases["out_of_range"] = (P, t, "out of range", "[5]")
+    t = T.copy()
+    t[4, 3] = t[4, 0]
+    cases["repeated"] = (P, t, "repeated node", "[4]")
+    t = T.copy()
+    t[6, [1, 2]] = t[6, [2, 1]]
+    cases["inverted"] = (P, t, "inverted", "[6]")
+    p = P.copy()
+    t = T.copy()
+    p = np.vstack([p, [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.3, 0.3, 0.0]]])  # coplanar
+    t = np.vstack([t, [[12, 13, 14, 15]]])
+    cases["degenerate"] = (p, t, "degenerate", "[12]")
+    t = np.vstack([T, T[3][[2, 0, 3, 1]]])
+    cases["duplicated"] = (P, t, "duplicated", "[12]")
+    return cases
+
+
+@pytest.mark.parametrize("name", list(_bad_cases()))
+def test_validate_rejects_bad_input(name):
+    P, T, problem, index = _bad_cases()[name]
+    P0, T0 = np.array(P, copy=True), np.array(T, copy=True)
+    with pytest.raises(MeshError) as e:
+        validate_mesh(P, T)
+    msg = str(e.value)
+    assert problem in msg
+    if index is not None:
+        assert index in msg
+    assert np.array_equal(P, P0, equal_nan=True) and np.array_equal(T, T0)  # inputs untouched
+
+
+def test_validate_lists_first_ten_then_count():
+    m = beam_mesh(4, n_cross=3)
+    t = m.tets.copy()
+    t[:, [0, 1]] = t[:, [1, 0]]  # invert all
+    with pytest.raises(MeshError, match=r"inverted .*\[0, 1, 2, 3, 4, 5, 6, 7, 8, 9\] and 62 more \(72 in all\)"):
+        validate_mesh(m.points, t)
+
+
+def test_validate_material_ids_checked():
+    m = small()
+    with pytest.raises(MeshError, match="material_ids must have shape"):
+        validate_mesh(m.points, m.tets, np.zeros(m.n_tets + 1))
+    with pytest.raises(MeshError, match="material ids must be integers"):
+        validate_mesh(m.points, m.tets, np.full(m.n_tets, 0.5))
+    out = validate_mesh(m.points, m.tets, np.arange(m.n_tets, dtype=np.int64))
+    assert out.material_ids.dtype == np.int32 and np.array_equal(out.material_ids, np.arange(m.n_tets))
+    assert np.array_equal(validate_mesh(m.points, m.tets).material_ids, np.zeros(m.n_tets))
+
+
+def test_unreferenced_nodes_dropped_and_indices_remapped():
+    m = small()
+    rng = np.random.default_rng(1)
+    n = m.n_nodes
+    # new layout: 3 unused nodes spread among the real ones
+    new_of_old = np.setdiff1d(np.arange(n + 3), [0, 5, n + 2])
+    P = rng.standard_normal((n + 3, 3))
+    P[new_of_old] = m.points
+    T = new_of_old[m.tets]
+    mat = np.arange(m.n_tets) % 3
+    with pytest.warns(UserWarning, match=r"dropping 3 node\(s\).*\[0, 5, 14\]"):
+        out = validate_mesh(P, T, mat)
+    assert out.n_nodes == n
+    assert np.array_equal(out.points, m.points)
+    assert np.array_equal(out.tets, m.tets)
+    assert np.array_equal(out.material_ids, mat)
+    assert np.allclose(out.signed_volumes(), m.signed_volumes())
+
+
+def test_clean_mesh_gives_no_warning():
+    m = small()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = validate_mesh(m.points, m.tets)
+    assert out.tets.dtype == np.int32 and out.points.dtype == np.float64
+
+
+# ---------------------------------------------------------------- I/O
+
+
+@pytest.mark.parametrize("suffix", [".vtu", ".msh", ".vtk"])
+def test_round_trip(tmp_path, brain, suffix):
+    path = tmp_path / f"brain{suffix}"
+    save_mesh(brain, path)
+    back = load_mesh(path)
+    assert np.allclose(back.points, brain.points, rtol=0, atol=1e-12)
+    assert np.array_equal(back.tets, brain.tets)
+    assert np.array_equal(back.material_ids, brain.material_ids)
+    assert set(np.unique(back.material_ids)) == {0, 1}
+    if suffix == ".msh":
+        with open(path, "rb") as fh:
+            head = fh.read(40)
+        assert b"$MeshFormat\n2.2" in head
+
+
+def test_material_key_fallback_and_explicit(tmp_path):
+    m = small()
+    ids = (np.arange(m.n_tets) % 4).astype(np.int32)
+    other = (10 + np.arange(m.n_tets)).astype(np.int32)
+    path = tmp_path / "keys.vtu"
+    meshio.write(path, meshio.Mesh(m.points, [("tetra", m.tets)], cell_data={"MaterialIds": [ids], "other": [other]}))
+    assert np.array_equal(load_mesh(path).material_ids, ids)
+    assert np.array_equal(load_mesh(path, material_key="other").material_ids, other)
+    with pytest.raises(MeshError, match="no cell data 'missing'"):
+        load_mesh(path, material_key="missing")
+
+
+def test_tetra_blocks_concatenated_and_surface_cells_ignored(tmp_path):
+    m = small()
+    ids = np.arange(m.n_tets, dtype=np.int32)
+    tri = m.boundary_faces()
+    cells = [("tetra", m.tets[:5]), ("triangle", tri), ("tetra", m.tets[5:])]
+    data = {"gmsh:physical": [ids[:5], np.full(len(tri), 99), ids[5:]]}
+    path = tmp_path / "mixed.vtu"
+    meshio.write(path, meshio.Mesh(m.points, cells, cell_data=data))
+    back = load_mesh(path)
+    assert np.array_equal(back.tets, m.tets)
+    assert np.array_equal(back.material_ids, ids)
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nowhere.vtu"):
+        load_mesh(tmp_path / "nowhere.vtu")
+    m = small()
+    tri = tmp_path / "surface.vtu"
+    meshio.write(tri, meshio.Mesh(m.points, [("triangle", m.boundary_faces())]))
+    with pytest.raises(MeshError, match=r"no tetrahedra.*triangle \(\d+\)"):
+        load_mesh(tri)
+    quad = tmp_path / "quadratic.vtu"
+    meshio.write(quad, meshio.Mesh(np.vstack([m.points] * 3), [("tetra10", np.arange(10)[None, :])]))
+    with pytest.raises(MeshError, match="quadratic"):
+        load_mesh(quad)
+    hexa = tmp_path / "hex.vtu"
+    meshio.write(hexa, meshio.Mesh(m.points, [("tetra", m.tets), ("hexahedron", np.arange(8)[None, :])]))
+    with pytest.raises(MeshError, match="hexahedron"):
+        load_mesh(hexa)
+    junk = tmp_path / "junk.vtu"
+    junk.write_text("not a mesh")
+    with pytest.raises(MeshError, match="cannot read mesh file"):
+        load_mesh(junk)
+    bad = tmp_path / "inverted.vtu"
+    t = m.tets.copy()
+    t[2, [0, 1]] = t[2, [1, 0]]
+    meshio.write(bad, meshio.Mesh(m.points, [("tetra", t)]))
+    with pytest.raises(MeshError, match=r"inverted.*\[2\]"):
+        load_mesh(bad)
+
+
+# ---------------------------------------------------------------- generators
+
+
+@pytest.mark.parametrize("n_long,nodes", [(48, 1200), (64, 1600), (80, 2000)])
+def test_paper_beams(n_long, nodes):
+    m = beam_mesh(n_long)
+    assert m.n_nodes == nodes and m.n_tets == 6 * 16 * (n_long - 1)
+    v = m.signed_volumes()
+    assert v.min() > 0
+    L = (n_long - 1) * 0.01
+    assert v.sum() == pytest.approx(L * 0.04 * 0.04, rel=1e-12)
+    assert np.allclose(m.points.min(0), [0, -0.02, -0.02]) and np.allclose(m.points.max(0), [L, 0.02, 0.02])
+    # conforming split: the only faces used once are the 2 triangles of each surface quad
+    quads = 2 * 4 * 4 + 4 * (n_long - 1) * 4
+    assert len(m.boundary_faces()) == 2 * quads
+
+
+def test_beam_length_width_and_errors():
+    m = beam_mesh(11, n_cross=3, length=0.5, width=0.1)
+    assert np.allclose(m.points.max(0) - m.points.min(0), [0.5, 0.1, 0.1])
+    assert m.signed_volumes().sum() == pytest.approx(0.5 * 0.1 * 0.1)
+    with pytest.raises(MeshError, match="n_long"):
+        beam_mesh(1)
+    with pytest.raises(MeshError, match="spacing"):
+        beam_mesh(5, spacing=0.0)
+    with pytest.raises(MeshError, match="width"):
+        beam_mesh(5, width=float("nan"))
+
+
+def test_brain(brain):
+    assert brain.n_nodes == 1734 and brain.n_tets == 7680
+    assert brain.signed_volumes().min() > 0
+    assert tet_quality(brain.points, brain.tets).min() > 0.05
+    ids = brain.material_ids
+    assert set(np.unique(ids)) == {0, 1}
+    c = brain.centroids()
+    d = np.linalg.norm(c - [0.01, 0.0, 0.03], axis=1)
+    assert np.all(d[ids == 1] < 0.014) and np.all(d[ids == 0] >= 0.014)
+    # the tumour tets fill roughly the sphere's volume
+    sphere = 4 / 3 * np.pi * 0.014**3
+    assert brain.signed_volumes()[ids == 1].sum() == pytest.approx(sphere, rel=0.15)
+    # flat base at z = 0 made of boundary faces with downward normals
+    assert brain.points[:, 2].min() == 0.0
+    f = brain.boundary_faces()
+    base = f[np.all(brain.points[f, 2] == 0.0, axis=1)]
+    x = brain.points[base]
+    n = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    assert len(base) == 2 * 16 * 16 and np.all(n[:, 2] < 0)
+    ext = brain.points.max(0) - brain.points.min(0)
+    assert np.allclose(ext, [0.14, 0.11, 0.05])
+    assert brain_mesh().points.tobytes() == brain.points.tobytes()  # deterministic
+
+
+# ---------------------------------------------------------------- topology
+
+
+@pytest.mark.parametrize("which", ["beam", "brain"])
+def test_boundary_closed_and_outward(which, brain):
+    m = beam_mesh(12, n_cross=4, spacing=0.013) if which == "beam" else brain
+    f = m.boundary_faces()
+    assert f.dtype == np.int32
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    # closed and consistently oriented: every directed edge once, its reverse exactly once
+    fwd = {tuple(e) for e in directed}
+    assert len(fwd) == len(directed)
+    assert all((b, a) in fwd for a, b in fwd)
+    und, cnt = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    assert np.all(cnt == 2)
+    # outward: divergence theorem, volume = sum (centroid . n) area / 3
+    x = m.points[f]
+    cross = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    vol_surface = np.einsum("ij,ij->", x.mean(axis=1), cross) / 6.0
+    assert vol_surface == pytest.approx(m.signed_volumes().sum(), rel=1e-10)
+
+
+def test_edges_and_euler_characteristic(brain):
+    for m in (beam_mesh(7, n_cross=3), brain):
+        e = m.edges()
+        assert np.all(e[:, 0] < e[:, 1]) and len(np.unique(e, axis=0)) == len(e)
+        faces = np.unique(np.sort(m.tets[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3), axis=1), axis=0)
+        assert m.n_nodes - len(e) + len(faces) - m.n_tets == 1  # a ball
+    one = TetMesh(REGULAR, np.array([[0, 1, 2, 3]]))
+    assert one.edges().tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]
+
+
+def test_tetmesh_checks_shapes():
+    with pytest.raises(MeshError, match="points must have shape"):
+        TetMesh(np.zeros((6, 2)), np.array([[0, 1, 2, 3]]))
+    with pytest.raises(MeshError, match="material_ids must have shape"):
+        TetMesh(REGULAR, np.array([[0, 1, 2, 3]]), np.zeros(2))
+
+
+def test_copy_is_independent():
+    m = small()
+    c = m.copy()
+    c.points[0] += 1.0
+    c.tets[0, 0] = 99
+    c.material_ids[0] = 5
+    assert m.points[0, 0] == 0.0 and m.tets[0, 0] != 99 and m.material_ids[0] == 0
+
+
+# ---------------------------------------------------------------- CLI and committed files
+
+
+def test_cli_beam_brain_info(tmp_path, capsys):
+    out = tmp_path / "sub" / "b.vtu"
+    assert cli(["beam", "--long", "6", "--cross", "3", "--spacing", "0.02", "--out", str(out)]) == 0
+    ref = beam_mesh(6, n_cross=3, spacing=0.02)
+    back = load_mesh(out)
+    assert np.array_equal(back.tets, ref.tets) and np.allclose(back.points, ref.points)
+    capsys.readouterr()
+    assert cli(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "nodes         54" in text and "tets          120" in text and "0: 120" in text
+    with pytest.raises(SystemExit) as e:
+        cli(["info", str(tmp_path / "missing.vtu")])
+    assert e.value.code == 2
+    with pytest.raises(SystemExit) as e:
+        cli(["beam", "--long", "1", "--out", str(out)])
+    assert e.value.code == 2
+
+
+@pytest.mark.parametrize("name,make", [
+    ("beam_1200.vtu", lambda: beam_mesh(48)),
+    ("beam_1600.vtu", lambda: beam_mesh(64)),
+    ("beam_2000.vtu", lambda: beam_mesh(80)),
+    ("brain.vtu", brain_mesh),
+])
+def test_committed_meshes_match_generators(name, make):
+    path = REPO / "meshes" / name
+    assert path.stat().st_size < 1_000_000
+    got, ref = load_mesh(path), make()
+    assert np.array_equal(got.points, ref.points)
+    assert np.array_equal(got.tets, ref.tets)
+    assert np.array_equal(got.material_ids, ref.material_ids)

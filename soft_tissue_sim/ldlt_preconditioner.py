@@ -1,0 +1,188 @@
+"""Asynchronous, rotated LDL^T preconditioner (paper section 2.2, eq. 2).
+
+A background worker factorizes A(t_u) with CHOLMOD (scikit-sparse) while the simulation
+goes on with the last factor; the factor is applied rotated by the per-node rotations
+between now and t_u:  P^-1 r = dR (LDL^T)^-1 dR^T r,  dR_n = R_n(t) R_n(t_u)^T.
+
+The snapshot (assembly of A and the nodal rotations) is taken on the caller's thread;
+only the factorization runs in the worker. The symbolic analysis is reused while the
+sparsity pattern is unchanged. Note: scikit-sparse 0.4 holds the GIL while it factorizes,
+so on CPython the worker overlaps with the simulation only where the main thread is in
+GIL-free code (Warp kernels, numpy); the design lets a GIL-free backend be swapped in.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import weakref
+
+import numpy as np
+import scipy.sparse as sps
+from sksparse.cholmod import analyze
+
+
+def _worker_loop(state):
+    """Factorize requests until told to stop. ``state`` holds no reference to the owner."""
+    while True:
+        with state["cv"]:
+            while state["request"] is None and not state["stop"]:
+                state["cv"].wait()
+            if state["stop"]:
+                return
+            req = state["request"]
+            state["request"] = None
+        try:
+            factor = _factorize(state, req["A"])
+            result = {"factor": factor, "R": req["R"], "step": req["step"], "ms": _ms_since(req["t0"]), "gen": req["gen"]}
+            with state["cv"]:
+                state["result"] = result
+        except Exception as exc:  # noqa: BLE001 - reported in stats, last good factor kept
+            with state["cv"]:
+                state["error"] = f"{type(exc).__name__}: {exc}"
+                state["result"] = {"failed": True}
+
+
+def _ms_since(t0):
+    return 1000.0 * (time.perf_counter() - t0)
+
+
+def _factorize(state, A):
+    A = sps.csc_matrix(A)
+    A.sort_indices()
+    key = (A.shape, A.indptr.tobytes(), A.indices.tobytes())
+    if state.get("pattern") != key:
+        state["symbolic"] = analyze(A, mode="simplicial")
+        state["pattern"] = key
+        state["analyses"] += 1
+    f = state["symbolic"].copy()
+    f.cholesky_inplace(A)
+    return f
+
+
+def _stop(state):
+    with state["cv"]:
+        state["stop"] = True
+        state["cv"].notify_all()
+    t = state.get("thread")
+    if t is not None and t.is_alive() and t is not threading.current_thread():
+        t.join(timeout=10.0)
+
+
+class AsyncLDLTPreconditioner:
+    name = "async_ldlt"
+
+    def __init__(self, snapshot_fn, *, rotate=True, refresh_every=1, deterministic=False):
+        self.snapshot_fn = snapshot_fn
+        self.rotate = bool(rotate)
+        self.refresh_every = max(1, int(refresh_every))
+        self.deterministic = bool(deterministic)
+        self._s = {"cv": threading.Condition(), "request": None, "result": None, "stop": False, "error": None,
+                   "pattern": None, "symbolic": None, "analyses": 0, "thread": None}
+        self._finalizer = weakref.finalize(self, _stop, self._s)
+        self._gen = 0
+        self._reset_counters()
+
+    def _reset_counters(self):
+        self.factor = None
+        self.factor_step = -1
+        self.R_tu = None
+        self.dR = None
+        self.step = 0
+        self.last_request_step = -10**9
+        self.pending = False
+        self.swaps = []
+        self.factorization_ms = 0.0
+        self.precond_ms = 0.0
+        self.factor_count = 0
+
+    # -------------------------------------------------------------- worker
+    def _ensure_thread(self):
+        t = self._s["thread"]
+        if t is None or not t.is_alive():
+            t = threading.Thread(target=_worker_loop, args=(self._s,), name="ldlt-factorizer", daemon=True)
+            self._s["thread"] = t
+            t.start()
+
+    def _snapshot(self, step):
+        A, R = self.snapshot_fn()
+        return {"A": A, "R": np.array(R, dtype=np.float64, copy=True), "step": step, "t0": time.perf_counter(),
+                "gen": self._gen}
+
+    def _install(self, res):
+        self.factor, self.R_tu, self.factor_step = res["factor"], res["R"], res["step"]
+        self.factorization_ms = res["ms"]
+        self.factor_count += 1
+        self.swaps.append(self.step)
+
+    def _sync_refresh(self, step):
+        req = self._snapshot(step)
+        self._install({"factor": _factorize(self._s, req["A"]), "R": req["R"], "step": step,
+                       "ms": _ms_since(req["t0"])})
+        self.last_request_step = step
+
+    # ---------------------------------------------------------------- API
+    def begin_step(self, step: int, node_rotations: np.ndarray) -> None:
+        self.step = int(step)
+        self.precond_ms = 0.0
+        if self.factor is None:
+            self._sync_refresh(self.step)  # the only wait
+        elif self.deterministic:
+            if self.step - self.last_request_step >= self.refresh_every:
+                self._sync_refresh(self.step)
+        else:
+            with self._s["cv"]:
+                res, self._s["result"] = self._s["result"], None
+            if res is not None:
+                self.pending = False
+                if not res.get("failed") and res.get("gen") == self._gen:
+                    self._install(res)
+            if not self.pending and self.step - self.last_request_step >= self.refresh_every:
+                req = self._snapshot(self.step)
+                self._ensure_thread()
+                with self._s["cv"]:
+                    self._s["request"] = req
+                    self._s["cv"].notify_all()
+                self.pending = True
+                self.last_request_step = self.step
+        R = np.asarray(node_rotations, dtype=np.float64)
+        if self.rotate and R.shape == self.R_tu.shape:
+            self.dR = np.einsum("nij,nkj->nik", R, self.R_tu)
+        else:
+            self.dR = None
+
+    def apply(self, r: np.ndarray, out: np.ndarray) -> None:
+        t0 = time.perf_counter()
+        n3 = len(r)
+        if self.R_tu is None or 3 * len(self.R_tu) != n3:
+            raise ValueError(f"preconditioner is for {3 * (0 if self.R_tu is None else len(self.R_tu))} DOFs, "
+                             f"got a vector of {n3}: invalidate() after a size change")
+        if self.dR is not None:
+            rr = np.einsum("nji,nj->ni", self.dR, r.reshape(-1, 3)).reshape(-1)
+            z = self.factor(rr)
+            out[:] = np.einsum("nij,nj->ni", self.dR, z.reshape(-1, 3)).reshape(-1)
+        else:
+            out[:] = self.factor(r)
+        self.precond_ms += _ms_since(t0)
+
+    def invalidate(self) -> None:
+        self._gen += 1  # results of requests made before this are ignored
+        with self._s["cv"]:
+            self._s["request"] = None
+            self._s["result"] = None
+        self._reset_counters()
+
+    def stats(self) -> dict:
+        sw = self.swaps
+        return {
+            "factor_age": self.step - self.factor_step if self.factor is not None else -1,
+            "factorization_ms": self.factorization_ms,
+            "refresh_interval": float(np.mean(np.diff(sw))) if len(sw) > 1 else 0.0,
+            "precond_ms": self.precond_ms,
+            "worker_error": self._s["error"],
+            "factor_count": self.factor_count,
+            "analyses": self._s["analyses"],
+        }
+
+    def close(self) -> None:
+        self._finalizer()

@@ -172,6 +172,11 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn):
     raise ParameterError(f"unknown preconditioner {kind!r}: use one of {', '.join(PRECONDITIONERS)}")
 
 
+def _weak_call(method):
+    ref = weakref.WeakMethod(method)
+    return lambda: ref()()
+
+
 class Simulation:
     """One soft body and the components its scene names. See :func:`load_scene`."""
 
@@ -198,7 +203,8 @@ class Simulation:
             raise ParameterError(f"solver max_iterations must be an integer >= 1, got {max_it!r}")
         dt = (config.get("time") or {}).get("dt", 0.01)
         self.preconditioner = make_preconditioner(
-            str(solver.get("preconditioner", "async_ldlt")), dict(solver.get("ldlt") or {}), self._snapshot
+            str(solver.get("preconditioner", "async_ldlt")), dict(solver.get("ldlt") or {}),
+            _weak_call(self._snapshot),  # weak: the simulation's finalizer owns the preconditioner
         )
         self.integrator = BackwardEuler(
             self.fem, dt, self.damping, config.get("gravity", [0.0, 0.0, -9.81]), self.preconditioner,

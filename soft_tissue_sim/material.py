@@ -49,6 +49,10 @@ class Material:
             )
         if rho <= 0.0:
             raise ParameterError(f"material {self.name!r}: density must be > 0, got {rho}")
+        # store floats (YAML 1.1 reads "1.0e6" as a string)
+        object.__setattr__(self, "young", e)
+        object.__setattr__(self, "poisson", nu)
+        object.__setattr__(self, "density", rho)
 
     @property
     def lame(self) -> tuple[float, float]:

@@ -197,7 +197,11 @@ class Simulation:
                                    fixed_nodes=fixed)
         solver = dict(config.get("solver") or {})
         tol, max_it = solver.get("tolerance", 1e-7), solver.get("max_iterations", 1000)
-        if not (isinstance(tol, (int, float)) and 0.0 < tol < 1.0):
+        try:  # YAML 1.1 reads "1.0e-7" as a string
+            tol = float(tol)
+        except (TypeError, ValueError):
+            raise ParameterError(f"solver tolerance must be a number, got {tol!r}") from None
+        if not 0.0 < tol < 1.0:
             raise ParameterError(f"solver tolerance must be in (0, 1), got {tol!r}")
         if not (isinstance(max_it, int) and max_it >= 1):
             raise ParameterError(f"solver max_iterations must be an integer >= 1, got {max_it!r}")

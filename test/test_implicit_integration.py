@@ -170,3 +170,12 @@ def test_impossible_scene_parameters_raise_clear_errors(change, msg):
 def test_missing_scene_file_is_named():
     with pytest.raises(FileNotFoundError, match="no_such_scene.yaml"):
         load_scene("no_such_scene.yaml")
+
+
+@pytest.mark.parametrize("name", ["default.yaml", "beam_1200.yaml", "test_small.yaml"])
+def test_shipped_scenes_load_from_yaml_and_step(name):
+    with load_scene(name, device="cpu") as sim:
+        assert sim.materials.materials[0].young > 0  # YAML "1.0e6" read as a number
+        s = sim.step()
+        assert s.converged and np.all(np.isfinite(sim.positions()))
+        assert sim.contact is None and sim.cutting is None  # nothing built that the scene does not name

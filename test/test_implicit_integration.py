@@ -179,3 +179,17 @@ def test_shipped_scenes_load_from_yaml_and_step(name):
         s = sim.step()
         assert s.converged and np.all(np.isfinite(sim.positions()))
         assert sim.contact is None and sim.cutting is None  # nothing built that the scene does not name
+
+
+def test_default_beam_1000_damped_steps_lose_energy_and_stay_finite():
+    with load_scene("default.yaml", device="cpu", overrides={"solver": {"ldlt": {"refresh_every": 5}}}) as sim:
+        e0 = sim.energy()["total"]
+        peak_ke = 0.0
+        for _ in range(1000):
+            s = sim.step()
+            assert s.converged
+            peak_ke = max(peak_ke, sim.energy()["kinetic"]) if s.step % 50 == 0 else peak_ke
+        e = sim.energy()
+        assert np.all(np.isfinite(sim.positions()))
+        assert e["total"] < e0 and peak_ke > 0
+        assert e["kinetic"] < peak_ke  # motion is being damped out

@@ -339,6 +339,7 @@ class CorotationalFEM:
         self._vals = wp.zeros(nt, dtype=wp.mat33d, device=d)
         self._bsr = wps.bsr_zeros(n, n, wp.mat33d, device=d)
         self._triplet_map = None
+        self._csc_map = None
         self.total_mass = float(lumped.sum())
 
     def set_fixed_nodes(self, fixed_nodes) -> None:
@@ -456,7 +457,15 @@ class CorotationalFEM:
         cols = A.columns.numpy()[:nnz]
         vals = A.values.numpy()[:nnz]
         n3 = 3 * self.n_nodes
-        return sps.bsr_matrix((vals, cols, offsets), shape=(n3, n3)).tocsc()
+        if getattr(self, "_csc_map", None) is None or self._csc_map[0] is not self._triplet_map:
+            # Once per pattern: where each BSR coefficient lands in CSC order (convert an index
+            # matrix), so later conversions are a single gather.
+            idx = np.arange(1, vals.size + 1, dtype=np.float64).reshape(vals.shape)
+            C = sps.bsr_matrix((idx, cols, offsets), shape=(n3, n3)).tocsc()
+            C.sort_indices()
+            self._csc_map = (self._triplet_map, C.indptr.copy(), C.indices.copy(), C.data.astype(np.int64) - 1)
+        _, indptr, indices, perm = self._csc_map
+        return sps.csc_matrix((vals.reshape(-1)[perm], indices, indptr), shape=(n3, n3))
 
     # ------------------------------------------------------------ rotations
     def node_rotations(self) -> np.ndarray:

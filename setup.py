@@ -28,6 +28,7 @@ setup(
     entry_points={
         "console_scripts": [
             "soft_tissue_sim = soft_tissue_sim.__main__:main",
+            "sim_node = soft_tissue_sim.ros.node:main",
         ],
     },
 )

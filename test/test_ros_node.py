@@ -100,3 +100,15 @@ def test_two_nodes_in_two_namespaces_run_side_by_side(ros):
     assert a.sim.step_count == 0 or a.sim.step_count < b.sim.step_count
     for n in (a, b, probe):
         n.destroy_node()
+
+
+def test_parameters_load_from_the_yaml_file(ros, tmp_path):
+    ctx, ex = ros
+    params = tmp_path / "p.yaml"
+    text = open("config/sim_node.yaml").read().replace("rate_hz: 50.0", "rate_hz: 25.0")
+    params.write_text(text.replace("scene: default.yaml", "scene: test_small.yaml"))
+    node = SimNode(context=ctx, cli_args=["--ros-args", "--params-file", str(params)])
+    assert node.get_parameter("rate_hz").value == 25.0
+    assert node.get_parameter("scene").value == "test_small.yaml"
+    assert node.sim.name == "test_small" and node.get_parameter("frame_id").value == "world"
+    node.destroy_node()

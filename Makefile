@@ -18,7 +18,7 @@ $(STAMP): requirements.txt Makefile
 	touch $(STAMP)
 
 run: install
-	$(PY) -m soft_tissue_sim run --scene default.yaml --steps 300
+	$(PY) -m soft_tissue_sim.ros.demo --scene default.yaml --steps 300
 
 test: install
 	$(PY) -m pytest -q test

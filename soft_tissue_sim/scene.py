@@ -229,6 +229,7 @@ class Simulation:
         self._initial_mesh = self.mesh.copy()
         self._initial_fixed = fixed.copy()
         self.last_stats: StepStats | None = None
+        self.rollbacks = 0
         self._closed = False
         self._finalizer = weakref.finalize(self, self.preconditioner.close)
 
@@ -262,7 +263,20 @@ class Simulation:
     def step(self) -> StepStats:
         if self._closed:
             raise RuntimeError("simulation is closed")
-        stats = self.integrator.step()  # free motion (no contact forces)
+        integ = self.integrator
+        x_prev, v_prev = wp.clone(integ.x), wp.clone(integ.v)  # last good state, for the divergence guard
+        stats = integ.step()  # free motion (no contact forces)
+        if not (np.isfinite(stats.residual) and np.isfinite(integ.x.numpy()).all()):
+            # Divergence guard: roll back to the last good state, drop the factor, report it.
+            integ.x, integ.v = x_prev, v_prev
+            integ.step_index -= 1
+            integ.time -= integ.dt
+            self.preconditioner.invalidate()
+            self.rollbacks += 1
+            stats.converged = False
+            stats.extra.update(rolled_back=True, rollbacks=self.rollbacks)
+            self.last_stats = stats
+            return stats
         if self.contact is not None:
             stats.extra.update(self.contact.step(self))  # LCP correction of x and v, eq. (3)-(4)
         if self.cutting is not None:

@@ -193,3 +193,21 @@ def test_default_beam_1000_damped_steps_lose_energy_and_stay_finite():
         assert np.all(np.isfinite(sim.positions()))
         assert e["total"] < e0 and peak_ke > 0
         assert e["kinetic"] < peak_ke  # motion is being damped out
+
+
+def test_a_diverging_step_is_rolled_back_and_the_simulation_carries_on():
+    with load_scene(beam_scene(10, 3, preconditioner="async_ldlt")) as sim:
+        for _ in range(3):
+            sim.step()
+        x_good, v_good, t_good = sim.positions(), sim.velocities(), sim.time
+        f = np.zeros((sim.mesh.n_nodes, 3))
+        f[-1, 2] = np.nan  # a broken external load
+        sim.integrator.f_ext.assign(f)
+        s = sim.step()
+        assert s.extra["rolled_back"] and not s.converged and sim.rollbacks == 1
+        np.testing.assert_array_equal(sim.positions(), x_good)
+        np.testing.assert_array_equal(sim.velocities(), v_good)
+        assert sim.time == t_good and sim.step_count == 3
+        sim.integrator.f_ext.zero_()
+        s = sim.step()
+        assert s.converged and np.all(np.isfinite(sim.positions())) and sim.step_count == 4

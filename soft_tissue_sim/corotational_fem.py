@@ -170,6 +170,31 @@ def combine_kernel(
     z[i] = alpha * Ap + beta * y[i]
 
 
+@wp.func
+def element_block(
+    Dinv: wp.mat33d, Re: wp.mat33d, V: wp.float64, mu: wp.float64, lam: wp.float64, rho: wp.float64,
+    i: int, j: int, k_coef: wp.float64, m_coef: wp.float64, consistent: int,
+):
+    """Block (i, j) of one element's contribution to A = m_coef M + k_coef K (unfiltered).
+
+    K_ij = V R (mu (g_i.g_j) I + mu g_j g_i^T + lambda g_i g_j^T) R^T; mass m_coef rho V/20 (1+d_ij) I
+    (consistent) or m_coef rho V/4 I on the diagonal (lumped).
+    """
+    I3 = wp.identity(n=3, dtype=wp.float64)
+    gi = shape_gradients(Dinv, i)
+    gj = shape_gradients(Dinv, j)
+    K0 = mu * wp.dot(gi, gj) * I3 + mu * wp.outer(gj, gi) + lam * wp.outer(gi, gj)
+    blk = (k_coef * V) * (Re * K0 * wp.transpose(Re))
+    if consistent != 0:
+        w = _F64(1.0)
+        if i == j:
+            w = _F64(2.0)
+        blk += (m_coef * rho * V / _F64(20.0) * w) * I3
+    elif i == j:
+        blk += (m_coef * rho * V / _F64(4.0)) * I3
+    return blk
+
+
 @wp.kernel
 def element_blocks_kernel(
     tets: wp.array(dtype=wp.vec4i),
@@ -187,31 +212,46 @@ def element_blocks_kernel(
     cols: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33d),
 ):
-    """The 16 3x3 blocks of one element's contribution to the filtered A, as COO triplets.
-
-    K_ij = V R (mu (g_i.g_j) I + mu g_j g_i^T + lambda g_i g_j^T) R^T; mass m_coef rho V/20 (1+d_ij) I
-    (consistent) or m_coef rho V/4 I on the diagonal (lumped). Blocks touching a fixed node are zero.
-    """
+    """The 16 3x3 blocks of one element's contribution to the filtered A, as COO triplets
+    (blocks touching a fixed node are zero)."""
     e = wp.tid()
     t = tets[e]
-    Dinv = Dm_inv[e]
-    Re = R[e]
-    V = volume[e]
-    I3 = wp.identity(n=3, dtype=wp.float64)
     for i in range(4):
-        gi = shape_gradients(Dinv, i)
         for j in range(4):
-            gj = shape_gradients(Dinv, j)
-            K0 = mu[e] * wp.dot(gi, gj) * I3 + mu[e] * wp.outer(gj, gi) + lam[e] * wp.outer(gi, gj)
-            blk = (k_coef * V) * (Re * K0 * wp.transpose(Re))
-            if consistent != 0:
-                w = _F64(1.0)
-                if i == j:
-                    w = _F64(2.0)
-                blk += (m_coef * rho[e] * V / _F64(20.0) * w) * I3
-            elif i == j:
-                blk += (m_coef * rho[e] * V / _F64(4.0)) * I3
+            blk = element_block(Dm_inv[e], R[e], volume[e], mu[e], lam[e], rho[e], i, j, k_coef, m_coef, consistent)
             k = e * 16 + i * 4 + j
+            rows[k] = t[i]
+            cols[k] = t[j]
+            values[k] = blk * (free[t[i]] * free[t[j]])
+
+
+@wp.kernel
+def element_blocks_subset_kernel(
+    ids: wp.array(dtype=wp.int32),
+    tets: wp.array(dtype=wp.vec4i),
+    free: wp.array(dtype=wp.float64),
+    Dm_inv: wp.array(dtype=wp.mat33d),
+    volume: wp.array(dtype=wp.float64),
+    mu: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    rho: wp.array(dtype=wp.float64),
+    R: wp.array(dtype=wp.mat33d),
+    k_coef: wp.float64,
+    m_coef: wp.float64,
+    consistent: int,
+    rows: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.mat33d),
+):
+    """As element_blocks_kernel for the elements ids[0..]: the local change of A when a cut
+    removes or adds them (the perturbation N of the Sherman-Morrison correction, eq. 5)."""
+    s = wp.tid()
+    e = ids[s]
+    t = tets[e]
+    for i in range(4):
+        for j in range(4):
+            blk = element_block(Dm_inv[e], R[e], volume[e], mu[e], lam[e], rho[e], i, j, k_coef, m_coef, consistent)
+            k = s * 16 + i * 4 + j
             rows[k] = t[i]
             cols[k] = t[j]
             values[k] = blk * (free[t[i]] * free[t[j]])
@@ -448,6 +488,26 @@ class CorotationalFEM:
         else:
             wps.bsr_set_from_mapped_values(self._bsr, self._triplet_map, self._vals)
         return self._bsr
+
+    def element_blocks(self, tet_ids, m_coef: float, k_coef: float):
+        """The filtered 3x3 blocks of A = m_coef M + k_coef K contributed by the elements ``tet_ids``,
+        with the current element rotations: (rows, cols, values) numpy arrays of 16 blocks each."""
+        ids = np.asarray(tet_ids, dtype=np.int32)
+        k = 16 * len(ids)
+        if k == 0:
+            return np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 3, 3))
+        d = self.device
+        rows = wp.zeros(k, dtype=wp.int32, device=d)
+        cols = wp.zeros(k, dtype=wp.int32, device=d)
+        vals = wp.zeros(k, dtype=wp.mat33d, device=d)
+        wp.launch(
+            element_blocks_subset_kernel,
+            len(ids),
+            [wp.array(ids, dtype=wp.int32, device=d), self.tets, self.free, self.Dm_inv, self.volume, self.mu, self.lam,
+             self.rho, self.rotations, float(k_coef), float(m_coef), int(self.consistent_mass), rows, cols, vals],
+            device=d,
+        )
+        return rows.numpy(), cols.numpy(), vals.numpy()
 
     def assemble_scipy(self, m_coef: float, k_coef: float) -> sps.csc_matrix:
         """The filtered A as a scipy CSC matrix (for CHOLMOD and direct solves)."""

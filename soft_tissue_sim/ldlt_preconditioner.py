@@ -34,7 +34,8 @@ def _worker_loop(state):
             state["request"] = None
         try:
             factor = _factorize(state, req["A"])
-            result = {"factor": factor, "R": req["R"], "step": req["step"], "ms": _ms_since(req["t0"]), "gen": req["gen"]}
+            result = {"factor": factor, "R": req["R"], "step": req["step"], "ms": _ms_since(req["t0"]), "gen": req["gen"],
+                      "meta": req["meta"]}
             with state["cv"]:
                 state["result"] = result
         except Exception as exc:  # noqa: BLE001 - reported in stats, last good factor kept
@@ -81,6 +82,7 @@ class AsyncLDLTPreconditioner:
                    "pattern": None, "symbolic": None, "analyses": 0, "thread": None}
         self._finalizer = weakref.finalize(self, _stop, self._s)
         self._gen = 0
+        self.correction = None  # a ShermanMorrisonCorrection, attached by the cutter when a scene cuts
         self._reset_counters()
 
     def _reset_counters(self):
@@ -105,20 +107,25 @@ class AsyncLDLTPreconditioner:
             t.start()
 
     def _snapshot(self, step):
-        A, R = self.snapshot_fn()
+        snap = self.snapshot_fn()  # (A, R) or (A, R, meta); meta: node uids and mesh version
+        A, R = snap[0], snap[1]
+        meta = dict(snap[2]) if len(snap) > 2 else {}
         return {"A": A, "R": np.array(R, dtype=np.float64, copy=True), "step": step, "t0": time.perf_counter(),
-                "gen": self._gen}
+                "gen": self._gen, "meta": meta}
 
     def _install(self, res):
         self.factor, self.R_tu, self.factor_step = res["factor"], res["R"], res["step"]
         self.factorization_ms = res["ms"]
         self.factor_count += 1
         self.swaps.append(self.step)
+        if self.correction is not None:  # drop what the factor contains, re-apply the rest (fig. 2)
+            meta = res.get("meta") or {}
+            self.correction.set_factor(self.factor, self.R_tu, meta.get("uids"), meta.get("version", -1))
 
     def _sync_refresh(self, step):
         req = self._snapshot(step)
         self._install({"factor": _factorize(self._s, req["A"]), "R": req["R"], "step": step,
-                       "ms": _ms_since(req["t0"])})
+                       "ms": _ms_since(req["t0"]), "meta": req["meta"]})
         self.last_request_step = step
 
     # ---------------------------------------------------------------- API
@@ -146,13 +153,20 @@ class AsyncLDLTPreconditioner:
                 self.pending = True
                 self.last_request_step = self.step
         R = np.asarray(node_rotations, dtype=np.float64)
-        if self.rotate and R.shape == self.R_tu.shape:
+        if self.correction is not None and self.correction.active:
+            self.correction.prepare(R if self.rotate else None)  # eq. (8): rotations around the correction
+            self.dR = None
+        elif self.rotate and R.shape == self.R_tu.shape:
             self.dR = np.einsum("nij,nkj->nik", R, self.R_tu)
         else:
             self.dR = None
 
     def apply(self, r: np.ndarray, out: np.ndarray) -> None:
         t0 = time.perf_counter()
+        if self.correction is not None and self.correction.active:
+            self.correction.apply(r, out)  # eq. (8)-(10)
+            self.precond_ms += _ms_since(t0)
+            return
         n3 = len(r)
         if self.R_tu is None or 3 * len(self.R_tu) != n3:
             raise ValueError(f"preconditioner is for {3 * (0 if self.R_tu is None else len(self.R_tu))} DOFs, "
@@ -165,7 +179,25 @@ class AsyncLDLTPreconditioner:
             out[:] = self.factor(r)
         self.precond_ms += _ms_since(t0)
 
+    def apply_columns(self, B: np.ndarray) -> np.ndarray:
+        """P^-1 B for a block of columns B (3n, k) in one batched solve (contact's W, eq. 4 and 11)."""
+        B = np.asarray(B, dtype=np.float64)
+        out = np.empty_like(B)
+        if self.correction is not None and self.correction.active:
+            self.correction.apply_columns(B, out)
+            return out
+        if self.dR is not None:
+            n = len(self.dR)
+            Bl = np.einsum("nji,njc->nic", self.dR, B.reshape(n, 3, -1)).reshape(3 * n, -1)
+            Z = self.factor(Bl).reshape(n, 3, -1)
+            out[:] = np.einsum("nij,njc->nic", self.dR, Z).reshape(B.shape)
+        else:
+            out[:] = self.factor(B)
+        return out
+
     def invalidate(self) -> None:
+        if self.correction is not None:
+            self.correction.clear()
         self._gen += 1  # results of requests made before this are ignored
         with self._s["cv"]:
             self._s["request"] = None
@@ -174,7 +206,8 @@ class AsyncLDLTPreconditioner:
 
     def stats(self) -> dict:
         sw = self.swaps
-        return {
+        extra = self.correction.stats() if self.correction is not None else {}
+        return extra | {
             "factor_age": self.step - self.factor_step if self.factor is not None else -1,
             "factorization_ms": self.factorization_ms,
             "refresh_interval": float(np.mean(np.diff(sw))) if len(sw) > 1 else 0.0,

@@ -214,6 +214,9 @@ class Simulation:
             self.fem, dt, self.damping, config.get("gravity", [0.0, 0.0, -9.81]), self.preconditioner,
             tolerance=float(tol), max_iterations=int(max_it),
         )
+        # Node identities across topological changes (the preconditioner maps numberings by them).
+        self.node_uids = np.arange(self.mesh.n_nodes, dtype=np.int64)
+        self.mesh_version = 0
         # Optional components: built only when the scene names them.
         self.contact = None
         self.cutting = None
@@ -243,9 +246,10 @@ class Simulation:
         return self.cutting is not None
 
     def _snapshot(self):
-        """(A at the current state as scipy CSC, per-node rotations) for the LDL^T factorization."""
+        """(A at the current state as scipy CSC, per-node rotations, topology) for the LDL^T factorization."""
         integ = self.integrator
-        return self.fem.assemble_scipy(integ.m_coef, integ.k_coef), self.fem.node_rotations()
+        return (self.fem.assemble_scipy(integ.m_coef, integ.k_coef), self.fem.node_rotations(),
+                {"uids": self.node_uids.copy(), "version": self.mesh_version})
 
     # --------------------------------------------------------------- public
     @property
@@ -290,9 +294,11 @@ class Simulation:
         for comp in (self.contact, self.cutting):
             if comp is not None:
                 comp.reset(self)
-        if self.mesh.n_tets != self._initial_mesh.n_tets or self.mesh is not self.fem.mesh:
+        if self.mesh_version != 0 or self.mesh is not self.fem.mesh:
             self.mesh = self._initial_mesh.copy()
             self.fem.set_mesh(self.mesh, self._initial_fixed)
+        self.node_uids = np.arange(self.mesh.n_nodes, dtype=np.int64)
+        self.mesh_version = 0
         self.integrator.set_state(self._initial_mesh.points.copy(), np.zeros_like(self._initial_mesh.points))
         self.integrator.step_index = 0
         self.integrator.time = 0.0
@@ -332,6 +338,18 @@ class Simulation:
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
         return self.cutting.cut(self)
+
+    def cut_triangles(self, triangles, frame: str = "world"):
+        """Cut along blade triangles (k, 3, 3) in the world (current) or rest frame. Returns a CutResult."""
+        if self.cutting is None:
+            raise ValueError("this scene has no cutting")
+        return self.cutting.cut_triangles(self, triangles, frame)
+
+    def remove_elements(self, center, radius: float, frame: str = "world"):
+        """Ablation / aspiration: delete the elements whose centroid is within radius of center."""
+        if self.cutting is None:
+            raise ValueError("this scene has no cutting")
+        return self.cutting.remove_elements(self, center, radius, frame)
 
     def set_cutting(self, active: bool) -> None:
         """Blade active: cut continuously while the instrument moves (like a pedal)."""

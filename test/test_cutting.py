@@ -1,0 +1,245 @@
+"""Cutting by node splitting and the Sherman-Morrison correction of the preconditioner."""
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+
+from soft_tissue_sim import load_scene
+from soft_tissue_sim.cutting import sweep_triangles
+from soft_tissue_sim.mesh import tet_quality, validate_mesh
+
+
+def beam_scene(n_long=8, n_cross=3, pre="async_ldlt", correction="sherman_morrison", refresh_every=1000,
+               deterministic=True, script=None, fixed=True, gravity=(0.0, 0.0, -9.81), young=5e4, rotate=True):
+    cut = {"correction": correction}
+    if script:
+        cut["script"] = script
+    return {
+        "device": "cpu",
+        "mesh": {"generator": "beam", "n_long": n_long, "n_cross": n_cross, "spacing": 0.01},
+        "materials": [{"id": 0, "young": young, "poisson": 0.3, "density": 1000.0}],
+        "damping": {"mass": 0.2, "stiffness": 0.005},
+        "fixed": {"axis": "x", "below": 0.0} if fixed else None,
+        "gravity": list(gravity),
+        "time": {"dt": 0.01},
+        "solver": {"preconditioner": pre, "tolerance": 1e-8, "max_iterations": 3000,
+                   "ldlt": {"deterministic": deterministic, "refresh_every": refresh_every, "rotate": rotate}},
+        "cutting": cut,
+    }
+
+
+def lengthwise(sim, x0, x1, y=None, frame="rest"):
+    """A vertical blade patch in the plane y = mid, from x0 to x1, through the whole height."""
+    P = sim.mesh.points
+    y = 0.5 * (P[:, 1].min() + P[:, 1].max()) if y is None else y
+    z0, z1 = P[:, 2].min() - 1e-3, P[:, 2].max() + 1e-3
+    return sim.cut_triangles(sweep_triangles([x0, y, z0], [x0, y, z1], [x1, y, z0], [x1, y, z1]), frame=frame)
+
+
+def crosswise(sim, x, frame="rest"):
+    P = sim.mesh.points
+    lo, hi = P.min(axis=0) - 1e-3, P.max(axis=0) + 1e-3
+    return sim.cut_triangles(sweep_triangles([x, lo[1], lo[2]], [x, lo[1], hi[2]], [x, hi[1], lo[2]],
+                                             [x, hi[1], hi[2]]), frame=frame)
+
+
+def corrected_vs_fresh(sim, rng, k=3):
+    """Max relative difference between the corrected preconditioner and A_new^-1 on random vectors."""
+    integ = sim.integrator
+    sim.fem.update_rotations(integ.x)
+    A = sim.fem.assemble_scipy(integ.m_coef, integ.k_coef)
+    pre = sim.preconditioner.inner
+    pre.begin_step(sim.step_count, sim.fem.node_rotations())
+    lu = spla.splu(A.tocsc())
+    err = 0.0
+    for _ in range(k):
+        b = rng.standard_normal(A.shape[0])
+        out = np.empty_like(b)
+        pre.apply(b, out)
+        ref = lu.solve(b)
+        err = max(err, np.linalg.norm(out - ref) / np.linalg.norm(ref))
+    return err
+
+
+def test_corrected_preconditioner_equals_inverse_of_modified_matrix():
+    # Unrotated: the averaged nodal rotations of eq. (2) change where a cut changes the elements
+    # around a node, which is an approximation by design, not part of the correction.
+    rng = np.random.default_rng(0)
+    with load_scene(beam_scene(rotate=False)) as sim:
+        for _ in range(3):
+            sim.step()  # deformed, rotated state; the factor is from step 0 (refresh_every large)
+        # make the factor current, so that the only difference is the cut
+        sim.fem.update_rotations(sim.integrator.x)
+        sim.preconditioner.inner._sync_refresh(sim.step_count)
+        n0 = sim.mesh.n_nodes
+        res = lengthwise(sim, 0.035, 0.08)
+        assert res.changed and res.nodes_added > 0 and sim.mesh.n_nodes == n0 + res.nodes_added
+        assert sim.preconditioner.inner.correction.active
+        assert corrected_vs_fresh(sim, rng) < 1e-8
+        # a second cut chains a second correction on top of the first
+        res2 = crosswise(sim, 0.055)
+        assert res2.changed
+        assert len(sim.preconditioner.inner.correction.terms) == 2
+        assert corrected_vs_fresh(sim, rng) < 1e-8
+        # element removal (nodes vanish, numbering compacts) is corrected as well
+        res3 = sim.remove_elements(sim.positions()[-1], 0.012)
+        assert res3.changed and res3.nodes_removed > 0
+        assert corrected_vs_fresh(sim, rng) < 1e-8
+
+
+def test_without_correction_the_padded_factor_is_not_the_inverse():
+    rng = np.random.default_rng(1)
+    with load_scene(beam_scene(correction="none")) as sim:
+        sim.step()
+        lengthwise(sim, 0.035, 0.08)
+        assert corrected_vs_fresh(sim, rng) > 1e-3
+
+
+def test_iterations_after_a_cut_stay_low_with_the_correction_and_rise_without():
+    its = {}
+    for corr in ("sherman_morrison", "none"):
+        with load_scene(beam_scene(n_long=16, correction=corr, refresh_every=1000)) as sim:
+            for _ in range(2):
+                sim.step()
+            sim.preconditioner.inner._sync_refresh(sim.step_count)
+            before = sim.step().iterations
+            assert lengthwise(sim, 0.06, 0.16).changed
+            its[corr] = (before, sim.step().iterations)
+    (b_smf, a_smf), (b_none, a_none) = its["sherman_morrison"], its["none"]
+    assert a_smf <= b_smf + 2, its
+    assert a_none > a_smf + 3, its
+
+
+def test_in_flight_factor_is_corrected_and_corrections_dropped_once_a_factor_postdates_them():
+    rng = np.random.default_rng(2)
+    with load_scene(beam_scene(deterministic=True, refresh_every=1000, rotate=False)) as sim:
+        sim.step()
+        pre = sim.preconditioner.inner
+        corr = pre.correction
+        # a snapshot taken before the cut, factorized "in the background", installed after it
+        sim.fem.update_rotations(sim.integrator.x)
+        req = pre._snapshot(sim.step_count)
+        lengthwise(sim, 0.035, 0.08)
+        from soft_tissue_sim.ldlt_preconditioner import _factorize
+
+        pre._install({"factor": _factorize(pre._s, req["A"]), "R": req["R"], "step": req["step"], "ms": 0.0,
+                      "meta": req["meta"]})
+        assert len(corr.mods) == 1 and len(corr.terms) == 1  # the cut re-applied to the new factor (fig. 2)
+        assert corrected_vs_fresh(sim, rng) < 1e-8
+        pre._sync_refresh(sim.step_count)  # a factor made after the cut: nothing left to correct
+        assert corr.mods == [] and corr.terms == [] and not corr.active
+
+
+def test_cut_separates_the_two_sides_and_conserves_mass():
+    with load_scene(beam_scene(n_long=8)) as sim:
+        m0 = sim.fem.total_mass
+        q0 = tet_quality(sim.mesh.points, sim.mesh.tets).min()
+        res = crosswise(sim, 0.035)
+        assert res.changed
+        assert abs(sim.fem.total_mass - m0) < 1e-12 * m0
+        # the crosswise cut splits the body in two connected components
+        from scipy.sparse.csgraph import connected_components
+        import scipy.sparse as sps
+
+        T = sim.mesh.tets
+        rows = np.repeat(T, 4, axis=1).ravel()
+        cols = np.tile(T, (1, 4)).ravel()
+        g = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(sim.mesh.n_nodes,) * 2)
+        assert connected_components(g, directed=False)[0] == 2
+        assert tet_quality(sim.mesh.points, sim.mesh.tets).min() >= q0 - 1e-12
+
+
+def test_a_part_cut_free_falls_freely():
+    with load_scene(beam_scene(n_long=10, young=2e5)) as sim:
+        for _ in range(30):
+            sim.step()  # let it settle a bit
+        res = crosswise(sim, 0.045)
+        assert res.changed
+        x0 = sim.positions()
+        free_part = sim.mesh.points[:, 0] > 0.05  # rest coordinates beyond the cut
+        v0 = sim.velocities()[free_part].mean(axis=0)
+        c0 = x0[free_part].mean(axis=0)
+        n = 10
+        for _ in range(n):
+            s = sim.step()
+            assert s.converged
+        t = n * sim.dt
+        c1 = sim.positions()[free_part].mean(axis=0)
+        # centre of mass of the free part: free fall with Rayleigh mass damping alpha = 0.2 (backward Euler)
+        vz = v0[2]
+        z = c0[2]
+        for _ in range(n):
+            vz = (vz - 9.81 * sim.dt) / (1.0 + 0.2 * sim.dt)
+            z += sim.dt * vz
+        assert c1[2] == pytest.approx(z, abs=2e-4)
+        assert abs(c1[0] - c0[0] - v0[0] * t) < 2e-3
+
+
+def test_cut_through_empty_space_changes_nothing_and_says_so():
+    with load_scene(beam_scene()) as sim:
+        sim.step()
+        x = sim.positions()
+        T = sim.mesh.tets.copy()
+        res = sim.cut_triangles(sweep_triangles([1, 1, 1], [1, 1, 2], [2, 1, 1], [2, 1, 2]))
+        assert not res.changed and "no tissue" in res.message
+        res = sim.cut_triangles([[[0, 0, 0], [1, 0, 0], [2, 0, 0]]])  # degenerate blade
+        assert not res.changed and "no area" in res.message
+        res = sim.cut_triangles([[[0, 0, 0], [np.nan, 0, 0], [2, 0, 0]]])
+        assert not res.changed and "non-finite" in res.message
+        assert np.array_equal(sim.mesh.tets, T) and np.array_equal(sim.positions(), x)
+        assert sim.mesh_version == 0
+
+
+def test_five_hundred_cuts_keep_the_mesh_valid_and_the_state_finite():
+    rng = np.random.default_rng(3)
+    with load_scene(beam_scene(n_long=10, refresh_every=4, deterministic=False)) as sim:
+        q0 = tet_quality(sim.mesh.points, sim.mesh.tets).min()
+        changed = 0
+        for i in range(500):
+            P = sim.positions()
+            c = P[rng.integers(len(P))]
+            d = rng.standard_normal((2, 3)) * 0.006
+            tri = np.array([c - d[0] - d[1], c + d[0], c + d[1]])
+            changed += sim.cut_triangles([tri]).changed
+            if i % 5 == 0:
+                s = sim.step()
+                assert np.isfinite(s.residual)
+        m = sim.mesh
+        validate_mesh(m.points, m.tets, m.material_ids)  # raises on a broken mesh
+        assert tet_quality(m.points, m.tets).min() >= q0 - 1e-12
+        used = np.zeros(m.n_nodes, bool)
+        used[m.tets.ravel()] = True
+        assert used.all()
+        assert np.isfinite(sim.positions()).all()
+        assert changed > 50
+
+
+def test_scripted_cut_and_reset():
+    script = {"frame": "rest", "start_step": 1, "every": 2, "count": 3, "origin": [0.075, 0.0, -0.011],
+              "edge": [0, 0, 0.022], "direction": [-1, 0, 0], "advance": 0.01}
+    with load_scene(beam_scene(n_long=8, script=script, refresh_every=2, deterministic=False)) as sim:
+        n0, m0 = sim.mesh.n_nodes, sim.surface_triangles().shape[0]
+        stats = [sim.step() for _ in range(8)]
+        assert stats[-1].extra["cuts"] == 3
+        assert sim.mesh.n_nodes > n0 and sim.surface_triangles().shape[0] > m0
+        assert all(s.converged for s in stats)
+        sim.reset()
+        assert sim.mesh.n_nodes == n0 and sim.surface_triangles().shape[0] == m0 and sim.mesh_version == 0
+        assert sim.step().converged
+
+
+def test_cutting_machinery_is_absent_where_nothing_is_cut():
+    cfg = beam_scene()
+    del cfg["cutting"]
+    with load_scene(cfg) as sim:
+        assert sim.cutting is None and sim.preconditioner.inner.correction is None
+        with pytest.raises(ValueError):
+            sim.cut()
+        assert "cuts" not in sim.step().extra
+
+
+def test_jacobi_scene_cuts_too():
+    with load_scene(beam_scene(pre="jacobi")) as sim:
+        sim.step()
+        assert lengthwise(sim, 0.035, 0.08).changed
+        assert sim.step().converged

@@ -213,6 +213,13 @@ class BackwardEuler:
         ke, pe = self._energy.numpy()
         return float(ke), float(pe), self.elastic_energy()
 
+    def energy_kinetic(self) -> float:
+        """Kinetic energy only (cheap: one reduction kernel), for the divergence guard."""
+        self._energy.zero_()
+        wp.launch(_energy_kernel, self.fem.n_nodes,
+                  [self.x, self.v, self.fem.lumped_mass, wp.vec3d(*self.gravity), self._energy], device=self.device)
+        return float(self._energy.numpy()[0])
+
     def elastic_energy(self) -> float:
         """Corotated strain energy sum_e V (mu eps:eps + lambda/2 tr(eps)^2), on the host (diagnostics)."""
         fem = self.fem

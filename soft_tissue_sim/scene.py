@@ -233,6 +233,14 @@ class Simulation:
         self._initial_fixed = fixed.copy()
         self.last_stats: StepStats | None = None
         self.rollbacks = 0
+        guard = dict(config.get("guard") or {})
+        self.guard_ratio = float(guard.get("energy_ratio", 100.0))  # 0 disables the energy test (NaN only)
+        self.guard_retry = bool(guard.get("retry", True))
+        if not (self.guard_ratio == 0.0 or self.guard_ratio > 1.0):
+            raise ParameterError(f"guard energy_ratio must be 0 (off) or > 1, got {self.guard_ratio}")
+        size = float(np.ptp(self.mesh.points, axis=0).max())
+        g = float(np.linalg.norm(self.integrator.gravity))
+        self._energy_floor = self.fem.total_mass * (g * size + 0.5)  # weight over the body size + 1 m/s
         self._closed = False
         self._finalizer = weakref.finalize(self, self.preconditioner.close)
 
@@ -264,21 +272,83 @@ class Simulation:
     def step_count(self) -> int:
         return self.integrator.step_index
 
+    def _kinetic_energy(self) -> float:
+        return self.integrator.energy_kinetic()
+
+    def _diverged(self, stats, ke_before: float) -> str | None:
+        """Why the step just taken must not stand (NaN, or runaway kinetic energy), or None."""
+        integ = self.integrator
+        if not (np.isfinite(stats.residual) and np.isfinite(integ.x.numpy()).all()):
+            return "non-finite state"
+        ke = self._kinetic_energy()
+        if not np.isfinite(ke):
+            return "non-finite energy"
+        if ke > self.guard_ratio * (ke_before + self._energy_floor):
+            return f"runaway energy: kinetic {ke:.3g} J after {ke_before:.3g} J"
+        return None
+
+    def _free_motion(self):
+        """The integrator step (free motion) under the divergence guard.
+
+        NaN or a kinetic energy jumping above ``guard.energy_ratio`` x (before + a floor of the
+        body's weight over its size and 1 m/s of motion) rolls the state back to the last good
+        step, then the step is retried with a fresh factor, then with two half steps; if all fail
+        the last good state is kept. The event is reported in the step statistics.
+        """
+        integ = self.integrator
+        x_prev, v_prev = wp.clone(integ.x), wp.clone(integ.v)  # last good state
+        k0, t0 = integ.step_index, integ.time
+        ke_before = self._kinetic_energy() if self.guard_ratio > 0 else 0.0
+        stats = integ.step()
+        reason = self._diverged(stats, ke_before) if self.guard_ratio > 0 else (
+            None if np.isfinite(stats.residual) and np.isfinite(integ.x.numpy()).all() else "non-finite state")
+        if reason is None:
+            return stats, True
+
+        def rollback():
+            integ.x, integ.v = wp.clone(x_prev), wp.clone(v_prev)
+            integ.step_index, integ.time = k0, t0
+
+        self.rollbacks += 1
+        rollback()
+        self.preconditioner.invalidate()  # remedy 1: a fresh factor
+        attempts = ["fresh factor"]
+        if self.guard_retry:
+            stats = integ.step()
+            if self._diverged(stats, ke_before) is None:
+                stats.extra.update(rolled_back=True, rollbacks=self.rollbacks, guard=reason, remedy="fresh factor")
+                return stats, True
+            rollback()
+            dt = integ.dt  # remedy 2: two half steps
+            attempts.append("two half steps")
+            try:
+                integ.dt = 0.5 * dt
+                self.preconditioner.invalidate()
+                s1 = integ.step()
+                ok = self._diverged(s1, ke_before) is None
+                if ok:
+                    s2 = integ.step()
+                    ok = self._diverged(s2, ke_before) is None
+            finally:
+                integ.dt = dt
+                self.preconditioner.invalidate()
+            if ok:
+                integ.step_index, integ.time = k0 + 1, t0 + dt  # two half steps count as one step
+                s2.step, s2.time = k0 + 1, t0 + dt
+                s2.iterations += s1.iterations
+                s2.extra.update(rolled_back=True, rollbacks=self.rollbacks, guard=reason, remedy="two half steps")
+                return s2, True
+            rollback()
+        stats.converged = False
+        stats.extra.update(rolled_back=True, rollbacks=self.rollbacks, guard=reason,
+                           remedy="none: last good state kept (tried " + ", ".join(attempts) + ")")
+        return stats, False
+
     def step(self) -> StepStats:
         if self._closed:
             raise RuntimeError("simulation is closed")
-        integ = self.integrator
-        x_prev, v_prev = wp.clone(integ.x), wp.clone(integ.v)  # last good state, for the divergence guard
-        stats = integ.step()  # free motion (no contact forces)
-        if not (np.isfinite(stats.residual) and np.isfinite(integ.x.numpy()).all()):
-            # Divergence guard: roll back to the last good state, drop the factor, report it.
-            integ.x, integ.v = x_prev, v_prev
-            integ.step_index -= 1
-            integ.time -= integ.dt
-            self.preconditioner.invalidate()
-            self.rollbacks += 1
-            stats.converged = False
-            stats.extra.update(rolled_back=True, rollbacks=self.rollbacks)
+        stats, ok = self._free_motion()
+        if not ok:
             self.last_stats = stats
             return stats
         if self.contact is not None:

@@ -211,3 +211,41 @@ def test_a_diverging_step_is_rolled_back_and_the_simulation_carries_on():
         sim.integrator.f_ext.zero_()
         s = sim.step()
         assert s.converged and np.all(np.isfinite(sim.positions())) and sim.step_count == 4
+
+
+def test_runaway_energy_is_rolled_back_and_the_step_retried():
+    with load_scene(beam_scene(10, 3, preconditioner="async_ldlt")) as sim:
+        for _ in range(3):
+            sim.step()
+        real_step = sim.integrator.step
+        calls = []
+
+        def kicked_step():
+            s = real_step()
+            if not calls:  # the first attempt blows up: a velocity kick of 1 km/s on one node
+                v = sim.integrator.v.numpy()
+                v[-1] += 1000.0
+                sim.integrator.v.assign(v)
+            calls.append(s)
+            return s
+
+        sim.integrator.step = kicked_step
+        s = sim.step()
+        assert s.extra["rolled_back"] and "runaway energy" in s.extra["guard"]
+        assert s.extra["remedy"] == "fresh factor" and s.converged and sim.rollbacks == 1
+        assert np.abs(sim.velocities()).max() < 10.0 and sim.step_count == 4
+        sim.integrator.step = real_step
+        assert "rolled_back" not in sim.step().extra
+
+
+def test_a_step_that_keeps_failing_keeps_the_last_good_state():
+    with load_scene(beam_scene(10, 3, preconditioner="async_ldlt")) as sim:
+        sim.step()
+        x_good, n_good = sim.positions(), sim.step_count
+        f = np.zeros((sim.mesh.n_nodes, 3))
+        f[0, 0] = np.inf
+        sim.integrator.f_ext.assign(f)
+        s = sim.step()
+        assert not s.converged and s.extra["remedy"].startswith("none")
+        np.testing.assert_array_equal(sim.positions(), x_good)
+        assert sim.step_count == n_good and sim.integrator.dt == 0.01

@@ -9,7 +9,8 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
     device: auto                  # auto (CUDA if present, else CPU) | cpu | cuda | cuda:N
     mesh: {file: meshes/beam_2000.vtu}            # path relative to the scene file or the package
       # or {generator: beam, n_long: 80, n_cross: 5, spacing: 0.01} / {generator: brain}
-      # optional: scale: 1.0, translate: [x, y, z]
+      # optional: scale: 1.0, translate: [x, y, z],
+      #   regions: [{box: {min: [..], max: [..]}, material: 1}]  (material id by tet centroid)
     materials: [{id: 0, young: 1.0e5, poisson: 0.3, density: 1000}]
     mass: lumped                  # lumped | consistent
     damping: {mass: 0.1, stiffness: 0.01}          # Rayleigh alpha [1/s], beta [s]
@@ -110,6 +111,16 @@ def build_mesh(spec, base: Path | None) -> mesh_mod.TetMesh:
         m = mesh_mod.brain_mesh()
     else:
         raise ParameterError(f"scene 'mesh' needs 'file' or generator 'beam'/'brain', got {spec!r}")
+    regions = spec.get("regions") or []
+    if regions:  # material ids by region: [{box: {min: [..], max: [..]}, material: 1}, ...] (tet centroids)
+        ids = m.material_ids.copy()
+        cen = m.centroids()
+        for r in regions:
+            if not isinstance(r, dict) or "box" not in r or "material" not in r:
+                raise ParameterError(f"mesh region needs 'box' and 'material': {r!r}")
+            lo, hi = np.asarray(r["box"]["min"], float), np.asarray(r["box"]["max"], float)
+            ids[np.all((cen >= lo) & (cen <= hi), axis=1)] = int(r["material"])
+        m = mesh_mod.TetMesh(m.points, m.tets, ids)
     scale = float(spec.get("scale", 1.0))
     shift = np.asarray(spec.get("translate", [0.0, 0.0, 0.0]), dtype=np.float64)
     if scale != 1.0 or np.any(shift):

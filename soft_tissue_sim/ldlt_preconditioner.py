@@ -22,6 +22,9 @@ import scipy.sparse as sps
 from sksparse.cholmod import analyze
 
 
+SUPERNODAL_ABOVE = 60_000  # degrees of freedom
+
+
 def _worker_loop(state):
     """Factorize requests until told to stop. ``state`` holds no reference to the owner."""
     while True:
@@ -53,7 +56,10 @@ def _factorize(state, A):
     A.sort_indices()
     key = (A.shape, A.indptr.tobytes(), A.indices.tobytes())
     if state.get("pattern") != key:
-        state["symbolic"] = analyze(A, mode="simplicial")
+        mode = state.get("mode", "auto")
+        if mode == "auto":  # simplicial LDL^T as in the paper; supernodal LL^T (BLAS) for large bodies
+            mode = "simplicial" if A.shape[0] < SUPERNODAL_ABOVE else "supernodal"
+        state["symbolic"] = analyze(A, mode=mode)
         state["pattern"] = key
         state["analyses"] += 1
     f = state["symbolic"].copy()
@@ -73,13 +79,13 @@ def _stop(state):
 class AsyncLDLTPreconditioner:
     name = "async_ldlt"
 
-    def __init__(self, snapshot_fn, *, rotate=True, refresh_every=1, deterministic=False):
+    def __init__(self, snapshot_fn, *, rotate=True, refresh_every=1, deterministic=False, mode="auto"):
         self.snapshot_fn = snapshot_fn
         self.rotate = bool(rotate)
         self.refresh_every = max(1, int(refresh_every))
         self.deterministic = bool(deterministic)
         self._s = {"cv": threading.Condition(), "request": None, "result": None, "stop": False, "error": None,
-                   "pattern": None, "symbolic": None, "analyses": 0, "thread": None}
+                   "pattern": None, "symbolic": None, "analyses": 0, "thread": None, "mode": mode}
         self._finalizer = weakref.finalize(self, _stop, self._s)
         self._gen = 0
         self.correction = None  # a ShermanMorrisonCorrection, attached by the cutter when a scene cuts

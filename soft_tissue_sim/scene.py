@@ -19,7 +19,8 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
     time: {dt: 0.01}
     solver: {tolerance: 1.0e-7, max_iterations: 1000,
              preconditioner: async_ldlt,          # none | jacobi | async_ldlt | direct
-             ldlt: {rotate: true, refresh_every: 1, deterministic: false}}
+             ldlt: {rotate: true, refresh_every: 1, deterministic: false,
+                    mode: auto}}                  # CHOLMOD: auto | simplicial | supernodal
 """
 
 from __future__ import annotations
@@ -178,6 +179,7 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn):
                 rotate=bool(options.get("rotate", True)),
                 refresh_every=int(options.get("refresh_every", 1)),
                 deterministic=bool(options.get("deterministic", False)),
+                mode=str(options.get("mode", "auto")),
             )
         return HostPreconditioner(inner)
     raise ParameterError(f"unknown preconditioner {kind!r}: use one of {', '.join(PRECONDITIONERS)}")

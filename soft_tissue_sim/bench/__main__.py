@@ -7,6 +7,7 @@ BENCHMARKS = {
     "solvers": "solvers",  # error against run time for every solver (issue: async LDL^T)
     "cut-beam": "cut_beam",  # the paper's cut beam table and the SMF overhead
     "stability": "stability",  # extreme cases, every solver
+    "brain": "brain",  # brain tumour resection end to end
     "scaling": "scaling",  # cost against mesh size
 }
 

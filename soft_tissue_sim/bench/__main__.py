@@ -8,6 +8,7 @@ BENCHMARKS = {
     "cut-beam": "cut_beam",  # the paper's cut beam table and the SMF overhead
     "stability": "stability",  # extreme cases, every solver
     "brain": "brain",  # brain tumour resection end to end
+    "profile": "profile",  # where the time of one step goes (kernels, copies, host)
     "scaling": "scaling",  # cost against mesh size
 }
 

@@ -172,17 +172,20 @@ def test_missing_scene_file_is_named():
         load_scene("no_such_scene.yaml")
 
 
-@pytest.mark.parametrize("name", ["default.yaml", "beam_1200.yaml", "test_small.yaml"])
+@pytest.mark.parametrize("name", ["default.yaml", "beam_1200.yaml", "test_small.yaml", "brain_resection.yaml"])
 def test_shipped_scenes_load_from_yaml_and_step(name):
     with load_scene(name, device="cpu") as sim:
         assert sim.materials.materials[0].young > 0  # YAML "1.0e6" read as a number
         s = sim.step()
         assert s.converged and np.all(np.isfinite(sim.positions()))
-        assert sim.contact is None and sim.cutting is None  # nothing built that the scene does not name
+        cfg = sim.config  # nothing built that the scene does not name
+        named_contact = bool(cfg.get("instruments") or cfg.get("obstacles") or (cfg.get("contact") or {}).get("self_collision"))
+        assert (sim.contact is not None) == named_contact
+        assert (sim.cutting is not None) == bool(cfg.get("cutting"))
 
 
 def test_default_beam_1000_damped_steps_lose_energy_and_stay_finite():
-    with load_scene("default.yaml", device="cpu", overrides={"solver": {"ldlt": {"refresh_every": 5}}}) as sim:
+    with load_scene("beam_2000.yaml", device="cpu", overrides={"solver": {"ldlt": {"refresh_every": 5}}}) as sim:
         e0 = sim.energy()["total"]
         peak_ke = 0.0
         for _ in range(1000):

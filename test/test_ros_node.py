@@ -413,7 +413,6 @@ def probe_scene():
 
 
 def test_wrench_responds_to_pressing_the_tissue(ros):
-    pytest.importorskip("soft_tissue_sim.contact", reason="contact.py not landed yet")
     ctx, ex = ros
     node = SimNode(context=ctx, sim=load_scene(probe_scene(), device="cpu"), parameter_overrides=FAST)
     probe = rclpy.create_node("presser", context=ctx)
@@ -454,7 +453,6 @@ def test_wrench_responds_to_pressing_the_tissue(ros):
 
 
 def test_cut_service_changes_the_surface_markers_triangle_count(ros):
-    pytest.importorskip("soft_tissue_sim.contact", reason="contact.py not landed yet")
     ctx, ex = ros
     cfg = probe_scene()
     cfg["cutting"] = {"instrument": "probe"}

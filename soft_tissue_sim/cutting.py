@@ -59,6 +59,7 @@ class CutResult:
     nodes_removed: int = 0
     affected_nodes: int = 0  # nodes of the perturbation N
     faces_cut: int = 0
+    debris_tets: int = 0  # tets of fragments below `min_fragment` removed after the change
     ms: float = 0.0  # whole modification, correction included
     smf_u_ms: float = 0.0  # U = P^-1 G (batched triangular solves)
     smf_q_ms: float = 0.0  # Q = (I + N S)^-1 N
@@ -212,6 +213,8 @@ class Cutter:
           correction: sherman_morrison     # sherman_morrison | none (only identity padding, eq. 10)
           min_quality: 0.01                # quality floor of the tets a cut creates (1 = regular)
           tolerance: 1.0e-9                # geometric tolerance [m]
+          min_fragment: 5                  # a free fragment of fewer tets that a change leaves is
+                                           # removed as debris (0: keep every fragment)
           script:                          # planned cuts: a plane patch that advances every few steps
             {frame: rest, start_step: 1, every: 3, count: 40,
              origin: [x, y, z], edge: [ex, ey, ez], direction: [dx, dy, dz], advance: 0.01}
@@ -219,7 +222,8 @@ class Cutter:
 
     def __init__(self, sim, cfg):
         cfg = dict(cfg) if isinstance(cfg, dict) else {}
-        unknown = set(cfg) - {"instrument", "correction", "min_quality", "tolerance", "script", "enabled"}
+        unknown = set(cfg) - {"instrument", "correction", "min_quality", "tolerance", "script", "enabled",
+                            "min_fragment"}
         if unknown:
             raise ParameterError(f"unknown cutting keys: {sorted(unknown)}")
         self.instrument = cfg.get("instrument")
@@ -232,6 +236,10 @@ class Cutter:
         self.tolerance = float(cfg.get("tolerance", 1e-9))
         if not (self.tolerance >= 0.0 and np.isfinite(self.tolerance)):
             raise ParameterError(f"cutting tolerance must be >= 0, got {self.tolerance}")
+        mf = cfg.get("min_fragment", 5)
+        if isinstance(mf, bool) or not isinstance(mf, int) or mf < 0:
+            raise ParameterError(f"cutting min_fragment must be an integer >= 0, got {mf!r}")
+        self.min_fragment = mf
         self.script = self._parse_script(cfg.get("script"))
         self.active = False
         self.correction = None
@@ -387,6 +395,7 @@ class Cutter:
                              ms=1000.0 * (time.perf_counter() - t0))
         res = self._commit(sim, new_tets, source, changed, changed, keep=np.arange(mesh.n_nodes))
         res.faces_cut = int(cut.sum())
+        self._remove_debris(sim, res)
         res.ms = 1000.0 * (time.perf_counter() - t0)
         return res
 
@@ -404,15 +413,49 @@ class Cutter:
             return CutResult(False, "no element within the removal sphere: nothing changed")
         if gone.all():
             return CutResult(False, "refused: the removal would delete every element of the body")
-        tets = mesh.tets.astype(np.int64)
-        kept = tets[~gone]
-        used = np.zeros(mesh.n_nodes, bool)
-        used[kept.ravel()] = True
-        keep = np.flatnonzero(used)
-        res = self._commit(sim, None, np.zeros(0, np.int64), np.flatnonzero(gone), np.zeros(0, np.int64),
-                           keep=keep, kept_tets=~gone)
+        res = self._remove_tets(sim, gone)
+        self._remove_debris(sim, res)
         res.ms = 1000.0 * (time.perf_counter() - t0)
         return res
+
+    def _remove_tets(self, sim, gone: np.ndarray) -> CutResult:
+        tets = sim.mesh.tets.astype(np.int64)
+        used = np.zeros(sim.mesh.n_nodes, bool)
+        used[tets[~gone].ravel()] = True
+        return self._commit(sim, None, np.zeros(0, np.int64), np.flatnonzero(gone), np.zeros(0, np.int64),
+                            keep=np.flatnonzero(used), kept_tets=~gone)
+
+    def small_fragments(self, mesh, free: np.ndarray) -> np.ndarray:
+        """Mask of the tets in free fragments (no fixed node) of fewer than ``min_fragment`` tets."""
+        if self.min_fragment <= 0 or mesh.n_tets == 0:
+            return np.zeros(mesh.n_tets, bool)
+        T = mesh.tets.astype(np.int64)
+        rows, cols = np.repeat(T[:, 0], 3), T[:, 1:].ravel()  # a tet's nodes are connected through node 0
+        g = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(mesh.n_nodes, mesh.n_nodes))
+        _, lab = connected_components(g, directed=False)
+        tet_lab = lab[T[:, 0]]
+        count = np.bincount(tet_lab, minlength=lab.max() + 1)
+        anchored = np.zeros(len(count), bool)
+        anchored[lab[free == 0.0]] = True
+        small = (count < self.min_fragment) & ~anchored
+        return small[tet_lab]
+
+    def _remove_debris(self, sim, res: CutResult) -> None:
+        """After a change: remove the small free fragments it left (a lone tet shaved off by the
+        blade would otherwise tumble through the cut at free-fall speed) and say so in ``res``."""
+        if not res.changed:
+            return
+        debris = self.small_fragments(sim.mesh, sim.fem.free.numpy())
+        if not debris.any() or debris.all():
+            return
+        r = self._remove_tets(sim, debris)
+        if r.changed:
+            res.debris_tets = int(debris.sum())
+            res.nodes_removed += r.nodes_removed
+            res.affected_nodes += r.affected_nodes
+            res.smf_u_ms += r.smf_u_ms
+            res.smf_q_ms += r.smf_q_ms
+            res.message += f"; {res.debris_tets} debris tets of fragments under {self.min_fragment} tets removed"
 
     # ------------------------------------------------------------- commit
     def _commit(self, sim, new_tets, source, removed_ids, added_ids, keep, kept_tets=None) -> CutResult:

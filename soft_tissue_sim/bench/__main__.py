@@ -5,6 +5,7 @@ import sys
 
 BENCHMARKS = {
     "solvers": "solvers",  # error against run time for every solver (issue: async LDL^T)
+    "accuracy": "accuracy",  # error against run time over all solvers and scenes
     "cut-beam": "cut_beam",  # the paper's cut beam table and the SMF overhead
     "stability": "stability",  # extreme cases, every solver
     "brain": "brain",  # brain tumour resection end to end

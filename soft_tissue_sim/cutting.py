@@ -78,6 +78,27 @@ def _points_in_triangle(p, a, b, c, tol):
     return (v >= -rel) & (w >= -rel) & (v + w <= 1.0 + rel)
 
 
+def _segment_meets_tets(p0, p1, X, tol):
+    """Mask (k,): does the segment p0-p1 meet the tets X (k, 4, 3)? (Clipping by the 4 faces.)"""
+    e = p1 - p0
+    tmin = np.zeros(len(X))
+    tmax = np.ones(len(X))
+    ok = np.ones(len(X), bool)
+    for i in range(4):
+        o = [j for j in range(4) if j != i]
+        nrm = np.cross(X[:, o[1]] - X[:, o[0]], X[:, o[2]] - X[:, o[0]])
+        nrm *= np.sign(np.einsum("kj,kj->k", nrm, X[:, i] - X[:, o[0]]))[:, None]  # inwards
+        scale = np.linalg.norm(nrm, axis=1)
+        h0 = np.einsum("kj,kj->k", nrm, p0 - X[:, o[0]]) + tol * scale  # >= 0 inside (with tolerance)
+        dh = nrm @ e
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -h0 / dh
+        ok &= ~((dh == 0.0) & (h0 < 0.0))
+        tmin = np.where(dh > 0.0, np.maximum(tmin, t), tmin)
+        tmax = np.where(dh < 0.0, np.minimum(tmax, t), tmax)
+    return ok & (tmin <= tmax)
+
+
 def tets_cut_by_triangle(points, tets, tri, tol):
     """Indices of tets whose section by the plane of ``tri`` overlaps the triangle, and the
     signed distances (m,) of all tet centroids to that plane (the side of every tet)."""
@@ -110,12 +131,10 @@ def tets_cut_by_triangle(points, tets, tri, tol):
         on = np.abs(d[:, i]) <= tol
         p = Xc[:, i] - ((Xc[:, i] - a) @ n)[:, None] * n
         hit |= on & _points_in_triangle(p, a, b, c, tol)
-    # a blade smaller than the element: its centroid inside the tet
-    g = (a + b + c) / 3.0
-    Dm = np.stack([Xc[:, 1] - Xc[:, 0], Xc[:, 2] - Xc[:, 0], Xc[:, 3] - Xc[:, 0]], axis=2)
-    with np.errstate(all="ignore"):
-        bary = np.linalg.solve(Dm, (g - Xc[:, 0])[:, :, None])[:, :, 0]
-    hit |= np.all(bary >= -1e-12, axis=1) & (bary.sum(axis=1) <= 1.0 + 1e-12)
+    # the triangle's edges through the tet: the section polygon overlaps the triangle though
+    # none of its corners lies inside it (a blade thinner than the element, or inside it)
+    for p0, p1 in ((a, b), (b, c), (c, a)):
+        hit |= _segment_meets_tets(p0, p1, Xc, tol)
     return cand[hit], side
 
 

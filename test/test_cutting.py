@@ -5,7 +5,7 @@ import pytest
 import scipy.sparse.linalg as spla
 
 from soft_tissue_sim import load_scene
-from soft_tissue_sim.cutting import sweep_triangles
+from soft_tissue_sim.cutting import sweep_triangles, tets_cut_by_triangle
 from soft_tissue_sim.mesh import tet_quality, validate_mesh
 
 
@@ -173,6 +173,23 @@ def test_a_part_cut_free_falls_freely():
             z += sim.dt * vz
         assert c1[2] == pytest.approx(z, abs=2e-4)
         assert abs(c1[0] - c0[0] - v0[0] * t) < 2e-3
+
+
+@pytest.mark.parametrize("tri, expect", [
+    # long and thin, through the tet: no corner of the section inside it, its centroid outside the tet
+    ([[-1.0, 0.1, 0.2], [3.0, 0.1, 0.2], [3.0, 0.1001, 0.2]], True),
+    # small, inside the tet
+    ([[0.1, 0.1, 0.2], [0.15, 0.1, 0.2], [0.1, 0.15, 0.2]], True),
+    # large, containing the section
+    ([[-1.0, -1.0, 0.2], [3.0, -1.0, 0.2], [-1.0, 3.0, 0.2]], True),
+    # in the section's plane but beside it, and thin past its corner
+    ([[0.7, 0.7, 0.2], [0.9, 0.7, 0.2], [0.7, 0.9, 0.2]], False),
+    ([[-1.0, 0.9, 0.2], [3.0, 0.9, 0.2], [3.0, 0.9001, 0.2]], False),
+])
+def test_blade_triangle_against_a_tet_section(tri, expect):
+    P = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    hit, side = tets_cut_by_triangle(P, np.array([[0, 1, 2, 3]]), np.array(tri), 1e-12)
+    assert (len(hit) == 1) == expect
 
 
 def _corner_shave(sim):

@@ -4,8 +4,10 @@ Scene ``config/scenes/brain_resection.yaml``, driven by a scripted surgeon:
 
 1. push: the probe presses 6 mm into the cortex above the tumour, holds, and retracts;
 2. circumferential cut: the scalpel (a 12 mm vertical blade) spirals down around the tumour
-   with the pedal down, one small cut per step (continuous cutting);
-3. aspiration: the tissue under the tumour is removed in small bites (element removal),
+   with the pedal down (4 turns, 14 mm lower than the tumour), one small cut per step
+   (continuous cutting);
+3. aspiration: the tissue under the tumour is removed in small bites (element removal) in
+   three layers (the elements are about 1 cm),
    which frees the tumour with a cuff of tissue;
 4. the probe lifts the freed part's neighbourhood, and everything settles.
 
@@ -39,7 +41,7 @@ def tumour_geometry(mesh):
     return c, r, float(cen[:, 2].min()), float(cen[:, 2].max())
 
 
-def plan(mesh, turns=3, step_len=0.0012):
+def plan(mesh, turns=4, step_len=0.0012, layers=3, bite=0.0045):
     """The scripted surgeon: a list of per-step actions."""
     c, r, zlo, zhi = tumour_geometry(mesh)
     top = float(mesh.points[:, 2].max())
@@ -53,22 +55,23 @@ def plan(mesh, turns=3, step_len=0.0012):
         p = np.array([c[0], c[1], top + 0.004 - depth])
         acts.append({"probe": p if k < 58 else probe_home, "scalpel": scal_home, "cutting": False})
     # 2. spiral cut: blade from z to z + 12 mm, z from top - 10 mm down to below the tumour
-    z0, z1 = top - 0.010, max(0.004, zlo - 0.006)
+    z0, z1 = top - 0.010, max(0.003, zlo - 0.014)
     n = int(np.ceil(turns * 2 * np.pi * R / step_len))
     for k in range(n + 1):
         s = k / n
         a = 2 * np.pi * turns * s
         p = np.array([c[0] + R * np.cos(a), c[1] + R * np.sin(a), z0 + (z1 - z0) * s])
         acts.append({"probe": probe_home + [0.03, 0, 0], "scalpel": p, "cutting": True})
-    # 3. aspiration under the tumour: bites on a disc, ring by ring
-    zb = z1 + 0.003
+    # 3. aspiration under the tumour: bites on a disc, ring by ring, in layers from the cut's
+    #    floor up (the elements are about 1 cm: one layer of bites does not part them)
     bites = [(0.0, 0.0)]
     for ring in np.arange(0.004, R + 1e-9, 0.004):
         m = max(6, int(2 * np.pi * ring / 0.004))
         bites += [(ring * np.cos(2 * np.pi * j / m), ring * np.sin(2 * np.pi * j / m)) for j in range(m)]
-    for bx, by in bites:
-        acts.append({"probe": probe_home + [0.03, 0, 0], "scalpel": scal_home, "cutting": False,
-                     "remove": (np.array([c[0] + bx, c[1] + by, zb]), 0.0045)})
+    for zb in z1 + 0.003 + 0.0045 * np.arange(layers):
+        for bx, by in bites:
+            acts.append({"probe": probe_home + [0.03, 0, 0], "scalpel": scal_home, "cutting": False,
+                         "remove": (np.array([c[0] + bx, c[1] + by, zb]), bite)})
     # 4. settle
     for _ in range(40):
         acts.append({"probe": probe_home + [0.03, 0, 0], "scalpel": scal_home, "cutting": False})
@@ -88,7 +91,7 @@ def tumour_freed(sim) -> bool:
     return not any(l in base for l in np.unique(lab[tum_nodes]).tolist())
 
 
-def run(device, scene="brain_resection.yaml", turns=3, step_len=0.0012):
+def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012):
     sim = load_scene(scene, device=device)
     rows, mods = [], []
     try:
@@ -159,7 +162,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench brain", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default="brain_resection.yaml")
-    ap.add_argument("--turns", type=float, default=3)
+    ap.add_argument("--turns", type=float, default=4)
     ap.add_argument("--step-len", type=float, default=0.0012, help="scalpel advance per step [m]")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=str(RESULTS_DIR))

@@ -4,14 +4,17 @@ eq. 3-4, and 3.4, eq. 11-12).
 One step (called by :meth:`Simulation.step` after the free motion of eq. 1):
 
 1. Detection on the free-motion positions (Warp kernels, float64 narrow phase): every
-   tissue surface node against each instrument capsule and each obstacle, and, with
-   ``self_collision``, against the tissue's own surface triangles (a ``wp.Mesh`` over the
-   current positions, refitted each step, as the broad phase). A contact has a point on
-   the other surface, a unit normal n pointing towards the tissue node, and a gap
-   delta^0 (< 0: penetration). Its Jacobian row H is n^T on the node for node-vs-rigid,
-   and n^T on the node minus the barycentric combination w_i n^T on the triangle's nodes
-   for self-collision. With friction two more rows t1^T, t2^T (tangents) whose "gap" is
-   the relative tangential displacement during the step.
+   tissue surface node against each instrument capsule and each obstacle, every tissue
+   surface triangle against each instrument capsule (so that a tool thinner than the node
+   spacing cannot slip between nodes: see below), and, with ``self_collision``, every
+   surface node against the tissue's own surface triangles (a ``wp.Mesh`` over the current
+   positions, refitted each step, as the broad phase). A contact has a point on the other
+   surface, a unit normal n pointing towards the tissue (the way the tissue is pushed), and
+   a gap delta^0 (< 0: penetration). Its Jacobian row H is n^T on the node for
+   node-vs-rigid, w_i n^T on the triangle's nodes for triangle-vs-instrument (the tissue
+   point sum_i w_i x_i), and n^T on the node minus w_i n^T on the triangle's nodes for
+   self-collision. With friction two more rows t1^T, t2^T (tangents) whose "gap" is the
+   relative tangential displacement during the step.
 2. The LCP of eq. (3),  delta = W lambda + delta^0,  0 <= delta_n  _|_  lambda_n >= 0,
    with Coulomb friction |lambda_t| <= mu lambda_n (disk, or pyramid per component), is
    solved by projected Gauss-Seidel (a single-thread Warp kernel on the CPU).
@@ -49,9 +52,25 @@ any depth; an instrument at the pose set for this step). Triangle features (self
 mesh obstacles) are found at the step's start positions, within ``distance`` plus twice the
 largest free-motion displacement of a surface node, and their gap is linearised to the free
 motion (the features' normal and barycentric point are kept), so a node cannot tunnel
-through a triangle in one step. Limits: node-vs-surface contacts only (no edge-edge); one
-triangle per node (the nearest at the step's start); after the correction,
-``max_penetration`` is measured by a detection within ``distance`` at the corrected positions.
+through a triangle in one step. Instruments against tissue triangles: per surface triangle,
+the closest points of the capsule's axis and the triangle; a row only where that point of
+the triangle is inside it or on an edge the triangle owns (each surface edge is owned by one
+of its faces, the lowest index), vertices being the node contacts' (so nothing is counted
+twice). Where the axis pierces a triangle (the tool, or the tissue's free motion, moved
+more than the radius into the surface in one step), the triangle is pushed inwards until the
+part of the axis over it is a radius above it. Not contacts: a piercing along an
+instrument's blade (on the axis), which is a cut, and any piercing by a tool that was
+already through the surface at the step's start (its previous pose against the step's start
+positions: a tool inside a cut or a hole), around which the triangles are only kept a
+radius away from the axis, like the nodes.
+
+Limits: one triangle per node for self-collision (the nearest at the step's start); no
+tissue edge-edge contacts; tools are assumed to come from outside the tissue (a piercing
+pushes the triangle inwards); one linearisation per step: where the contact geometry turns
+during the correction (a pressed triangle tilting under a thin tool), some penetration is
+left, of second order in the correction (about 1 % of it in the tests); after the
+correction, ``max_penetration`` is measured by a detection within ``distance`` at the
+corrected positions.
 
 Scene options (all optional)::
 
@@ -268,6 +287,55 @@ def capsule_contacts_kernel(
         cpoint[k] = c + radius * n
 
 
+@wp.func
+def segment_triangle_closest(a: wp.vec3d, b: wp.vec3d, va: wp.vec3d, vb: wp.vec3d, vc: wp.vec3d):
+    """Closest points of the segment ab (a point if a == b) and the non-degenerate triangle
+    (va, vb, vc): (s, w, d2, crossing) with the segment's point a + s (b - a), the triangle's
+    point in barycentric coordinates w, their squared distance d2, and crossing = 1 where the
+    segment passes through the triangle from one side of its plane to the other (both points
+    are then the crossing point, d2 = 0). The minimum over the end points against the
+    triangle and the segment against the three edges, unless it crosses."""
+    zero = _F64(0.0)
+    one = _F64(1.0)
+    nf = wp.normalize(wp.cross(vb - va, vc - va))
+    da = wp.dot(a - va, nf)
+    db = wp.dot(b - va, nf)
+    if (da > zero and db < zero) or (da < zero and db > zero):
+        sx = da / (da - db)
+        wx = plane_bary(a + sx * (b - a), va, vb, vc)
+        if wx[0] >= zero and wx[1] >= zero and wx[2] >= zero:
+            return sx, wx, zero, 1
+    s = zero
+    w = triangle_closest_bary(a, va, vb, vc)
+    best = wp.length_sq(a - (w[0] * va + w[1] * vb + w[2] * vc))
+    w2 = triangle_closest_bary(b, va, vb, vc)
+    d2 = wp.length_sq(b - (w2[0] * va + w2[1] * vb + w2[2] * vc))
+    if d2 < best:
+        best = d2
+        s = one
+        w = w2
+    # edge k joins vertices k and k + 1
+    st = closest_segment_segment(a, b, va, vb)
+    d2 = wp.length_sq(a + st[0] * (b - a) - (va + st[1] * (vb - va)))
+    if d2 < best:
+        best = d2
+        s = st[0]
+        w = wp.vec3d(one - st[1], st[1], zero)
+    st = closest_segment_segment(a, b, vb, vc)
+    d2 = wp.length_sq(a + st[0] * (b - a) - (vb + st[1] * (vc - vb)))
+    if d2 < best:
+        best = d2
+        s = st[0]
+        w = wp.vec3d(zero, one - st[1], st[1])
+    st = closest_segment_segment(a, b, vc, va)
+    d2 = wp.length_sq(a + st[0] * (b - a) - (vc + st[1] * (va - vc)))
+    if d2 < best:
+        best = d2
+        s = st[0]
+        w = wp.vec3d(st[1], zero, one - st[1])
+    return s, w, best, 0
+
+
 @wp.kernel
 def capsule_faces_kernel(
     x: wp.array(dtype=wp.vec3d),
@@ -277,17 +345,30 @@ def capsule_faces_kernel(
     b: wp.vec3d,
     radius: wp.float64,
     distance: wp.float64,
+    blade_lo: wp.float64,
+    blade_hi: wp.float64,
+    inside: int,
     active: wp.array(dtype=wp.int32),
     gap: wp.array(dtype=wp.float64),
     nrm: wp.array(dtype=wp.vec3d),
     cpoint: wp.array(dtype=wp.vec3d),
     bary: wp.array(dtype=wp.vec3d),
 ):
-    """Surface triangle f against the capsule of axis ab, where the closest point of the
-    triangle is inside it or on an edge this face owns (each edge is counted once; vertices
-    are the node contacts' business), so a tool thinner than the mesh spacing cannot slip
-    between nodes. Normal from the axis point to the triangle point (the way the tissue is
-    pushed), gap = their distance - radius, point = on the capsule's surface."""
+    """Surface triangle f (outward normal by the right hand) against the capsule of axis ab,
+    so that a tool thinner than the mesh spacing cannot slip between nodes.
+
+    Only where the triangle's closest point to the axis is inside it, or on an edge this face
+    owns (``edge_owner[f][k]`` = 1 for the edge from vertex k to vertex k + 1; one face per
+    edge, so each edge counts once); a vertex is the node contacts' business. Normal from the
+    axis point to the triangle point (the way the tissue is pushed, like the node contacts),
+    gap = their distance - radius, point = on the capsule's surface. Where the axis pierces
+    the triangle (or touches it), the tissue is pushed inwards (-face normal) until the part of
+    the axis above the triangle (clipped to the triangle's prism) is ``radius`` above it:
+    gap = (lowest signed height of that part) - radius, the point and barycentric weights at
+    that lowest point. Not a contact, skipped: a piercing at an axis fraction in [blade_lo,
+    blade_hi] (the instrument's blade: a cut in progress), and any piercing or touching when
+    ``inside`` (the tool was already through the surface at the step's start, e.g. in a cut:
+    the triangles around it are then only kept a radius away from the axis)."""
     f = wp.tid()
     active[f] = 0
     t = faces[f]
@@ -306,46 +387,7 @@ def capsule_faces_kernel(
         return
     zero = _F64(0.0)
     one = _F64(1.0)
-    # closest points: the axis' end points against the triangle, the axis against its edges
-    w = triangle_closest_bary(a, va, vb, vc)
-    bp = a
-    bq = w[0] * va + w[1] * vb + w[2] * vc
-    best = wp.length_sq(bp - bq)
-    w2 = triangle_closest_bary(b, va, vb, vc)
-    q2 = w2[0] * va + w2[1] * vb + w2[2] * vc
-    if wp.length_sq(b - q2) < best:
-        best = wp.length_sq(b - q2)
-        bp = b
-        bq = q2
-        w = w2
-    for k in range(3):
-        u = x[t[k]]
-        v = x[t[(k + 1) % 3]]
-        st = closest_segment_segment(a, b, u, v)
-        p = a + st[0] * (b - a)
-        q = u + st[1] * (v - u)
-        d2 = wp.length_sq(p - q)
-        if d2 < best:
-            best = d2
-            bp = p
-            bq = q
-            we = wp.vec3d(zero, zero, zero)
-            we[k] = one - st[1]
-            we[(k + 1) % 3] = st[1]
-            w = we
-    # the axis crossing the triangle: distance 0, the tissue pushed inwards
-    da = wp.dot(a - va, nf)
-    db = wp.dot(b - va, nf)
-    crossing = False
-    if (da > zero and db < zero) or (da < zero and db > zero):
-        X = a + (da / (da - db)) * (b - a)
-        wx = plane_bary(X, va, vb, vc)
-        if wx[0] >= zero and wx[1] >= zero and wx[2] >= zero:
-            crossing = True
-            bp = X
-            bq = X
-            w = wx
-            best = zero
+    s, w, d2, crossing = segment_triangle_closest(a, b, va, vb, vc)
     # vertices belong to the node contacts; an edge to one of its two faces
     tiny = _F64(1e-12)
     nz = int(0)
@@ -357,21 +399,80 @@ def capsule_faces_kernel(
             zero_at = k
     if nz <= 1:
         return
-    if nz == 2 and edge_owner[f][zero_at] == 0:
+    if nz == 2 and edge_owner[f][(zero_at + 1) % 3] == 0:
         return
-    dist = wp.sqrt(best)
-    g = dist - radius
+    dist = wp.sqrt(d2)
+    if crossing == 0 and dist > tiny * radius:
+        g = dist - radius
+        if g < distance:
+            p = a + s * (b - a)
+            n = (w[0] * va + w[1] * vb + w[2] * vc - p) / dist
+            active[f] = 1
+            gap[f] = g
+            nrm[f] = n
+            cpoint[f] = p + radius * n
+            bary[f] = w
+        return
+    # pierced or touched
+    if inside != 0 or (crossing != 0 and s >= blade_lo and s <= blade_hi):
+        return
+    # the part of the axis inside the triangle's prism: s0 <= s <= s1
+    s0 = zero
+    s1 = one
+    for k in range(3):
+        u = x[t[k]]
+        m = wp.cross(nf, x[t[(k + 1) % 3]] - u)  # towards the inside of the triangle
+        h0 = wp.dot(a - u, m)
+        dh = wp.dot(b - u, m) - h0
+        if dh > zero:
+            s0 = wp.max(s0, -h0 / dh)
+        elif dh < zero:
+            s1 = wp.min(s1, -h0 / dh)
+        elif h0 < zero:
+            s1 = -one
+    da = wp.dot(a - va, nf)
+    db = wp.dot(b - va, nf)
+    sl = s  # rounding left the prism empty: the touching point
+    if s0 <= s1:
+        sl = s0
+        if da + s1 * (db - da) < da + s0 * (db - da):
+            sl = s1
+    h = wp.min(zero, da + sl * (db - da))
+    p = a + sl * (b - a)
+    wl = plane_bary(p, va, vb, vc)
+    wl = wp.vec3d(wp.max(wl[0], zero), wp.max(wl[1], zero), wp.max(wl[2], zero))
+    wl = wl / (wl[0] + wl[1] + wl[2])
     n = -nf
-    if crossing or dist <= tiny * radius:
-        g = -radius - wp.max(zero, -wp.min(da, db))
-    else:
-        n = (bq - bp) / dist
-    if g < distance:
-        active[f] = 1
-        gap[f] = g
-        nrm[f] = n
-        cpoint[f] = bp + radius * n
-        bary[f] = w
+    active[f] = 1
+    gap[f] = h - radius
+    nrm[f] = n
+    cpoint[f] = p + radius * n
+    bary[f] = wl
+
+
+@wp.kernel
+def capsule_crossings_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    faces: wp.array(dtype=wp.vec3i),
+    a: wp.vec3d,
+    b: wp.vec3d,
+    crossed: wp.array(dtype=wp.int32),
+):
+    """crossed[f] = 1 where the axis ab passes through surface triangle f."""
+    f = wp.tid()
+    crossed[f] = 0
+    t = faces[f]
+    va = x[t[0]]
+    vb = x[t[1]]
+    vc = x[t[2]]
+    if wp.length(wp.cross(vb - va, vc - va)) <= _F64(0.0):
+        return
+    cen = (va + vb + vc) / _F64(3.0)
+    rad = wp.max(wp.length(va - cen), wp.max(wp.length(vb - cen), wp.length(vc - cen)))
+    if wp.length(cen - closest_on_segment(cen, a, b)) > rad:
+        return
+    s, w, d2, crossing = segment_triangle_closest(a, b, va, vb, vc)
+    crossed[f] = crossing
 
 
 @wp.kernel
@@ -695,12 +796,36 @@ def _options(cfg) -> dict:
     return o
 
 
+def blade_span(inst: Instrument) -> tuple[float, float]:
+    """(lo, hi): the fractions of the capsule's axis along which its blade runs (a piercing
+    there is a cut, not a contact), or (1, 0), none, for a tool without a blade on its axis
+    (a blade further from the axis than the radius, e.g. beside or below the shaft)."""
+    bl = getattr(inst, "blade", None)
+    if bl is None or inst.length <= 0.0 or np.hypot(bl[:, 0], bl[:, 1]).max() > inst.radius:
+        return 1.0, 0.0
+    z = bl[:, 2] / inst.length
+    lo, hi = max(float(z.min()), 0.0), min(float(z.max()), 1.0)
+    return (lo, hi) if lo < hi else (1.0, 0.0)
+
+
 def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit tangents (k, 3) completing the unit normals n (k, 3) to right-handed frames."""
     a = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     t1 = np.cross(n, a)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     return t1, np.cross(n, t1)
+
+
+def edge_ownership(faces: np.ndarray) -> np.ndarray:
+    """(k, 3) int32: 1 where face f owns its edge from vertex j to vertex j + 1 (mod 3). Each
+    undirected edge is owned once, by the lowest-index face that has it."""
+    faces = np.asarray(faces).reshape(-1, 3)
+    owner = np.zeros(3 * len(faces), np.int32)
+    if len(faces):
+        edges = np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1).reshape(-1, 2)
+        _, first = np.unique(np.sort(edges, axis=1), axis=0, return_index=True)
+        owner[first] = 1
+    return owner.reshape(-1, 3)
 
 
 class _Topology:
@@ -723,16 +848,13 @@ class _Topology:
         self.tri = wp.zeros(ns, dtype=wp.int32, device=dev)
         self.bary = wp.zeros(ns, dtype=wp.vec3d, device=dev)
         self.scale = float(np.ptp(mesh.points, axis=0).max()) or 1.0
-        # faces on the device, and which face owns each edge (the edge opposite vertex i)
+        # faces on the device, and which face owns each surface edge: edge_owner[f, k] = 1 where
+        # face f owns its edge from vertex k to vertex k + 1, each edge owned by exactly one of
+        # the faces sharing it, the lowest index (np.unique's first occurrence, face-major order)
         nf = max(len(self.faces), 1)
         self.faces_wp = wp.array(self.faces if len(self.faces) else np.zeros((1, 3), np.int32), dtype=wp.vec3i,
                                  device=dev)
-        opp = np.stack([self.faces[:, [1, 2]], self.faces[:, [2, 0]], self.faces[:, [0, 1]]], axis=1).reshape(-1, 2)
-        owner = np.zeros(len(opp), np.int32)
-        if len(opp):
-            _, first = np.unique(np.sort(opp, axis=1), axis=0, return_index=True)
-            owner[first] = 1
-        self.edge_owner = wp.array(owner.reshape(-1, 3) if len(opp) else np.zeros((1, 3), np.int32),
+        self.edge_owner = wp.array(edge_ownership(self.faces) if len(self.faces) else np.zeros((1, 3), np.int32),
                                    dtype=wp.vec3i, device=dev)
         # one output slot per surface face (instrument against triangles)
         self.f_active = wp.zeros(nf, dtype=wp.int32, device=dev)
@@ -740,6 +862,7 @@ class _Topology:
         self.f_normal = wp.zeros(nf, dtype=wp.vec3d, device=dev)
         self.f_point = wp.zeros(nf, dtype=wp.vec3d, device=dev)
         self.f_bary = wp.zeros(nf, dtype=wp.vec3d, device=dev)
+        self.f_crossed = wp.zeros(nf, dtype=wp.int32, device=dev)
         self.wmesh = None
         if self_collision and len(self.faces):
             n = fem.n_nodes
@@ -883,12 +1006,47 @@ class ContactSolver:
             part["bary"] = topo.bary.numpy()[act]
         parts.append(part)
 
-    def detect(self, sim, x: wp.array | None = None, x_features: wp.array | None = None, reach: float = 0.0) -> dict:
+    def _capsule_faces(self, topo: _Topology, oi: int, inst: Instrument, x: wp.array, a: np.ndarray, b: np.ndarray,
+                       x_start: wp.array | None, parts: list) -> None:
+        """Instrument ``oi`` against the surface triangles: rows with node -1, the triangle's
+        nodes in ``tri`` and the tissue point's barycentric weights in ``bary``. With
+        ``x_start`` (the tissue at the step's start), a tool whose axis then, at its previous
+        pose, went through the surface is inside: its piercings are not contacts."""
+        nf = len(topo.faces)
+        if nf == 0:
+            return
+        inside = 0
+        if x_start is not None:
+            pa, pb = inst.segment_world(inst.previous_step_pose)
+            wp.launch(capsule_crossings_kernel, nf, [x_start, topo.faces_wp, wp.vec3d(*pa), wp.vec3d(*pb)],
+                      outputs=[topo.f_crossed], device=self.device)
+            inside = int(topo.f_crossed.numpy()[:nf].any())
+        lo, hi = blade_span(inst)
+        wp.launch(capsule_faces_kernel, nf,
+                  [x, topo.faces_wp, topo.edge_owner, wp.vec3d(*a), wp.vec3d(*b), inst.radius,
+                   self.options["distance"], lo, hi, inside],
+                  outputs=[topo.f_active, topo.f_gap, topo.f_normal, topo.f_point, topo.f_bary], device=self.device)
+        act = topo.f_active.numpy()[:nf].astype(bool)
+        if not act.any():
+            return
+        k = int(act.sum())
+        parts.append({"node": np.full(k, -1, np.int64), "obj": np.full(k, oi, np.int64),
+                      "gap": topo.f_gap.numpy()[act], "normal": topo.f_normal.numpy()[act],
+                      "point": topo.f_point.numpy()[act], "tri": topo.faces[act].astype(np.int64),
+                      "bary": topo.f_bary.numpy()[act]})
+
+    def detect(self, sim, x: wp.array | None = None, x_features: wp.array | None = None, reach: float = 0.0,
+               x_start: wp.array | None = None) -> dict:
         """Contacts as numpy arrays, one row per contact: node, obj (index in ``objects``, -1
-        for self-collision), gap, normal, point, tri, bary. Planes and instruments are tested
+        for self-collision), gap, normal, point, tri, bary. A row is a tissue node (``tri`` -1)
+        against an object, a tissue node against a tissue triangle (self-collision: obj -1,
+        the node and the triangle), or a tissue triangle against an instrument (node -1, the
+        tissue point sum_i bary_i x[tri_i]). Planes and instruments are tested
         at positions ``x`` (default ``sim.integrator.x``) within ``distance``, triangle
         features (self-collision, mesh obstacles) at ``x_features`` (default ``x``) within
-        ``distance + reach``."""
+        ``distance + reach``. ``x_start``: the tissue at the step's start, where the
+        instruments' previous poses tell which tools were already through the surface (their
+        piercings of triangles are then not contacts); without it every piercing is one."""
         topo = self._topology(sim)
         dev, dist = self.device, self.options["distance"]
         x = sim.integrator.x if x is None else x
@@ -904,6 +1062,9 @@ class ContactSolver:
                 a, b = obj.segment_world()
                 wp.launch(capsule_contacts_kernel, ns, [x, topo.nodes, wp.vec3d(*a), wp.vec3d(*b), obj.radius, dist],
                           outputs=out, device=dev)
+                self._collect(topo, oi, False, parts)
+                self._capsule_faces(topo, oi, obj, x, a, b, x_start, parts)
+                continue
             elif isinstance(obj, PlaneObstacle):
                 wp.launch(plane_contacts_kernel, ns, [x, topo.nodes, wp.vec3d(*obj.point), wp.vec3d(*obj.normal), dist],
                           outputs=out, device=dev)
@@ -995,7 +1156,8 @@ class ContactSolver:
         # in on each other), so that nothing tunnels through a triangle in one step.
         surf = self._topology(sim).surface
         moved = float(np.sqrt(np.max(np.sum((x[surf] - x_start[surf]) ** 2, axis=1)))) if len(surf) else 0.0
-        c = self.detect(sim, integ.x, wp.array(x_start, dtype=wp.vec3d, device=self.device), reach=2.0 * moved)
+        xs_wp = wp.array(x_start, dtype=wp.vec3d, device=self.device)
+        c = self.detect(sim, integ.x, xs_wp, reach=2.0 * moved, x_start=xs_wp)
         tri_feature = c["obj"] < 0
         for oi, obj in enumerate(self.objects):
             if isinstance(obj, MeshObstacle):
@@ -1007,40 +1169,47 @@ class ContactSolver:
                                               x[c["node"][tri_feature]] - c["point"][tri_feature])
         free = sim.fem.free.numpy().copy()
         k = len(c["node"])
-        # Jacobian blocks: up to 4 nodes per contact with weights (node: 1, triangle: -w_i),
-        # zero on fixed nodes. Contacts whose nodes are all fixed cannot be acted on: dropped.
+        # Jacobian blocks: up to 4 nodes per contact with weights: the tissue point moves with
+        # +1 on its node, or +w_i on the triangle's nodes where it is a triangle's point
+        # (instrument against a face, node -1); a self-collision triangle is the other surface,
+        # -w_i. ws4 are these (the tissue point's relative displacement), w4 the same zeroed on
+        # fixed nodes. Contacts whose nodes are all fixed cannot be acted on: dropped.
         nodes4 = np.concatenate([c["node"][:, None], c["tri"]], axis=1)
-        w4 = np.concatenate([np.ones((k, 1)), -c["bary"]], axis=1) * (nodes4 >= 0)
-        w4 *= free[np.clip(nodes4, 0, None)]
+        tri_sign = np.where(c["obj"] < 0, -1.0, 1.0)[:, None]
+        ws4 = np.concatenate([np.ones((k, 1)), tri_sign * c["bary"]], axis=1) * (nodes4 >= 0)
+        w4 = ws4 * free[np.clip(nodes4, 0, None)]
         keep = np.einsum("ij,ij->i", w4, w4) > 0.0
         if keep.sum() > o["max_contacts"]:
             order = np.argsort(np.where(keep, c["gap"], np.inf), kind="stable")[: o["max_contacts"]]
             keep = np.zeros(k, bool)
             keep[order] = True
         c = {key: val[keep] for key, val in c.items()}
-        nodes4, w4 = nodes4[keep], w4[keep]
+        nodes4, w4, ws4 = nodes4[keep], w4[keep], ws4[keep]
         k = len(c["node"])
-        stats = {"contacts": k, "self_contacts": int(np.sum(c["obj"] < 0)), "active_contacts": 0, "gs_iterations": 0,
-                 "lcp_residual": 0.0, "max_penetration": 0.0, "contact_ms": 0.0}
+        stats = {"contacts": k, "self_contacts": int(np.sum(c["obj"] < 0)),
+                 "face_contacts": int(np.sum((c["node"] < 0) & (c["obj"] >= 0))), "active_contacts": 0,
+                 "gs_iterations": 0, "lcp_residual": 0.0, "max_penetration": 0.0, "contact_ms": 0.0}
         for obj in self.objects:
             obj.force, obj.torque = np.zeros(3), np.zeros(3)
         if k == 0:
             self._empty_contacts()
             self._warm = {}
         else:
-            self._respond(sim, c, nodes4, w4, free, x, v, x_start, stats)
+            self._respond(sim, c, nodes4, w4, ws4, free, x, v, x_start, stats)
         # penetration left after the correction: detection again at the corrected positions
-        after = self.detect(sim)
+        after = self.detect(sim, x_start=xs_wp)
         if len(after["gap"]):
             stats["max_penetration"] = float(max(0.0, -after["gap"].min()))
         stats["contact_ms"] = 1000.0 * (time.perf_counter() - t0)
         self.last_stats = stats
         return stats
 
-    def _respond(self, sim, c: dict, nodes4: np.ndarray, w4: np.ndarray, free: np.ndarray, x: np.ndarray,
-                 v: np.ndarray, x_start: np.ndarray, stats: dict) -> None:
+    def _respond(self, sim, c: dict, nodes4: np.ndarray, w4: np.ndarray, ws4: np.ndarray, free: np.ndarray,
+                 x: np.ndarray, v: np.ndarray, x_start: np.ndarray, stats: dict) -> None:
         """LCP of eq. (3) for the contacts ``c`` and the correction of x and v (free motion in,
-        corrected out, also written to the integrator)."""
+        corrected out, also written to the integrator). ``nodes4`` (k, 4): the contact's node
+        and triangle nodes (-1: none), ``ws4`` their weights in the tissue point's relative
+        displacement, ``w4`` the same zeroed on fixed nodes (the Jacobian's)."""
         o = self.options
         integ, dt = sim.integrator, sim.dt
         n = sim.fem.n_nodes
@@ -1058,11 +1227,7 @@ class ContactSolver:
         # relative displacement during the step of the tissue point against the other surface
         valid = nodes4 >= 0
         disp = x - x_start
-        rel = disp[c["node"]].copy()
-        is_self = c["obj"] < 0
-        if is_self.any():
-            tri = c["tri"][is_self]
-            rel[is_self] -= np.einsum("ks,ksj->kj", c["bary"][is_self], disp[tri])
+        rel = np.einsum("ks,ksj->kj", ws4, disp[np.clip(nodes4, 0, None)])
         for oi, obj in enumerate(self.objects):
             sel = c["obj"] == oi
             if sel.any() and fr[sel].any():
@@ -1086,11 +1251,15 @@ class ContactSolver:
         W0, apply_y, kind = self._compliance(sim, H)
         self.compliance_used = kind
         W = dt * dt * 0.5 * (W0 + W0.T)
-        # warm start from last step's forces on the same (object, node) pairs; nodes are named by
-        # the simulation's node uids where it keeps them (stable across cuts), else by index
+        # warm start from last step's forces on the same (object, node) or (object, triangle)
+        # pairs; nodes are named by the simulation's node uids where it keeps them (stable
+        # across cuts), else by index
         uids = getattr(sim, "node_uids", None)
         uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
-        keys = [(int(o_), int(u_)) for o_, u_ in zip(c["obj"], uids[c["node"]])]
+        node_u = uids[np.clip(c["node"], 0, None)]
+        tri_u = np.sort(uids[np.clip(c["tri"], 0, None)], axis=1)
+        keys = [(int(c["obj"][i]), int(node_u[i])) if c["node"][i] >= 0
+                else (int(c["obj"][i]), *(int(u_) for u_ in tri_u[i])) for i in range(k)]
         lam = np.zeros(m)
         for i in range(k):
             f = self._warm.get(keys[i])

@@ -12,6 +12,7 @@ import pytest
 import warp as wp
 
 from soft_tissue_sim import ParameterError, load_scene
+from soft_tissue_sim.contact import segment_triangle_closest
 from soft_tissue_sim.mesh import beam_mesh, save_mesh, validate_mesh
 
 G = 9.81
@@ -165,6 +166,277 @@ def test_tool_wrench_balances_the_reaction_of_the_fixed_nodes():
         np.testing.assert_allclose(F_expected, loads.sum(axis=0), rtol=1e-9, atol=1e-12)
         assert np.linalg.norm(T - T_expected) <= 0.03 * np.linalg.norm(T_expected), (T, T_expected)
         assert abs(T[1]) > 1e-4  # a real lever arm along the shaft
+
+
+# ------------------------------------------------------------------- instrument vs surface triangles
+def support_and_weight(sim):
+    """(force the tool must carry at equilibrium = support reaction + weight, elastic forces,
+    positions, masses, fixed mask) from the FEM forces at the current state."""
+    x = sim.integrator.x
+    sim.fem.update_rotations(x)
+    f = wp.zeros_like(x)
+    sim.fem.add_elastic_forces(x, f)
+    f_el, xs = f.numpy(), x.numpy()
+    mass = sim.fem.lumped_mass.numpy()
+    gvec = np.array([0.0, 0.0, -G])
+    fixed = np.zeros(len(xs), bool)
+    fixed[sim.fem.fixed_nodes] = True
+    R = -(f_el[fixed].sum(axis=0) + mass[fixed].sum() * gvec)
+    return R + mass.sum() * gvec
+
+
+def plane_height(x, tri, p):
+    """Signed height of p above the plane of triangle tri (outward normal) at positions x."""
+    va, vb, vc = x[tri]
+    n = np.cross(vb - va, vc - va)
+    return float((p - va) @ n / np.linalg.norm(n))
+
+
+@pytest.mark.parametrize("faces", [True, False])
+def test_thin_tool_pressed_on_a_face_is_held_by_it(monkeypatch, faces):
+    """A probe of radius 1 mm (node spacing 10 mm) pressed 1.5 mm into the middle of a top
+    triangle of a block clamped at its base: no node is within reach, only the triangle
+    holds it. Control: without the triangle contacts the tool goes into the tissue."""
+    from soft_tissue_sim.contact import ContactSolver
+
+    if not faces:
+        monkeypatch.setattr(ContactSolver, "_capsule_faces", lambda *args, **kwargs: None)
+    r = 0.001
+    cfg = scene(mesh={"generator": "beam", "n_long": 3, "n_cross": 3, "spacing": 0.01},
+                materials=[{"id": 0, "young": 2.0e4, "poisson": 0.3, "density": 1000.0}],
+                damping={"mass": 2.0, "stiffness": 0.01}, fixed={"axis": "z", "below": -0.0099},
+                instruments=[{"name": "probe", "shape": "capsule", "radius": r, "length": 0.03}],
+                contact={"tolerance": 1e-10})
+    with load_scene(cfg) as sim:
+        pts = sim.mesh.points
+        bf = sim.mesh.boundary_faces()
+        top = bf[(np.abs(pts[bf][:, :, 2] - 0.01) < 1e-12).all(axis=1)]
+        tri = top[0]
+        centre = pts[tri].mean(axis=0)
+        # the nodes are far from the tool: only a triangle contact can hold it
+        assert np.linalg.norm(pts[np.unique(bf)] - centre, axis=1).min() > r + 0.002 + 0.001
+        for i in range(120):
+            depth = min(i, 20) / 20 * 0.002  # 0.5 mm clearance, then 1.5 mm into the face
+            tip = centre + [0.0, 0.0, r + 0.0005 - depth]
+            sim.set_instrument_pose("probe", tip, [0.0, 0.0, 0.0, 1.0])
+            s = sim.step()
+        x = sim.positions()
+        height = plane_height(x, tri, tip) - r  # tool surface above the (deformed) triangle
+        if not faces:
+            assert s.extra["contacts"] == 0 and s.extra["face_contacts"] == 0
+            assert height < -0.0014  # the tool sits 1.5 mm inside the tissue
+            np.testing.assert_array_equal(sim.instrument_wrench("probe")[0], 0.0)
+            return
+        c = sim.contact.contacts
+        assert s.extra["face_contacts"] == s.extra["contacts"] == s.extra["active_contacts"] == 1
+        assert c["node"][0] == -1 and c["obj"][0] == 0 and sorted(c["tri"][0]) == sorted(tri)
+        assert c["normal"][0][2] < -0.99  # the tissue is pushed down
+        # equilibrium: the penetration left is the linearisation error of the triangle's
+        # tilt (1.4 % of the 1.5 mm here), against the whole 1.5 mm without triangle contacts
+        assert s.extra["lcp_residual"] <= 1e-10
+        assert s.extra["max_penetration"] < 5e-5
+        assert height > -5e-5
+        assert np.abs(sim.velocities()).max() < 1e-6
+        F, T = sim.instrument_wrench("probe")
+        assert F[2] > 0.1  # the tissue pushes the tool up
+        F_expected = support_and_weight(sim)
+        assert np.linalg.norm(F - F_expected) <= 0.02 * np.linalg.norm(F_expected), (F, F_expected)
+        np.testing.assert_allclose(sim.contact.contact_forces().sum(axis=0), -F, atol=1e-12)
+        # the point is on the tool's tip sphere, below its centre
+        np.testing.assert_allclose(np.linalg.norm(c["point"][0] - tip), r, rtol=1e-9)
+        np.testing.assert_allclose(T, np.cross(c["point"][0] - tip, F), atol=1e-12)
+
+
+def ridge(tmp_path):
+    """One tet whose top edge A-B (along y, z = 10 mm) is a ridge between two faces sloping
+    down to C and D (along x, z = 0)."""
+    L = h = 0.01
+    pts = np.array([[0.0, -L, h], [0.0, L, h], [-L, 0.0, 0.0], [L, 0.0, 0.0]])
+    tet = np.array([[0, 1, 2, 3]])
+    d = pts[1:] - pts[0]
+    if np.dot(d[0], np.cross(d[1], d[2])) < 0:
+        tet = tet[:, [1, 0, 2, 3]]
+    path = tmp_path / "ridge.vtu"
+    save_mesh(validate_mesh(pts, tet), path)
+    return str(path)
+
+
+@pytest.mark.parametrize("along", [0.0, 0.004])
+def test_capsule_lying_across_an_edge_counts_it_once(tmp_path, along):
+    """A horizontal capsule (radius 1 mm) across the ridge, 0.2 mm into it: both faces of the
+    ridge have their closest point on the shared edge; one row, from its owner."""
+    from soft_tissue_sim.contact import capsule_faces_kernel, edge_ownership
+
+    r, pen = 0.001, 0.0002
+    cfg = scene(mesh={"file": ridge(tmp_path)},
+                instruments=[{"name": "bar", "shape": "capsule", "radius": r, "length": 0.02}])
+    with load_scene(cfg) as sim:
+        inst = sim.contact.instrument("bar")
+        q = [0.0, np.sin(np.pi / 4), 0.0, np.cos(np.pi / 4)]  # tool +z along world +x
+        inst.set_pose([-0.01, along, 0.01 + r - pen], q)
+        inst.begin_step()
+        c = sim.contact.detect(sim)
+        assert len(c["node"]) == 1, c  # no node within reach, one edge row
+        faces = sim.mesh.boundary_faces()
+        pts = sim.mesh.points
+        A, B = 0, 1
+        ridge_faces = [f for f in range(len(faces)) if A in faces[f] and B in faces[f]]
+        assert len(ridge_faces) == 2
+        owner = min(ridge_faces)
+        assert c["node"][0] == -1 and c["obj"][0] == 0
+        np.testing.assert_array_equal(c["tri"][0], faces[owner])
+        w = dict(zip(c["tri"][0].tolist(), c["bary"][0]))
+        assert w[A] == pytest.approx(0.5 - along / 0.02) and w[B] == pytest.approx(0.5 + along / 0.02)
+        assert sum(v for k, v in w.items() if k not in (A, B)) == 0.0
+        assert c["gap"][0] == pytest.approx(-pen, abs=1e-12)
+        np.testing.assert_allclose(c["normal"][0], [0.0, 0.0, -1.0], atol=1e-12)
+        np.testing.assert_allclose(c["point"][0], [0.0, along, 0.01 - pen], atol=1e-12)
+        # each surface edge has exactly one owner, the lower face index
+        own = edge_ownership(faces)
+        edges = {}
+        for f in range(len(faces)):
+            for k in range(3):
+                e = tuple(sorted((faces[f][k], faces[f][(k + 1) % 3])))
+                edges.setdefault(e, []).append((f, own[f, k]))
+        for e, fs in edges.items():
+            assert [o for _, o in fs] == [1] + [0] * (len(fs) - 1), (e, fs)
+        # control: if every face owned its edges the ridge would be counted twice
+        topo = sim.contact._topo
+        a, b = inst.segment_world()
+        wp.launch(capsule_faces_kernel, len(faces),
+                  [wp.array(pts, dtype=wp.vec3d), topo.faces_wp, wp.array(np.ones_like(faces), dtype=wp.vec3i),
+                   wp.vec3d(*a), wp.vec3d(*b), r, 0.002, 1.0, 0.0, 0],
+                  outputs=[topo.f_active, topo.f_gap, topo.f_normal, topo.f_point, topo.f_bary], device="cpu")
+        assert sorted(np.flatnonzero(topo.f_active.numpy()).tolist()) == ridge_faces
+
+
+@pytest.mark.parametrize("tilt", [0.0, 50.0])
+def test_a_tool_piercing_a_face_pushes_it_back_unless_it_is_a_blade(tilt):
+    """A thin tool whose axis went through a top triangle, its tip 1 mm (upright) or 4 mm
+    (tilted: the tip is then beyond the triangle) below the surface: the triangle is pushed
+    down until the part of the axis over it (clipped to the triangle's prism: brute-force
+    samples here) is a radius above it. Not a contact: along a blade (a cut), or when the
+    tool was already through the surface at the step's start (inside: a cut or a hole)."""
+    r = 0.0005
+    tools = [{"name": "probe", "shape": "capsule", "radius": r, "length": 0.03},
+             {"name": "scalpel", "shape": "capsule", "radius": r, "length": 0.03, "blade": [[0, 0, 0], [0, 0, 0.01]]}]
+    with load_scene(scene(mesh={"generator": "beam", "n_long": 3, "n_cross": 3, "spacing": 0.01},
+                          instruments=tools)) as sim:
+        pts = sim.mesh.points
+        bf = sim.mesh.boundary_faces()
+        f = int(np.flatnonzero((np.abs(pts[bf][:, :, 2] - 0.01) < 1e-12).all(axis=1))[0])
+        tri = bf[f]
+        centre = pts[tri].mean(axis=0)
+        th = np.radians(tilt)
+        axis = np.array([np.sin(th), 0.0, np.cos(th)])  # tool +z, tilted about y
+        q = [0.0, np.sin(th / 2), 0.0, np.cos(th / 2)]
+        depth = 0.004 if tilt else 0.001
+        tip = centre - depth / np.cos(th) * axis  # crossing the surface at the centroid
+        # brute force: the lowest sample of the axis whose projection is in the triangle
+        S = tip + np.linspace(0.0, 0.03, 30001)[:, None] * axis
+        va, vb, vc = pts[tri]
+        M = np.linalg.lstsq(np.stack([vb - va, vc - va], axis=1), (S - va).T, rcond=None)[0]
+        inside = (M >= 0).all(axis=0) & (M.sum(axis=0) <= 1)
+        expected = (S[inside, 2] - 0.01).min() - r
+        x_start = wp.array(pts, dtype=wp.vec3d)
+        above = centre + [0.0, 0.0, 0.01]
+        for name, before, rows in (("probe", above, 1), ("scalpel", above, 0), ("probe", tip, 0)):
+            for other in ("probe", "scalpel"):  # the other tool far away
+                inst = sim.contact.instrument(other)
+                for p in (before, tip):  # the previous step's pose, this step's
+                    inst.set_pose(p if other == name else [1.0, 1.0, 1.0], q)
+                    inst.begin_step()
+            c = sim.contact.detect(sim, x_start=x_start)
+            assert (c["gap"] < 0.0).sum() == rows, (name, c)  # (the tilted tip nears a side face)
+            mine = (c["tri"] == tri).all(axis=1)
+            assert mine.sum() == rows, (name, c)
+            c = {k: v[mine] for k, v in c.items()}
+            if rows:
+                assert c["gap"][0] == pytest.approx(expected, abs=2e-6)
+                np.testing.assert_allclose(c["normal"][0], [0.0, 0.0, -1.0], atol=1e-12)
+                assert (c["bary"][0] >= 0).all() and c["bary"][0].sum() == pytest.approx(1.0)
+        if tilt:  # clipped to the triangle: not as deep as the tip
+            assert -depth - r + 0.001 < expected < -r - 0.001
+        else:
+            assert expected == pytest.approx(-depth - r)
+
+
+@wp.kernel
+def _closest_kernel(seg: wp.array(dtype=wp.vec3d), tri: wp.array(dtype=wp.vec3d), s_out: wp.array(dtype=wp.float64),
+                    w_out: wp.array(dtype=wp.vec3d), d2_out: wp.array(dtype=wp.float64),
+                    cross_out: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    s, w, d2, crossing = segment_triangle_closest(seg[2 * i], seg[2 * i + 1], tri[3 * i], tri[3 * i + 1],
+                                                  tri[3 * i + 2])
+    s_out[i] = s
+    w_out[i] = w
+    d2_out[i] = d2
+    cross_out[i] = crossing
+
+
+def brute_force_distance(a, b, va, vb, vc, rounds=40):
+    """min |a + s (b - a) - (va + u (vb - va) + v (vc - va))| over s in [0, 1], u, v >= 0,
+    u + v <= 1, by sampling: a grid, then grids zooming on the best sample (the distance
+    between two convex sets is a convex function of (s, u, v), so the zoom finds the minimum)."""
+    def dist(S, U, V):
+        P = a + S[:, None] * (b - a)
+        Q = va + U[:, None] * (vb - va) + V[:, None] * (vc - va)
+        return np.linalg.norm(P - Q, axis=1)
+
+    g = np.linspace(0.0, 1.0, 41)
+    S, U, V = (m.ravel() for m in np.meshgrid(g, g, g, indexing="ij"))
+    ok = U + V <= 1.0
+    S, U, V = S[ok], U[ok], V[ok]
+    d = dist(S, U, V)
+    k = np.argmin(d)
+    best, x = d[k], np.array([S[k], U[k], V[k]])
+    h = 1.0 / 40
+    loc = np.linspace(-1.0, 1.0, 9)
+    for _ in range(rounds):
+        S, U, V = (m.ravel() for m in np.meshgrid(x[0] + h * loc, x[1] + h * loc, x[2] + h * loc, indexing="ij"))
+        ok = (S >= 0) & (S <= 1) & (U >= 0) & (V >= 0) & (U + V <= 1)
+        S, U, V = S[ok], U[ok], V[ok]
+        d = dist(S, U, V)
+        k = np.argmin(d)
+        if d[k] <= best:
+            best, x = d[k], np.array([S[k], U[k], V[k]])
+        h *= 0.5
+    return best
+
+
+def test_segment_triangle_closest_points_agree_with_brute_force_sampling():
+    rng = np.random.default_rng(7)
+    cases = [rng.uniform(-1.0, 1.0, (5, 3)) for _ in range(60)]
+    T = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    cases += [
+        np.vstack([[0.2, 0.2, 0.5], [0.3, 0.1, -0.5], T]),  # crossing the interior
+        np.vstack([[-0.5, 0.3, 0.2], [1.5, 0.3, 0.2], T]),  # parallel above, across two edges
+        np.vstack([[0.2, 0.2, 0.3], [0.2, 0.2, 0.3], T]),  # a point (sphere tool) above the interior
+        np.vstack([[2.0, 2.0, 0.0], [3.0, 1.0, 0.0], T]),  # in the plane, off the triangle
+        np.vstack([[0.5, 0.5, 1.0], [0.5, 0.5, 0.0], T]),  # ends on the hypotenuse
+        np.vstack([[-1.0, -1.0, 0.5], [-0.5, -0.5, 0.5], T]),  # nearest to a vertex
+        np.vstack([[0.3, -0.5, 0.2], [0.3, 0.5, -0.2], T]),  # crossing an edge's line outside the triangle
+    ]
+    C = np.array(cases)
+    n = len(C)
+    s, w, d2 = wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.vec3d), wp.zeros(n, dtype=wp.float64)
+    crossing = wp.zeros(n, dtype=wp.int32)
+    wp.launch(_closest_kernel, n, [wp.array(C[:, :2].reshape(-1, 3), dtype=wp.vec3d),
+                                   wp.array(C[:, 2:].reshape(-1, 3), dtype=wp.vec3d)],
+              outputs=[s, w, d2, crossing], device="cpu")
+    s, w, d2, crossing = s.numpy(), w.numpy(), d2.numpy(), crossing.numpy()
+    for i, (a, b, va, vb, vc) in enumerate(C):
+        ref = brute_force_distance(a, b, va, vb, vc)
+        d = np.sqrt(d2[i])
+        assert d == pytest.approx(ref, abs=1e-7), (i, d, ref)
+        # the points returned are on the segment and the triangle, at that distance
+        assert 0.0 <= s[i] <= 1.0 and (w[i] >= 0.0).all() and w[i].sum() == pytest.approx(1.0, abs=1e-12)
+        P = a + s[i] * (b - a)
+        Q = w[i] @ np.stack([va, vb, vc])
+        assert np.linalg.norm(P - Q) == pytest.approx(d, abs=1e-12)
+        assert (crossing[i] == 1) == (ref < 1e-9 and np.sign(np.cross(vb - va, vc - va) @ (a - va))
+                                       * np.sign(np.cross(vb - va, vc - va) @ (b - va)) < 0), i
+    assert crossing.sum() >= 2  # the random cases include crossings
 
 
 # ------------------------------------------------------------------- self-collision

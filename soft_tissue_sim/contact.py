@@ -82,6 +82,8 @@ Scene options (all optional)::
       tolerance: 1.0e-8      # [m] LCP residual (largest W_rr |change of lambda_r| in a sweep)
       self_collision: false  # tissue surface nodes against the tissue's own triangles
       facing: 0.5            # same-component self contact only if n_node . n_triangle <= -facing
+      self_depth: null       # [m] deepest penetration behind a tissue triangle taken as real
+                             # (default 2 x distance); deeper is the far side of the body
       compliance: preconditioner   # preconditioner | diagonal | exact (see above)
       max_contacts: 2048     # keep the deepest ones beyond this
 """
@@ -109,6 +111,7 @@ DEFAULTS = {
     "tolerance": 1e-8,
     "self_collision": False,
     "facing": 0.5,
+    "self_depth": None,
     "compliance": "preconditioner",
     "max_contacts": 2048,
 }
@@ -560,6 +563,7 @@ def self_contacts_kernel(
     distance: wp.float64,
     margin: wp.float32,
     facing: wp.float64,
+    depth: wp.float64,
     active: wp.array(dtype=wp.int32),
     tri: wp.array(dtype=wp.int32),
     bary: wp.array(dtype=wp.vec3d),
@@ -573,8 +577,12 @@ def self_contacts_kernel(
     neighbourhood), and triangles of the same connected component unless they face the node
     (node normal . triangle normal <= -facing, e.g. the two sides of a cut). In front of a
     triangle the gap is the distance to it (normal from the closest point to the node);
-    behind it, a penetration counts only if the node projects inside the triangle (gap =
-    signed plane distance, normal = the triangle's). The candidate of smallest |gap| wins.
+    behind it, a penetration counts only if the node projects inside the triangle and lies
+    at most ``depth`` behind it (gap = signed plane distance, normal = the triangle's): the
+    positions searched are the step's start, where the last correction left at most a
+    contact tolerance of penetration, so a node deeper behind a triangle is on the body's
+    far side, not in it (taking it pushes the body through itself). The candidate of
+    smallest |gap| wins.
     """
     k = wp.tid()
     p = nodes[k]
@@ -630,7 +638,7 @@ def self_contacts_kernel(
                 valid = True
             else:
                 wb = plane_bary(xp, va, vb, vc)
-                if wb[0] >= _F64(-1e-9) and wb[1] >= _F64(-1e-9) and wb[2] >= _F64(-1e-9):
+                if -s <= depth and wb[0] >= _F64(-1e-9) and wb[1] >= _F64(-1e-9) and wb[2] >= _F64(-1e-9):
                     w = wp.vec3d(wp.max(wb[0], _F64(0.0)), wp.max(wb[1], _F64(0.0)), wp.max(wb[2], _F64(0.0)))
                     w = w / (w[0] + w[1] + w[2])
                     q = w[0] * va + w[1] * vb + w[2] * vc
@@ -784,6 +792,8 @@ def _options(cfg) -> dict:
     o["facing"] = finite_number("contact facing", o["facing"], minimum=-1.0)
     if o["facing"] > 1.0:
         raise ParameterError(f"contact facing is a cosine in [-1, 1], got {o['facing']}")
+    o["self_depth"] = (2.0 * o["distance"] if o["self_depth"] is None
+                       else finite_number("contact self_depth", o["self_depth"], minimum=0.0, strict=True))
     for key in ("max_iterations", "max_contacts"):
         if isinstance(o[key], bool) or not isinstance(o[key], int) or o[key] < 1:
             raise ParameterError(f"contact {key} must be an integer >= 1, got {o[key]!r}")
@@ -1082,7 +1092,7 @@ class ContactSolver:
             wp.launch(self_contacts_kernel, ns,
                       [xf, topo.nodes, topo.wmesh.id, topo.faces_wp, topo.face_comp, topo.node_comp, topo.node_normal,
                        topo.ring_offsets, topo.ring_nodes, far, float(far * 1.001 + 1e-6 * topo.scale),
-                       self.options["facing"]],
+                       self.options["facing"], self.options["self_depth"]],
                       outputs=[topo.active, topo.tri, topo.bary, topo.gap, topo.normal, topo.point], device=dev)
             self._collect(topo, -1, True, parts)
         return self._concat(parts)
@@ -1163,6 +1173,16 @@ class ContactSolver:
             if isinstance(obj, MeshObstacle):
                 tri_feature |= c["obj"] == oi
         if tri_feature.any():
+            # The search radius is the largest motion of any surface node, so one fast fragment
+            # widens it for all. A pair can only close in by the motion of its own node and
+            # triangle: farther pairs cannot touch in this step and are dropped before the LCP.
+            mv = np.linalg.norm(x - x_start, axis=1)
+            tri_mv = np.where(c["obj"] < 0, mv[np.clip(c["tri"], 0, None)].max(axis=1), 0.0)
+            reach_row = o["distance"] + mv[np.clip(c["node"], 0, None)] + tri_mv
+            near = ~tri_feature | (c["gap"] <= reach_row)
+            if not near.all():
+                c = {key: val[near] for key, val in c.items()}
+                tri_feature = tri_feature[near]
             own = np.flatnonzero(c["obj"] < 0)  # tissue triangles move: their point follows the free motion
             c["point"][own] = np.einsum("ks,ksj->kj", c["bary"][own], x[c["tri"][own]])
             c["gap"][tri_feature] = np.einsum("kj,kj->k", c["normal"][tri_feature],

@@ -479,6 +479,28 @@ def test_two_blocks_pushed_together_do_not_interpenetrate(tmp_path, self_collisi
         assert F_B[0] == pytest.approx(mB * G, rel=0.01)
 
 
+@pytest.mark.parametrize("self_depth", [None, 1.0])
+def test_a_thin_body_moving_fast_makes_no_self_contact_with_its_far_side(self_depth):
+    """A 1 cm slab falling 3 cm per step: the search radius grows past its thickness, so its top
+    nodes lie 'behind' its bottom faces. That is the far side of the body, not a penetration:
+    no contact, and the slab falls freely. With ``self_depth`` opened up to 1 m the same
+    geometry is taken for penetration (the control)."""
+    cfg = scene({"generator": "beam", "n_long": 4, "n_cross": 2, "spacing": 0.01},
+                contact={"self_collision": True, "distance": 0.001, "self_depth": self_depth})
+    cfg["gravity"] = [0.0, 0.0, 0.0]
+    with load_scene(cfg) as sim:
+        x0 = sim.positions()
+        v0 = np.tile([0.0, 0.0, -3.0], (len(x0), 1))
+        sim.integrator.set_state(x0, v0)
+        s = sim.step()
+        if self_depth is None:
+            assert s.extra["self_contacts"] == 0
+            dz = -3.0 * 0.01 / (1.0 + 1.0 * 0.01)  # backward Euler with Rayleigh mass damping alpha = 1
+            assert np.allclose(sim.positions() - x0, [0.0, 0.0, dz], atol=1e-9)
+        else:
+            assert s.extra["self_contacts"] > 0
+
+
 @pytest.mark.parametrize("self_collision", [True, False])
 def test_facing_surfaces_of_one_body_do_not_interpenetrate(tmp_path, self_collision):
     """One connected body shaped like a U lying on its side (a slot, like the two sides of
@@ -638,6 +660,7 @@ BAD_SCENES = [
     ({"contact": {"max_iterations": 0}, "instruments": [{"name": "p", "radius": 0.01}]}, "max_iterations"),
     ({"contact": {"compliance": "magic"}, "instruments": [{"name": "p", "radius": 0.01}]}, "compliance"),
     ({"contact": {"self_collision": "yes"}}, "self_collision"),
+    ({"contact": {"self_collision": True, "self_depth": -1.0}}, "self_depth"),
     ({"instruments": [{"name": "p", "radius": 0.0}]}, "radius"),
     ({"instruments": [{"name": "p"}]}, "radius"),
     ({"instruments": [{"name": "p", "radius": 0.01, "length": -1}]}, "length"),

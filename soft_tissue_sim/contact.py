@@ -818,6 +818,20 @@ def blade_span(inst: Instrument) -> tuple[float, float]:
     return (lo, hi) if lo < hi else (1.0, 0.0)
 
 
+def _positive_definite(W: np.ndarray, dense_check_up_to: int = 1500) -> bool:
+    """Is the symmetric compliance W usable by Gauss-Seidel: finite, positive diagonal and, for
+    sizes up to ``dense_check_up_to``, a Cholesky factorization that succeeds."""
+    if not np.all(np.isfinite(W)) or np.any(np.diag(W) <= 0.0):
+        return False
+    if len(W) > dense_check_up_to:
+        return True
+    try:
+        np.linalg.cholesky(W)
+    except np.linalg.LinAlgError:
+        return False
+    return True
+
+
 def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit tangents (k, 3) completing the unit normals n (k, 3) to right-handed frames."""
     a = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
@@ -937,6 +951,7 @@ class ContactSolver:
         self._empty_contacts()
         self.last_stats: dict = {}
         self.compliance_used = "none"
+        self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite
 
     # ------------------------------------------------------------------ API
     def instrument_names(self) -> list[str]:
@@ -990,6 +1005,7 @@ class ContactSolver:
         self._warm = {}
         self._empty_contacts()
         self.last_stats = {}
+        self.compliance_fallbacks = 0
 
     # ------------------------------------------------------------ detection
     def _topology(self, sim) -> _Topology:
@@ -1107,9 +1123,9 @@ class ContactSolver:
         return {k: np.concatenate([p[k] for p in parts]) for k in keys}
 
     # ------------------------------------------------------------ compliance
-    def _compliance(self, sim, H: sps.csr_matrix):
+    def _compliance(self, sim, H: sps.csr_matrix, mode: str | None = None):
         """(W / dt^2 = H P^-1 H^T dense, a function lam -> P^-1 H^T lam, the kind used)."""
-        mode = self.options["compliance"]
+        mode = self.options["compliance"] if mode is None else mode
         inner = getattr(sim.preconditioner, "inner", None)
         if mode == "preconditioner" and inner is None:
             mode = "diagonal"  # jacobi / none: no factorization to use
@@ -1269,8 +1285,17 @@ class ContactSolver:
                     vi.append(w4[cs, s] * dirs[cs, j])
         H = sps.coo_matrix((np.concatenate(vi), (np.concatenate(ri), np.concatenate(ci))), shape=(m, 3 * n)).tocsr()
         W0, apply_y, kind = self._compliance(sim, H)
-        self.compliance_used = kind
         W = dt * dt * 0.5 * (W0 + W0.T)
+        if kind != "diagonal" and not _positive_definite(W):
+            # A factor corrected by many cuts, stale, with identity-padded DOFs, can stop being
+            # positive definite on the contact rows; PGS then diverges. The block diagonal of A
+            # always is: use it for this step and say so.
+            W0, apply_y, _ = self._compliance(sim, H, mode="diagonal")
+            W = dt * dt * 0.5 * (W0 + W0.T)
+            kind = f"diagonal ({kind} not positive definite on the contacts)"
+            self.compliance_fallbacks += 1
+        self.compliance_used = kind
+        stats["compliance_fallbacks"] = self.compliance_fallbacks
         # warm start from last step's forces on the same (object, node) or (object, triangle)
         # pairs; nodes are named by the simulation's node uids where it keeps them (stable
         # across cuts), else by index

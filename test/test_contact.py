@@ -125,6 +125,26 @@ def test_diagonal_compliance_keeps_the_block_out_of_the_floor():
             assert sim.positions()[surface, 2].min() >= FLOOR_Z - 1e-8
 
 
+def test_a_compliance_that_is_not_positive_definite_falls_back_to_the_diagonal(monkeypatch):
+    """A corrupted preconditioner (here: its columns negated, so W = -H P^-1 H^T) must not feed
+    Gauss-Seidel: the step uses the block diagonal instead, says so, and the block still lands."""
+    floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
+    with load_scene(scene(obstacles=[floor])) as sim:
+        inner = sim.preconditioner.inner
+        good = inner.apply_columns
+        monkeypatch.setattr(inner, "apply_columns", lambda B: -good(B))
+        fallback = 0
+        for _ in range(40):
+            s = sim.step()
+            if s.extra["contacts"]:
+                assert s.extra["compliance"].startswith("diagonal (preconditioner not positive definite")
+                fallback += 1
+            assert np.isfinite(sim.positions()).all()
+            assert s.extra["max_penetration"] <= 1e-8
+        assert fallback > 0 and s.extra["compliance_fallbacks"] == fallback
+        assert sim.positions()[:, 2].min() >= FLOOR_Z - 1e-8
+
+
 # ------------------------------------------------------------------- instrument wrench
 def test_tool_wrench_balances_the_reaction_of_the_fixed_nodes():
     """A capsule lying across the top of a block clamped at its bottom, pressed 1.5 mm in.

@@ -28,6 +28,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import warnings
 import weakref
 from pathlib import Path
 
@@ -246,6 +247,7 @@ class Simulation:
         self._initial_fixed = fixed.copy()
         self.last_stats: StepStats | None = None
         self.rollbacks = 0
+        self.contact_rejections = 0
         guard = dict(config.get("guard") or {})
         self.guard_ratio = float(guard.get("energy_ratio", 100.0))  # 0 disables the energy test (NaN only)
         self.guard_retry = bool(guard.get("retry", True))
@@ -357,6 +359,33 @@ class Simulation:
                            remedy="none: last good state kept (tried " + ", ".join(attempts) + ")")
         return stats, False
 
+    def _contact_response(self) -> dict:
+        """The contact step under the divergence guard: a correction that leaves NaN or a runaway
+        kinetic energy is dropped (the free motion stands for this step; the next step detects
+        and corrects again) and reported as ``contact_rejected``."""
+        integ = self.integrator
+        x_free, v_free = wp.clone(integ.x), wp.clone(integ.v)
+        ke_free = self._kinetic_energy() if self.guard_ratio > 0 else 0.0
+        try:
+            cstats = self.contact.step(self)
+            reason = None
+        except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
+            cstats, reason = {}, f"contact solve failed: {type(exc).__name__}: {exc}"
+        if reason is None:
+            if not np.isfinite(integ.x.numpy()).all() or not np.isfinite(integ.v.numpy()).all():
+                reason = "non-finite state after the contact correction"
+            elif self.guard_ratio > 0:
+                ke = self._kinetic_energy()
+                if not ke <= self.guard_ratio * (ke_free + self._energy_floor):
+                    reason = f"runaway energy after the contact correction: kinetic {ke:.3g} J after {ke_free:.3g} J"
+        if reason is not None:
+            integ.x, integ.v = x_free, v_free
+            self.contact_rejections += 1
+            warnings.warn(f"step {integ.step_index}: {reason}; the free motion stands for this step", stacklevel=2)
+            cstats = dict(cstats, contact_rejected=reason)
+        cstats["contact_rejections"] = self.contact_rejections
+        return cstats
+
     def step(self) -> StepStats:
         if self._closed:
             raise RuntimeError("simulation is closed")
@@ -365,7 +394,7 @@ class Simulation:
             self.last_stats = stats
             return stats
         if self.contact is not None:
-            stats.extra.update(self.contact.step(self))  # LCP correction of x and v, eq. (3)-(4)
+            stats.extra.update(self._contact_response())  # LCP correction of x and v, eq. (3)-(4)
         if self.cutting is not None:
             stats.extra.update(self.cutting.step(self))  # blade motion -> mesh change + SMF, eq. (5)-(12)
         self.last_stats = stats

@@ -145,6 +145,31 @@ def test_a_compliance_that_is_not_positive_definite_falls_back_to_the_diagonal(m
         assert sim.positions()[:, 2].min() >= FLOOR_Z - 1e-8
 
 
+def test_a_contact_correction_that_diverges_is_dropped_and_the_free_motion_stands(monkeypatch):
+    floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
+    with load_scene(scene(obstacles=[floor])) as sim:
+        real = sim.contact.step
+
+        def broken(s):
+            out = real(s)
+            x = s.integrator.x.numpy()
+            x[0] = np.nan
+            s.integrator.x.assign(x)
+            return out
+
+        monkeypatch.setattr(sim.contact, "step", broken)
+        with pytest.warns(UserWarning, match="non-finite state after the contact correction"):
+            s = sim.step()
+        assert s.extra["contact_rejected"].startswith("non-finite") and s.extra["contact_rejections"] == 1
+        x_free = sim.positions()
+        assert np.isfinite(x_free).all() and np.isfinite(sim.velocities()).all()
+        monkeypatch.setattr(sim.contact, "step", real)  # the next steps carry on with contact
+        for _ in range(60):
+            s = sim.step()
+        assert "contact_rejected" not in s.extra and s.extra["contact_rejections"] == 1
+        assert s.extra["max_penetration"] <= 1e-8
+
+
 # ------------------------------------------------------------------- instrument wrench
 def test_tool_wrench_balances_the_reaction_of_the_fixed_nodes():
     """A capsule lying across the top of a block clamped at its bottom, pressed 1.5 mm in.

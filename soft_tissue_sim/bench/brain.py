@@ -4,12 +4,13 @@ Scene ``config/scenes/brain_resection.yaml``, driven by a scripted surgeon:
 
 1. push: the probe presses 6 mm into the cortex above the tumour, holds, and retracts;
 2. circumferential cut: the scalpel (a 12 mm vertical blade) spirals down around the tumour
-   with the pedal down (4 turns, 14 mm lower than the tumour), one small cut per step
+   with the pedal down (4 turns, to 14 mm under the tumour), one small cut per step
    (continuous cutting);
 3. aspiration: the tissue under the tumour is removed in small bites (element removal) in
-   three layers (the elements are about 1 cm),
-   which frees the tumour with a cuff of tissue;
-4. the probe lifts the freed part's neighbourhood, and everything settles.
+   three layers (the elements are about 1 cm), meant to free the tumour with a cuff of tissue
+   (in the rest frame this plan frees it; in the simulation, strands near the base where the
+   tumour sinks as its support goes hold it: see the README);
+4. everything settles (40 steps).
 
 Reported: modifications (cuts and removals) with their affected nodes, PCG iterations
 (mean and max), step time (mean, median, p99) and frame rate, contacts, LCP residual, max

@@ -9,11 +9,20 @@ stopping on the true relative residual ||b - A x|| / ||b|| of the recursion.
 Vectors are ``wp.array(dtype=wp.vec3d)`` (node-major). The operator is a callable
 ``matvec(p, out)`` computing ``out = A p``; a preconditioner has
 ``apply(r, z)`` computing ``z = P^-1 r``.
+
+:class:`DevicePCG` is the same iteration with every scalar (r.z, p.Ap, alpha, beta, the
+residual, the iteration count and the "go on" flag) in device arrays, computed by kernels,
+and the loop a ``wp.capture_while`` on that flag: no host synchronisation until the end of
+the solve. On CUDA it is captured once as a graph (per vector size, operator, preconditioner
+pattern and coefficients) and replayed each step. It needs a preconditioner whose ``apply``
+only launches (``device_capable()``): none, jacobi, or :class:`DeviceLDLTPreconditioner`
+while it can apply on the device; otherwise it runs the host-scalar :meth:`PCG.solve`.
 """
 
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,6 +92,12 @@ class IdentityPreconditioner:
     def close(self) -> None:
         pass
 
+    def device_capable(self) -> bool:
+        return True
+
+    def graph_key(self) -> tuple:
+        return ()
+
 
 class BlockJacobiPreconditioner:
     """Inverse of the 3x3 diagonal blocks of A, rebuilt every step (cheap)."""
@@ -111,6 +126,12 @@ class BlockJacobiPreconditioner:
 
     def close(self) -> None:
         pass
+
+    def device_capable(self) -> bool:
+        return self._Dinv is not None
+
+    def graph_key(self) -> tuple:
+        return (self._Dinv.ptr, self._Dinv.shape[0])
 
 
 class HostPreconditioner:
@@ -144,6 +165,107 @@ class HostPreconditioner:
 
     def close(self) -> None:
         self.inner.close()
+
+    def device_capable(self) -> bool:
+        return False
+
+
+class DeviceLDLTPreconditioner(HostPreconditioner):
+    """The asynchronous rotated LDL^T preconditioner, applied on the device.
+
+    The inner :class:`~soft_tissue_sim.ldlt_preconditioner.AsyncLDLTPreconditioner` keeps
+    its worker (factorization, then the conversion to the device layout, both off the
+    simulation thread), its host rotations (contact's compliance uses ``inner.apply``) and
+    the Sherman-Morrison correction. Here each new factor is copied to the device (in place
+    when its pattern is unchanged), dR = R(t) R(t_u)^T is computed by a kernel, and
+    ``apply`` launches the level-scheduled triangular solves of :mod:`soft_tissue_sim.ldlt_device`.
+
+    Host fallback (the :class:`HostPreconditioner` path, for as long as it holds): while a
+    Sherman-Morrison correction is active (after a cut, until a factor of the new mesh is
+    installed), and while the factor does not match the current mesh size. Supernodal
+    factors (above 60k DOFs) are converted to simplicial LDL^T by CHOLMOD in the worker and
+    applied on the device. ``stats()["apply_on"]`` says which path the step took.
+    """
+
+    def __init__(self, inner, device, **device_options):
+        super().__init__(inner)
+        from .ldlt_device import DeviceLDLT
+
+        self.device = wp.get_device(device)
+        self.dev = DeviceLDLT(self.device, **device_options)
+        self._installed = None
+        self._R_tu = None
+        self._dR = None
+        self._ready = False
+        self.fallback_reason = "no factor yet"
+        self.device_steps = 0
+        self.host_steps = 0
+
+    def begin_step(self, system) -> None:
+        from .ldlt_device import identity_kernel, relative_rotation_kernel
+
+        fem = system.fem
+        R = fem.node_rotations()
+        self.inner.begin_step(system.step_index, R)
+        inner, n = self.inner, fem.n_nodes
+        data = inner.factor_data
+        corr = inner.correction
+        self._ready = False
+        if corr is not None and corr.active:
+            self.fallback_reason = "Sherman-Morrison correction active"
+        elif data is None:
+            self.fallback_reason = "factor without device layout"
+        elif data.structure.n != 3 * n or inner.R_tu is None or len(inner.R_tu) != n:
+            self.fallback_reason = "factor size differs from the mesh"
+        else:
+            if self._dR is None or self._dR.shape[0] != n:
+                self._dR = wp.zeros(n, dtype=wp.mat33d, device=self.device)
+                self._R_tu = wp.zeros(n, dtype=wp.mat33d, device=self.device)
+            if data is not self._installed:
+                self.dev.set_factor(data)
+                self._installed = data
+                host = wp.array(np.ascontiguousarray(inner.R_tu, dtype=np.float64), dtype=wp.mat33d, device="cpu")
+                wp.copy(self._R_tu, host)
+            R_dev = getattr(fem, "_node_rot", None)
+            if inner.dR is None:
+                wp.launch(identity_kernel, n, [self._dR], device=self.device)
+            elif R_dev is not None and R_dev.shape[0] == n:
+                wp.launch(relative_rotation_kernel, n, [R_dev, self._R_tu, self._dR], device=self.device)
+            else:
+                self._dR.assign(inner.dR)
+            self._ready = True
+            self.fallback_reason = None
+        if self._ready:
+            self.device_steps += 1
+        else:
+            self.host_steps += 1
+
+    def apply(self, r: wp.array, z: wp.array) -> None:
+        if self._ready and r.device == self.device:
+            self.dev.apply(r, z, self._dR)
+        else:
+            super().apply(r, z)
+
+    def device_capable(self) -> bool:
+        return self._ready
+
+    def graph_key(self) -> tuple:
+        return self.dev.graph_key() + (self._dR.ptr, self._dR.shape[0])
+
+    def stats(self) -> dict:
+        s = self.dev.structure
+        return self.inner.stats() | {
+            "apply_on": "device" if self._ready else "host",
+            "device_fallback": self.fallback_reason,
+            "device_levels": (s.fwd_levels + s.bwd_levels) if s is not None else 0,
+            "device_launches": self.dev.launches_per_apply(),
+            "device_patterns": self.dev.pattern_version,
+        }
+
+    def invalidate(self) -> None:
+        super().invalidate()
+        self._installed = None
+        self._ready = False
 
 
 class PCG:
@@ -212,3 +334,269 @@ class PCG:
             rz = rz_new
             wp.launch(_xpby_kernel, n, [z, beta, p], device=dev)
         return CGResult(it, float(rel), bool(rel <= self.tolerance), 1000.0 * t_pre)
+
+
+# Device scalars of DevicePCG (one float64 array, read once at the end of a solve).
+_BB, _RZ, _RZN, _PAP, _ALPHA, _BETA, _RR, _REL, _BROKE, _IT = range(10)
+_NSCAL = 10
+_RED_BLOCK = 256  # threads per block of the dot-product kernels on CUDA
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+__shared__ double red[32];
+for (int o = 16; o > 0; o >>= 1) v += __shfl_down_sync(0xffffffff, v, o);
+int w = threadIdx.x >> 5;
+if ((threadIdx.x & 31) == 0) red[w] = v;
+__syncthreads();
+if (threadIdx.x == 0) {
+    v = 0.0;
+    int nw = (blockDim.x + 31) >> 5;
+    for (int k = 0; k < nw; ++k) v += red[k];
+}
+__syncthreads();
+#endif
+return v;
+""")
+def _block_sum(v: wp.float64) -> wp.float64: ...
+
+
+@wp.kernel
+def _dot_partial_kernel(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), n: int,
+                        partials: wp.array(dtype=wp.float64)):
+    """partials[block] = the block's share of a.b (grid-stride); deterministic order."""
+    t = wp.tid()
+    nt = wp.block_dim()
+    total = partials.shape[0] * nt
+    acc = wp.float64(0.0)
+    for i in range(t, n, total):
+        ai = a[i]
+        bi = b[i]
+        acc += ai[0] * bi[0]
+        acc += ai[1] * bi[1]
+        acc += ai[2] * bi[2]
+    acc = _block_sum(acc)
+    if t % nt == 0:
+        partials[t // nt] = acc
+
+
+@wp.func
+def _sum_partials(partials: wp.array(dtype=wp.float64), t: int, nt: int):
+    acc = wp.float64(0.0)
+    for k in range(t, partials.shape[0], nt):
+        acc += partials[k]
+    return _block_sum(acc)
+
+
+@wp.kernel
+def _pcg_store_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64), slot: int):
+    t = wp.tid()
+    v = _sum_partials(partials, t, wp.block_dim())
+    if t == 0:
+        s[slot] = v
+
+
+@wp.kernel
+def _pcg_init_kernel(s: wp.array(dtype=wp.float64), flag: wp.array(dtype=wp.int32)):
+    bb = s[_BB]
+    s[_IT] = wp.float64(0.0)
+    s[_BROKE] = wp.float64(0.0)
+    if bb == wp.float64(0.0):
+        s[_REL] = wp.float64(0.0)
+    elif wp.isfinite(bb):
+        s[_REL] = wp.float64(1.0)
+    else:
+        s[_REL] = wp.float64(wp.nan)
+    flag[0] = 1
+
+
+@wp.kernel
+def _pcg_alpha_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64)):
+    t = wp.tid()
+    pAp = _sum_partials(partials, t, wp.block_dim())
+    if t == 0:
+        s[_PAP] = pAp
+        if pAp > wp.float64(0.0):
+            s[_ALPHA] = s[_RZ] / pAp
+        else:  # breakdown: A not SPD along p, b = 0, or NaN
+            s[_ALPHA] = wp.float64(0.0)
+            s[_BROKE] = wp.float64(1.0)
+            if not wp.isfinite(pAp):
+                s[_REL] = wp.float64(wp.nan)
+
+
+@wp.kernel
+def _pcg_axpy2_kernel(
+    s: wp.array(dtype=wp.float64),
+    p: wp.array(dtype=wp.vec3d),
+    Ap: wp.array(dtype=wp.vec3d),
+    x: wp.array(dtype=wp.vec3d),
+    r: wp.array(dtype=wp.vec3d),
+):
+    i = wp.tid()
+    alpha = s[_ALPHA]
+    x[i] = x[i] + alpha * p[i]
+    r[i] = r[i] - alpha * Ap[i]
+
+
+@wp.kernel
+def _pcg_check_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64),
+                      flag: wp.array(dtype=wp.int32), tol: wp.float64, max_it: wp.float64):
+    t = wp.tid()
+    rr = _sum_partials(partials, t, wp.block_dim())
+    if t == 0:
+        s[_RR] = rr
+        if s[_BROKE] != wp.float64(0.0):
+            flag[0] = 0
+        else:
+            it = s[_IT] + wp.float64(1.0)
+            s[_IT] = it
+            rel = wp.sqrt(rr) / wp.sqrt(s[_BB])
+            s[_REL] = rel
+            if rel <= tol or not wp.isfinite(rel) or it >= max_it:
+                flag[0] = 0
+            else:
+                flag[0] = 1
+
+
+@wp.kernel
+def _pcg_beta_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64)):
+    t = wp.tid()
+    rzn = _sum_partials(partials, t, wp.block_dim())
+    if t == 0:
+        s[_RZN] = rzn
+        s[_BETA] = rzn / s[_RZ]
+        s[_RZ] = rzn
+
+
+@wp.kernel
+def _pcg_xpby_kernel(s: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    p[i] = z[i] + s[_BETA] * p[i]
+
+
+class DevicePCG(PCG):
+    """:class:`PCG` with its scalars on the device and the loop a ``wp.capture_while``.
+
+    Same iteration and stopping test as :meth:`PCG.solve` (the first iteration is peeled so
+    that the loop body starts with the preconditioner: no application is wasted after
+    convergence). ``graph=True`` captures the whole solve (CUDA graph with a conditional
+    while node; Warp's API capture on the CPU) on the second solve with the same key -- vector
+    size, array addresses, the operator's ``graph_key()`` (found on a bound method's owner)
+    and the preconditioner's -- and replays it afterwards; a new key (a cut, a new factor
+    pattern, a changed dt) runs uncaptured once, then is captured again. Without a graph the
+    loop still needs no host read of dot products: on CUDA ``capture_while`` reads the flag
+    (one small copy per iteration), on the CPU it reads it in place.
+
+    The preconditioner time is not measured per application on this path (it would need a
+    synchronisation): ``CGResult.precond_ms`` is NaN (``bench haptic`` times applications
+    separately).
+    """
+
+    def __init__(self, n: int, device, tolerance: float = 1e-7, max_iterations: int = 1000, graph: bool = False):
+        dev = wp.get_device(device)
+        # a CUDA graph needs conditional nodes (CUDA 12.4+ driver and toolkit) for the while loop
+        self.graph_unsupported = bool(graph and dev.is_cuda and not wp.is_conditional_graph_supported())
+        self.graph = bool(graph) and not self.graph_unsupported
+        self.graph_error = None
+        self.captures = 0
+        self.replays = 0
+        self.host_solves = 0
+        super().__init__(n, device, tolerance, max_iterations)
+
+    def resize(self, n: int) -> None:
+        super().resize(n)
+        d = self.device
+        self._s = wp.zeros(_NSCAL, dtype=wp.float64, device=d)
+        self._flag = wp.zeros(1, dtype=wp.int32, device=d)
+        # dot products: a block per chunk, then one block adds the partial sums (no allocation,
+        # deterministic; Warp's array_inner allocates scratch, which a conditional graph body forbids)
+        self._block = _RED_BLOCK if d.is_cuda else 1
+        nb = min(128, max(1, -(-n // (2 * _RED_BLOCK)))) if d.is_cuda else 1
+        self._partials = wp.zeros(nb, dtype=wp.float64, device=d)
+        self._graph = None
+        self._graph_key = None
+        self._seen_key = None
+
+    # ------------------------------------------------------------------ pieces
+    def _ddot(self, a, b):
+        nb = self._partials.shape[0]
+        wp.launch(_dot_partial_kernel, nb * self._block, [a, b, a.shape[0], self._partials], device=self.device,
+                  block_dim=self._block)
+
+    def _scalar(self, kernel, args):
+        wp.launch(kernel, self._block, [self._partials] + args, device=self.device, block_dim=self._block)
+
+    def _tail(self, matvec, x):
+        """A p, p.Ap, alpha, x += alpha p, r -= alpha A p, r.r, stopping test."""
+        dev, n = self.device, self.n
+        matvec(self.p, self.Ap)
+        self._ddot(self.p, self.Ap)
+        self._scalar(_pcg_alpha_kernel, [self._s])
+        wp.launch(_pcg_axpy2_kernel, n, [self._s, self.p, self.Ap, x, self.r], device=dev)
+        self._ddot(self.r, self.r)
+        self._scalar(_pcg_check_kernel, [self._s, self._flag, self.tolerance, float(self.max_iterations)])
+
+    def _run(self, matvec, b, x, preconditioner):
+        dev, n = self.device, self.n
+        x.zero_()
+        wp.copy(self.r, b)
+        self._ddot(b, b)
+        self._scalar(_pcg_store_kernel, [self._s, _BB])
+        wp.launch(_pcg_init_kernel, 1, [self._s, self._flag], device=dev)
+        preconditioner.apply(self.r, self.z)
+        wp.copy(self.p, self.z)
+        self._ddot(self.r, self.z)
+        self._scalar(_pcg_store_kernel, [self._s, _RZ])
+        self._tail(matvec, x)
+
+        def body():
+            preconditioner.apply(self.r, self.z)
+            self._ddot(self.r, self.z)
+            self._scalar(_pcg_beta_kernel, [self._s])
+            wp.launch(_pcg_xpby_kernel, n, [self._s, self.z, self.p], device=dev)
+            self._tail(matvec, x)
+
+        wp.capture_while(self._flag, body)
+
+    def _key(self, matvec, b, x, preconditioner):
+        owner = getattr(matvec, "__self__", None)
+        mk = getattr(owner, "graph_key", None)
+        pk = getattr(preconditioner, "graph_key", None)
+        if mk is None or pk is None:
+            return None
+        return (self.n, b.ptr, x.ptr, self.r.ptr, mk(), pk(), self.tolerance, self.max_iterations)
+
+    def solve(self, matvec, b: wp.array, x: wp.array, preconditioner) -> CGResult:
+        capable = getattr(preconditioner, "device_capable", None)
+        if capable is None or not capable():
+            self.host_solves += 1
+            return super().solve(matvec, b, x, preconditioner)
+        if b.shape[0] != self.n:
+            self.resize(b.shape[0])
+        key = self._key(matvec, b, x, preconditioner) if self.graph else None
+        if key is not None and self._graph is not None and key == self._graph_key:
+            wp.capture_launch(self._graph)
+            self.replays += 1
+        elif key is not None and key == self._seen_key:
+            self._graph = None
+            try:
+                with wp.ScopedCapture(device=self.device) as cap:
+                    self._run(matvec, b, x, preconditioner)
+            except Exception as exc:  # noqa: BLE001 - no graph from now on; this solve runs uncaptured
+                self.graph = False
+                self.graph_error = f"{type(exc).__name__}: {exc}"
+                warnings.warn(f"DevicePCG: graph capture failed ({self.graph_error}); running without a graph",
+                              RuntimeWarning, stacklevel=2)
+                self._run(matvec, b, x, preconditioner)
+            else:
+                self._graph, self._graph_key = cap.graph, key
+                self.captures += 1
+                wp.capture_launch(self._graph)
+                self.replays += 1
+        else:
+            self._run(matvec, b, x, preconditioner)
+            self._seen_key = key
+        s = self._s.numpy()
+        rel = float(s[_REL])
+        return CGResult(int(s[_IT]), rel, bool(rel <= self.tolerance), float("nan"))

@@ -158,6 +158,14 @@ class BackwardEuler:
     def matvec(self, p: wp.array, out: wp.array) -> None:
         self.fem.system_product(p, p, out, 1.0, 0.0, self.m_coef, self.k_coef)
 
+    def graph_key(self) -> tuple:
+        """What a captured ``matvec`` depends on (array addresses and sizes, coefficients): a
+        graph replay is valid while this is unchanged (see cg.DevicePCG)."""
+        f = self.fem
+        arrays = (f.tets, f.Dm_inv, f.volume, f.mu, f.lam, f.rho, f.rotations, f.free, f.lumped_mass, f._Kp)
+        return (f.n_nodes, f.n_tets, bool(f.consistent_mass), float(self.m_coef), float(self.k_coef),
+                tuple(a.ptr for a in arrays))
+
     def build(self) -> None:
         """Rotations at u_t and the right-hand side b of eq. (1)."""
         fem, dt = self.fem, self.dt

@@ -20,7 +20,18 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
     solver: {tolerance: 1.0e-7, max_iterations: 1000,
              preconditioner: async_ldlt,          # none | jacobi | async_ldlt | direct
              ldlt: {rotate: true, refresh_every: 1, deterministic: false,
-                    mode: auto}}                  # CHOLMOD: auto | simplicial | supernodal
+                    mode: auto,                   # CHOLMOD: auto | simplicial | supernodal
+                    apply_on: auto,               # auto (device on CUDA, host on CPU) | host | device
+                    ordering: auto},              # auto (metis for a device apply, else CHOLMOD's
+                                                  #   default) | amd | metis | nesdis | best | ...
+             graph: auto}                         # auto (on CUDA with a device LDL^T) | true | false
+
+``apply_on: device`` applies the LDL^T factor with Warp kernels (soft_tissue_sim.ldlt_device)
+and runs PCG with its scalars on the device (cg.DevicePCG); ``graph`` captures that solve as
+a CUDA graph (Warp's API capture on the CPU) replayed each step. ``graph: true`` with the
+none/jacobi preconditioners gives the device-scalar PCG too. Advanced device options under
+``ldlt``: ``lanes`` (1: a thread per row group, 32: a warp), ``tail_width`` (levels of at
+most that many groups run in one single-block launch; 0: one launch per level), ``tail_block``.
 """
 
 from __future__ import annotations
@@ -37,7 +48,13 @@ import warp as wp
 import yaml
 
 from . import mesh as mesh_mod
-from .cg import BlockJacobiPreconditioner, HostPreconditioner, IdentityPreconditioner
+from .cg import (
+    BlockJacobiPreconditioner,
+    DeviceLDLTPreconditioner,
+    DevicePCG,
+    HostPreconditioner,
+    IdentityPreconditioner,
+)
 from .corotational_fem import CorotationalFEM
 from .implicit_integration import BackwardEuler, StepStats
 from .material import Damping, MaterialTable, ParameterError
@@ -163,16 +180,40 @@ def select_fixed(points: np.ndarray, spec) -> np.ndarray:
     return np.flatnonzero(sel)
 
 
-def make_preconditioner(kind: str, options: dict, snapshot_fn):
+APPLY_ON = ("auto", "host", "device")
+
+
+def _graph_option(value) -> str:
+    v = {True: "true", False: "false"}.get(value, value) if isinstance(value, bool) else str(value).strip().lower()
+    if v not in ("auto", "true", "false"):
+        raise ParameterError(f"solver graph must be auto, true or false, got {value!r}")
+    return v
+
+
+def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu"):
     if kind == "none":
         return IdentityPreconditioner()
     if kind == "jacobi":
         return BlockJacobiPreconditioner()
     if kind in ("async_ldlt", "direct"):
+        from .ldlt_device import ORDERINGS
         from .ldlt_preconditioner import AsyncLDLTPreconditioner
 
+        apply_on = str(options.get("apply_on", "auto"))
+        if apply_on not in APPLY_ON:
+            raise ParameterError(f"ldlt apply_on must be one of {', '.join(APPLY_ON)}, got {apply_on!r}")
+        cuda = wp.get_device(device).is_cuda
+        if apply_on == "auto":  # the reference solver ("direct") stays on the host unless asked
+            apply_on = "device" if cuda and kind == "async_ldlt" else "host"
+        ordering = str(options.get("ordering", "auto"))
+        if ordering == "auto":  # METIS: a far shallower elimination tree (fewer levels) for the device solve
+            ordering = "metis" if apply_on == "device" else "default"
+        if ordering not in ORDERINGS:
+            raise ParameterError(f"ldlt ordering must be auto or one of {', '.join(ORDERINGS)}, got {ordering!r}")
+        layout = apply_on == "device"
         if kind == "direct":  # a fresh exact factor every step: the reference solution
-            inner = AsyncLDLTPreconditioner(snapshot_fn, rotate=False, refresh_every=1, deterministic=True)
+            inner = AsyncLDLTPreconditioner(snapshot_fn, rotate=False, refresh_every=1, deterministic=True,
+                                            ordering=ordering, device_layout=layout)
             inner.name = "direct"
         else:
             inner = AsyncLDLTPreconditioner(
@@ -181,7 +222,16 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn):
                 refresh_every=int(options.get("refresh_every", 1)),
                 deterministic=bool(options.get("deterministic", False)),
                 mode=str(options.get("mode", "auto")),
+                ordering=ordering,
+                device_layout=layout,
             )
+        if apply_on == "device":
+            dev_opts = {k: int(options[k]) for k in ("lanes", "tail_width", "tail_block") if k in options}
+            try:
+                return DeviceLDLTPreconditioner(inner, device, **dev_opts)
+            except ValueError as exc:
+                inner.close()
+                raise ParameterError(f"ldlt device options: {exc}") from None
         return HostPreconditioner(inner)
     raise ParameterError(f"unknown preconditioner {kind!r}: use one of {', '.join(PRECONDITIONERS)}")
 
@@ -220,14 +270,20 @@ class Simulation:
         if not (isinstance(max_it, int) and max_it >= 1):
             raise ParameterError(f"solver max_iterations must be an integer >= 1, got {max_it!r}")
         dt = (config.get("time") or {}).get("dt", 0.01)
+        graph = _graph_option(solver.get("graph", "auto"))
         self.preconditioner = make_preconditioner(
             str(solver.get("preconditioner", "async_ldlt")), dict(solver.get("ldlt") or {}),
             _weak_call(self._snapshot),  # weak: the simulation's finalizer owns the preconditioner
+            device=self.device,
         )
         self.integrator = BackwardEuler(
             self.fem, dt, self.damping, config.get("gravity", [0.0, 0.0, -9.81]), self.preconditioner,
             tolerance=float(tol), max_iterations=int(max_it),
         )
+        device_ldlt = isinstance(self.preconditioner, DeviceLDLTPreconditioner)
+        use_graph = graph == "true" or (graph == "auto" and device_ldlt and wp.get_device(self.device).is_cuda)
+        if device_ldlt or use_graph:  # PCG with its scalars on the device (captured as a graph if use_graph)
+            self.integrator.cg = DevicePCG(self.fem.n_nodes, self.device, float(tol), int(max_it), graph=use_graph)
         # Node identities across topological changes (the preconditioner maps numberings by them).
         self.node_uids = np.arange(self.mesh.n_nodes, dtype=np.int64)
         self.mesh_version = 0

@@ -11,6 +11,7 @@ BENCHMARKS = {
     "brain": "brain",  # brain tumour resection end to end
     "profile": "profile",  # where the time of one step goes (kernels, copies, host)
     "scaling": "scaling",  # cost against mesh size
+    "haptic": "haptic",  # step time distribution: CG vs LDL^T host / device / device + graph
 }
 
 

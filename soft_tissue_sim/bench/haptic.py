@@ -1,0 +1,368 @@
+"""Haptic-rate figures of the solvers: ``python -m soft_tissue_sim.bench haptic``.
+
+Per-step time distribution (median, p99, mean of ``Simulation.step``, which includes the
+divergence guard's copies; and of the integrator step alone), PCG iterations and
+preconditioner cost for
+
+(a) the brain (config/scenes/brain_resection.yaml) settling under gravity, no instrument
+    motion: without instruments, contact and cutting (``brain``), and optionally
+    (``--contact``) with the instruments parked 1 m away while contact and self-collision
+    stay on (``brain_contact``, best variants only);
+(b) the 2,000-node beam (config/scenes/beam_2000.yaml) swinging under gravity,
+
+for these solvers (all PCG at the scene's tolerance):
+
+* ``cg``: plain CG, host scalars (today's path; three dot products read per iteration),
+* ``cg_graph``: plain CG with device scalars, captured as a graph,
+* ``ldlt_host``: the async rotated LDL^T, applied on the host (CHOLMOD; on CUDA r and z are
+  copied each application), CHOLMOD's default ordering -- today's path,
+* ``ldlt_device``: the same factor (METIS ordering) applied by Warp kernels, device scalars,
+  no graph (every launch from Python),
+* ``ldlt_device_graph``: the same captured as one graph per (size, factor pattern), replayed,
+* on CUDA also ``ldlt_device_graph_thread`` (a thread per row group, one launch per level:
+  no warp reduction, no merged tail) to show what those two bring, and
+  ``ldlt_device_graph_amd`` (CHOLMOD's default ordering on the device: many more levels) and
+  ``ldlt_device_graph_tail256`` (the single-block tail kernel with 256 instead of 512 threads).
+
+Also: the level counts of the factor for CHOLMOD's default (AMD) and METIS orderings (row
+groups = a node's consecutive rows; scalar levels for reference), and the time of one
+preconditioner application: CHOLMOD alone (numpy), the host wrapper (with the copies on
+CUDA), the device solve launched from Python, and the device solve replayed as a graph.
+With device scalars the per-step preconditioner time is not measured (that would need a
+synchronisation); ``precond_ms_est`` = iterations x the graph apply time.
+
+Targets (measured, never asserted): on the GPU the device+graph LDL^T 10x faster than plain
+CG on the beam (median step), and the brain's median step <= 1 ms.
+
+Writes ``haptic_<cpu|gpu>.json`` and ``.png`` (``--out``). ``--commit-note`` is stored as
+``commit_note`` (the device copy's git HEAD may be stale); ``source_digest`` hashes the
+package sources that ran. ``--plot JSON`` only redraws the PNG of an existing result.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sps
+import warp as wp
+
+from ..scene import load_scene, read_scene, resolve_device, resolve_path
+from . import RESULTS_DIR, write_result
+
+VARIANTS = {
+    "cg": {"preconditioner": "none", "graph": False},
+    "cg_graph": {"preconditioner": "none", "graph": True},
+    "ldlt_host": {"preconditioner": "async_ldlt", "graph": False, "ldlt": {"apply_on": "host"}},
+    "ldlt_device": {"preconditioner": "async_ldlt", "graph": False, "ldlt": {"apply_on": "device"}},
+    "ldlt_device_graph": {"preconditioner": "async_ldlt", "graph": True, "ldlt": {"apply_on": "device"}},
+    "ldlt_device_graph_thread": {"preconditioner": "async_ldlt", "graph": True,
+                                 "ldlt": {"apply_on": "device", "lanes": 1, "tail_width": 0}},
+    "ldlt_device_graph_amd": {"preconditioner": "async_ldlt", "graph": True,
+                              "ldlt": {"apply_on": "device", "ordering": "default"}},
+    "ldlt_device_graph_tail256": {"preconditioner": "async_ldlt", "graph": True,
+                                  "ldlt": {"apply_on": "device", "tail_block": 256}},
+}
+CUDA_ONLY = {"ldlt_device_graph_thread", "ldlt_device_graph_amd", "ldlt_device_graph_tail256"}
+CONTACT_VARIANTS = ("ldlt_host", "ldlt_device_graph")
+
+
+def scene_config(name: str) -> dict:
+    """The scene dicts of the benchmark: brain without instruments, brain with them parked, beam."""
+    if name == "beam":
+        cfg, base = read_scene("beam_2000.yaml")
+    else:
+        cfg, base = read_scene("brain_resection.yaml")
+        if name == "brain":
+            for k in ("instruments", "contact", "cutting"):
+                cfg.pop(k, None)
+        else:  # parked 1 m above the tissue: contact and self-collision run, nothing touches
+            cfg.pop("cutting", None)
+            for i, ins in enumerate(cfg.get("instruments") or []):
+                ins["pose"] = {"position": [0.0, 0.1 * i, 1.0], "orientation": [0, 0, 0, 1]}
+    cfg["mesh"] = dict(cfg["mesh"])
+    if "file" in cfg["mesh"]:
+        cfg["mesh"]["file"] = str(resolve_path(cfg["mesh"]["file"], base))
+    return cfg
+
+
+def _dist(a) -> dict:
+    a = np.asarray(a, dtype=np.float64)
+    if a.size == 0 or not np.isfinite(a).any():
+        return {"median": float("nan"), "p99": float("nan"), "mean": float("nan"), "max": float("nan")}
+    a = a[np.isfinite(a)]
+    return {"median": float(np.median(a)), "p99": float(np.percentile(a, 99)), "mean": float(a.mean()),
+            "max": float(a.max())}
+
+
+def level_counts(cfg: dict) -> dict:
+    """Levels of the factor of A at rest for CHOLMOD's default (AMD) and the METIS ordering."""
+    from sksparse.cholmod import analyze
+
+    from ..ldlt_device import factor_values
+
+    c = dict(cfg, solver={**(cfg.get("solver") or {}), "preconditioner": "none"}, device="cpu")
+    for k in ("instruments", "contact", "cutting"):
+        c.pop(k, None)
+    from ..ldlt_preconditioner import _drop_decoupled
+
+    with load_scene(c) as sim:
+        A = sps.csc_matrix(sim._snapshot()[0])
+    A.sort_indices()
+    A = _drop_decoupled(A)  # as the factorization sees it
+    out = {}
+    for ordering in ("default", "metis"):
+        f = analyze(A, mode="simplicial", ordering_method=ordering)
+        t0 = time.perf_counter()
+        f.cholesky_inplace(A)
+        fact_ms = 1000.0 * (time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        s = factor_values(f).structure
+        out["amd (CHOLMOD default)" if ordering == "default" else ordering] = s.summary() | {
+            "factorization_ms_here": fact_ms, "layout_ms": 1000.0 * (time.perf_counter() - t0)}
+    return out
+
+
+def apply_timing(sim, reps: int) -> dict:
+    """ms per preconditioner application, several ways, at the simulation's current state."""
+    from ..cg import DeviceLDLTPreconditioner, HostPreconditioner
+
+    pre = sim.preconditioner
+    dev = wp.get_device(sim.device)
+    n = sim.mesh.n_nodes
+    rng = np.random.default_rng(0)
+    r = wp.array(rng.standard_normal((n, 3)), dtype=wp.vec3d, device=dev)
+    z = wp.zeros_like(r)
+    out = {}
+    inner = getattr(pre, "inner", None)
+    if inner is None or inner.factor is None:
+        return out
+    b = rng.standard_normal(3 * n)
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        inner.factor(b)
+    out["cholmod_numpy_ms"] = 1000.0 * (time.perf_counter() - t0) / reps
+    wp.synchronize_device(dev)
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        HostPreconditioner.apply(pre, r, z)
+    wp.synchronize_device(dev)
+    out["host_wrapper_ms"] = 1000.0 * (time.perf_counter() - t0) / reps
+    if isinstance(pre, DeviceLDLTPreconditioner) and pre.device_capable():
+        d = pre.dev
+        d.apply(r, z, pre._dR)
+        wp.synchronize_device(dev)
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            d.apply(r, z, pre._dR)
+        t_launch = time.perf_counter() - t0
+        wp.synchronize_device(dev)
+        out["device_ms"] = 1000.0 * (time.perf_counter() - t0) / reps
+        out["device_launch_ms"] = 1000.0 * t_launch / reps  # host time to issue the launches
+        with wp.ScopedCapture(device=dev) as cap:
+            d.apply(r, z, pre._dR)
+        wp.capture_launch(cap.graph)
+        wp.synchronize_device(dev)
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            wp.capture_launch(cap.graph)
+        wp.synchronize_device(dev)
+        out["device_graph_ms"] = 1000.0 * (time.perf_counter() - t0) / reps
+        out["launches_per_apply"] = d.launches_per_apply()
+        out["lanes"], out["tail_width"], out["tail_block"] = d.lanes, d.tail_width, d.tail_block
+    return out
+
+
+def run_variant(cfg: dict, variant: str, device: str, steps: int, warmup: int, reps: int) -> dict:
+    solver = dict(cfg.get("solver") or {})
+    v = VARIANTS[variant]
+    solver.update({k: val for k, val in v.items() if k != "ldlt"})
+    solver["ldlt"] = {**(solver.get("ldlt") or {}), **v.get("ldlt", {})}
+    c = dict(cfg, solver=solver)
+    t_load = time.perf_counter()
+    sim = load_scene(c, device=device)
+    try:
+        for _ in range(warmup):  # compilation, first factorization, graph capture
+            sim.step()
+        load_s = time.perf_counter() - t_load
+        wall, rows = [], []
+        for _ in range(steps):
+            t0 = time.perf_counter()
+            st = sim.step()
+            wall.append(1000.0 * (time.perf_counter() - t0))
+            rows.append(st.as_dict())
+        ps = sim.preconditioner.stats()
+        cg = sim.integrator.cg
+        applies = apply_timing(sim, reps)
+        finite = bool(np.isfinite(sim.positions()).all())
+        nodes = sim.mesh.n_nodes
+    finally:
+        sim.close()
+    its = np.array([r["iterations"] for r in rows])
+    pre_ms = np.array([r["precond_ms"] for r in rows], dtype=np.float64)
+    res = {
+        "steps": steps, "warmup": warmup, "nodes": nodes, "load_and_warmup_s": load_s,
+        "step_ms": _dist(wall),
+        "integrator_ms": _dist([r["total_ms"] for r in rows]),
+        "solve_ms": _dist([r["solve_ms"] for r in rows]),
+        "build_ms": _dist([r["build_ms"] for r in rows]),
+        "iterations": {"mean": float(its.mean()), "median": float(np.median(its)), "max": int(its.max())},
+        "converged_fraction": float(np.mean([r["converged"] for r in rows])),
+        "precond_ms_per_step": _dist(pre_ms) if np.isfinite(pre_ms).any() else None,
+        "apply": applies,
+        "apply_on": ps.get("apply_on", "host" if "ldlt" in variant else "n/a"),
+        "device_fallback": ps.get("device_fallback"),
+        "factor_count": ps.get("factor_count"), "refresh_interval": ps.get("refresh_interval"),
+        "factorization_ms_last": ps.get("factorization_ms"),
+        "device_launches_per_apply": ps.get("device_launches"), "device_patterns": ps.get("device_patterns"),
+        "pcg": type(cg).__name__, "graph": bool(getattr(cg, "graph", False)),
+        "captures": getattr(cg, "captures", 0), "replays": getattr(cg, "replays", 0),
+        "host_solves": getattr(cg, "host_solves", None),
+        "finite": finite,
+        "step_ms_series": [round(w, 4) for w in wall],
+        "iterations_series": its.tolist(),
+    }
+    g = applies.get("device_graph_ms")
+    res["precond_ms_est"] = float(its.mean() * g) if g is not None else None
+    return res
+
+
+def source_digest() -> str:
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha1()
+    for p in sorted(root.rglob("*.py")):
+        h.update(p.relative_to(root).as_posix().encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def plot(result: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = result["scenes"]
+    fig, axes = plt.subplots(2, len(scenes), figsize=(6.5 * len(scenes), 8.5), squeeze=False)
+    for j, (sname, sc) in enumerate(scenes.items()):
+        names = [k for k, v in sc["variants"].items() if "error" not in v]
+        data = [sc["variants"][k]["step_ms_series"] for k in names]
+        ax = axes[0][j]
+        if data:
+            ax.boxplot(data, whis=(1, 99), showfliers=True, flierprops={"markersize": 2})
+            ax.set_xticks(range(1, len(names) + 1), names, rotation=30, ha="right", fontsize=8)
+        ax.set_yscale("log")
+        ax.axhline(1.0, color="r", lw=0.8, ls="--")
+        ax.set(ylabel="ms per step (Simulation.step)", title=f"{sname}: step time (whiskers p1-p99; red: 1 ms)")
+        ax.grid(True, alpha=0.3, which="both")
+        ax = axes[1][j]
+        its = [sc["variants"][k]["iterations"]["mean"] for k in names]
+        ax.bar(range(len(names)), its, color="C1")
+        for i, k in enumerate(names):
+            ap = sc["variants"][k].get("apply") or {}
+            lab = ap.get("device_graph_ms", ap.get("host_wrapper_ms"))
+            if lab is not None:
+                ax.text(i, its[i], f"{lab:.3g} ms/apply", ha="center", va="bottom", fontsize=7)
+        ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
+        ax.set_yscale("log")
+        ax.set(ylabel="PCG iterations per step (mean)", title=f"{sname}: iterations, preconditioner apply ms")
+        ax.grid(True, alpha=0.3, which="both")
+    fig.suptitle(f"haptic step times on {result.get('device', '?')}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench haptic", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--steps", type=int, default=200, help="measured steps per variant")
+    ap.add_argument("--cg-steps", type=int, default=None, help="measured steps of the plain CG variants (default --steps)")
+    ap.add_argument("--warmup", type=int, default=20)
+    ap.add_argument("--reps", type=int, default=50, help="preconditioner applications timed")
+    ap.add_argument("--scenes", default="brain,beam", help="comma list of brain, beam")
+    ap.add_argument("--variants", default=None, help=f"comma list of {', '.join(VARIANTS)} (default: all that apply)")
+    ap.add_argument("--contact", action="store_true", help="also the brain with parked instruments (contact on)")
+    ap.add_argument("--commit-note", default="", help="stored as commit_note (what code ran)")
+    ap.add_argument("--out", default=str(RESULTS_DIR))
+    ap.add_argument("--plot", default=None, metavar="JSON", help="only redraw the PNG of this result file")
+    args = ap.parse_args(argv)
+    if args.plot:
+        doc = json.load(open(args.plot))
+        plot(doc["figures"] | {"device": doc["device"]}, str(Path(args.plot).with_suffix(".png")))
+        return 0
+    device = resolve_device(args.device)
+    cuda = wp.get_device(device).is_cuda
+    variants = args.variants.split(",") if args.variants else [v for v in VARIANTS if cuda or v not in CUDA_ONLY]
+    for v in variants:
+        if v not in VARIANTS:
+            ap.error(f"unknown variant {v!r}")
+    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    if args.contact and "brain" in scenes:
+        scenes.append("brain_contact")
+    figures = {"scenes": {}, "commit_note": args.commit_note, "source_digest": source_digest(),
+               "conditional_graphs": bool(cuda and wp.is_conditional_graph_supported()),
+               "settings": {"steps": args.steps, "cg_steps": args.cg_steps or args.steps, "warmup": args.warmup,
+                            "reps": args.reps}}
+    t_all = time.perf_counter()
+    for sname in scenes:
+        cfg = scene_config(sname)
+        sc = {"scene": "brain_resection.yaml" if sname.startswith("brain") else "beam_2000.yaml",
+              "levels": level_counts(cfg) if sname != "brain_contact" else None, "variants": {}}
+        for v in variants if sname != "brain_contact" else [v for v in variants if v in CONTACT_VARIANTS]:
+            t0 = time.perf_counter()
+            try:
+                n_steps = args.cg_steps if (v.startswith("cg") and args.cg_steps) else args.steps
+                sc["variants"][v] = run_variant(cfg, v, device, n_steps, args.warmup, args.reps)
+            except Exception as exc:  # noqa: BLE001 - recorded, the other variants still run
+                sc["variants"][v] = {"error": f"{type(exc).__name__}: {exc}"}
+            r = sc["variants"][v]
+            if "error" in r:
+                print(f"{sname:>13} {v:<26} ERROR {r['error']}", flush=True)
+            else:
+                a = r["apply"]
+                print(f"{sname:>13} {v:<26} step median {r['step_ms']['median']:8.3f} p99 {r['step_ms']['p99']:8.3f} "
+                      f"mean {r['step_ms']['mean']:8.3f} ms | integ median {r['integrator_ms']['median']:8.3f} | "
+                      f"it {r['iterations']['mean']:7.2f} | apply graph {a.get('device_graph_ms', float('nan')):.4f} "
+                      f"dev {a.get('device_ms', float('nan')):.4f} host {a.get('host_wrapper_ms', float('nan')):.4f} ms"
+                      f" [{time.perf_counter() - t0:.1f} s]", flush=True)
+        figures["scenes"][sname] = sc
+    summ = {}
+    for sname in ("beam", "brain"):
+        vs = (figures["scenes"].get(sname) or {}).get("variants", {})
+        base, best = vs.get("cg", {}), vs.get("ldlt_device_graph", {})
+        if "step_ms" in base and "step_ms" in best:
+            summ[f"{sname}_speedup_device_graph_ldlt_over_cg_median_step"] = \
+                base["step_ms"]["median"] / best["step_ms"]["median"]
+            summ[f"{sname}_speedup_device_graph_ldlt_over_cg_mean_step"] = base["step_ms"]["mean"] / best["step_ms"]["mean"]
+        for other in ("cg_graph", "ldlt_host"):
+            o = vs.get(other, {})
+            if "step_ms" in o and "step_ms" in best:
+                summ[f"{sname}_speedup_device_graph_ldlt_over_{other}_median_step"] = \
+                    o["step_ms"]["median"] / best["step_ms"]["median"]
+        if "step_ms" in best:
+            summ[f"{sname}_device_graph_ldlt_median_step_ms"] = best["step_ms"]["median"]
+            summ[f"{sname}_device_graph_ldlt_p99_step_ms"] = best["step_ms"]["p99"]
+    if "beam_speedup_device_graph_ldlt_over_cg_median_step" in summ:
+        summ["target_10x_over_cg_on_beam_met"] = bool(summ["beam_speedup_device_graph_ldlt_over_cg_median_step"] >= 10.0)
+    if "brain_device_graph_ldlt_median_step_ms" in summ:
+        summ["target_brain_median_step_1ms_met"] = bool(summ["brain_device_graph_ldlt_median_step_ms"] <= 1.0)
+    if not cuda:
+        summ["note"] = "targets are for the GPU; this run is on the CPU backend"
+    figures["summary"] = summ
+    figures["wall_s"] = time.perf_counter() - t_all
+    path = write_result("haptic", device, figures, args.out)
+    doc = json.load(open(path))
+    try:
+        plot(figures | {"device": doc["device"]}, str(path.with_suffix(".png")))
+        print(f"wrote {path} and {path.with_suffix('.png')}")
+    except ImportError as exc:
+        print(f"wrote {path} (no PNG: {exc}; redraw with --plot {path})")
+    for k, v in summ.items():
+        print(f"  {k}: {v}")
+    return 0

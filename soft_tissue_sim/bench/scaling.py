@@ -159,13 +159,14 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=int, default=8)
     ap.add_argument("--max-nodes", type=int, default=200_000)
+    ap.add_argument("--min-nodes", type=int, default=0, help="only bodies of at least this many nodes")
     ap.add_argument("--solvers", nargs="*", default=list(SOLVERS))
     ap.add_argument("--budget-s", type=float, default=480.0, help="stop starting new runs after this")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
     device = resolve_device(args.device)
-    bodies = [b for b in body_configs() if b[1] <= args.max_nodes]
+    bodies = [b for b in body_configs() if args.min_nodes <= b[1] <= args.max_nodes]
     prog = Progress(len(bodies) * len(args.solvers))
     rows, t0 = [], time.perf_counter()
     skipped = []

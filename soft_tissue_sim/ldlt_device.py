@@ -608,6 +608,174 @@ def _backward_tail_kernel(
         b = bn
 
 
+# ------------------------------------------------------------ many right-hand sides at once
+@wp.func
+def _forward_group_cols(
+    q: int, col: int, t: int, nt: int, lanes: int,
+    meta: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.float64),
+    indices: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64),
+    B: wp.array2d(dtype=wp.float64), y: wp.array2d(dtype=wp.float64),
+):
+    """:func:`_forward_group` for column ``col`` of a block: no rotation, B in original DOFs."""
+    g0 = meta[q, 0]
+    sz = meta[q, 1]
+    m = meta[q, 2]
+    a0 = meta[q, 3]
+    a1 = meta[q, 4]
+    a2 = meta[q, 5]
+    b0 = B[meta[q, 6], col]
+    b1 = B[meta[q, 7], col]
+    b2 = B[meta[q, 8], col]
+    c10 = coef[q, 0]
+    c20 = coef[q, 1]
+    c21 = coef[q, 2]
+    s0 = _F64(0.0)
+    s1 = _F64(0.0)
+    s2 = _F64(0.0)
+    for k in range(t, m, nt):
+        yj = y[indices[a0 + k], col]
+        s0 += vals[a0 + k] * yj
+        if sz > 1:
+            s1 += vals[a1 + k] * yj
+        if sz > 2:
+            s2 += vals[a2 + k] * yj
+    sv = _reduce3(wp.vec3d(s0, s1, s2), nt, lanes)
+    if t == 0:
+        y0 = b0 - sv[0]
+        y[g0, col] = y0
+        if sz > 1:
+            y1 = b1 - sv[1] - c10 * y0
+            y[g0 + 1, col] = y1
+            if sz > 2:
+                y[g0 + 2, col] = b2 - sv[2] - c20 * y0 - c21 * y1
+
+
+@wp.func
+def _backward_group_cols(
+    q: int, col: int, t: int, nt: int, lanes: int,
+    meta: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.float64),
+    indices: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64),
+    y: wp.array2d(dtype=wp.float64), x: wp.array2d(dtype=wp.float64),
+):
+    """:func:`_backward_group` for column ``col`` of a block."""
+    g0 = meta[q, 0]
+    sz = meta[q, 1]
+    m = meta[q, 2]
+    e0 = meta[q, 3]
+    e1 = meta[q, 4]
+    e2 = meta[q, 5]
+    y0 = y[g0, col]
+    y1 = y[g0 + wp.min(1, sz - 1), col]
+    y2 = y[g0 + wp.min(2, sz - 1), col]
+    c10 = coef[q, 0]
+    c20 = coef[q, 1]
+    c21 = coef[q, 2]
+    d0 = coef[q, 3]
+    d1 = coef[q, 4]
+    d2 = coef[q, 5]
+    s0 = _F64(0.0)
+    s1 = _F64(0.0)
+    s2 = _F64(0.0)
+    for k in range(t, m, nt):
+        xj = x[indices[e0 + k], col]
+        s0 += vals[e0 + k] * xj
+        if sz > 1:
+            s1 += vals[e1 + k] * xj
+        if sz > 2:
+            s2 += vals[e2 + k] * xj
+    sv = _reduce3(wp.vec3d(s0, s1, s2), nt, lanes)
+    if t == 0:
+        x2 = _F64(0.0)
+        x1 = _F64(0.0)
+        if sz > 2:
+            x2 = y2 * d2 - sv[2]
+            x[g0 + 2, col] = x2
+        if sz > 1:
+            x1 = y1 * d1 - sv[1] - c21 * x2
+            x[g0 + 1, col] = x1
+        x[g0, col] = y0 * d0 - sv[0] - c10 * x1 - c20 * x2
+
+
+@wp.kernel
+def _forward_level_cols_kernel(
+    offset: int, lanes: int, ncol: int, meta: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.float64),
+    indices: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64),
+    B: wp.array2d(dtype=wp.float64), y: wp.array2d(dtype=wp.float64),
+):
+    """One level, every column: ``lanes`` threads per (group, column) pair, columns fastest."""
+    t = wp.tid()
+    p = t // lanes
+    _forward_group_cols(offset + p // ncol, p % ncol, t % lanes, lanes, lanes, meta, coef, indices, vals, B, y)
+
+
+@wp.kernel
+def _backward_level_cols_kernel(
+    offset: int, lanes: int, ncol: int, meta: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.float64),
+    indices: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64),
+    y: wp.array2d(dtype=wp.float64), x: wp.array2d(dtype=wp.float64),
+):
+    t = wp.tid()
+    p = t // lanes
+    _backward_group_cols(offset + p // ncol, p % ncol, t % lanes, lanes, lanes, meta, coef, indices, vals, y, x)
+
+
+@wp.kernel
+def _forward_tail_cols_kernel(
+    level_ptr: wp.array(dtype=wp.int32), lev0: int, lev1: int, lanes: int, ncol: int,
+    meta: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.float64),
+    indices: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64),
+    B: wp.array2d(dtype=wp.float64), y: wp.array2d(dtype=wp.float64),
+):
+    """Levels lev0..lev1-1 in one block, a barrier after each; the block's warps (of ``lanes``
+    threads) take the (group, column) pairs of a level in turn."""
+    t = wp.tid()
+    nt = wp.block_dim()
+    w = t // lanes
+    nw = nt // lanes
+    a = level_ptr[lev0]
+    b = level_ptr[lev0 + 1]
+    for lev in range(lev0, lev1):
+        bn = b
+        if lev + 1 < lev1:
+            bn = level_ptr[lev + 2]
+        for p in range(w, (b - a) * ncol, nw):
+            _forward_group_cols(a + p // ncol, p % ncol, t % lanes, lanes, lanes, meta, coef, indices, vals, B, y)
+        _block_sync()
+        a = b
+        b = bn
+
+
+@wp.kernel
+def _backward_tail_cols_kernel(
+    level_ptr: wp.array(dtype=wp.int32), lev0: int, lev1: int, lanes: int, ncol: int,
+    meta: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.float64),
+    indices: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64),
+    y: wp.array2d(dtype=wp.float64), x: wp.array2d(dtype=wp.float64),
+):
+    t = wp.tid()
+    nt = wp.block_dim()
+    w = t // lanes
+    nw = nt // lanes
+    a = level_ptr[lev0]
+    b = level_ptr[lev0 + 1]
+    for lev in range(lev0, lev1):
+        bn = b
+        if lev + 1 < lev1:
+            bn = level_ptr[lev + 2]
+        for p in range(w, (b - a) * ncol, nw):
+            _backward_group_cols(a + p // ncol, p % ncol, t % lanes, lanes, lanes, meta, coef, indices, vals, y, x)
+        _block_sync()
+        a = b
+        b = bn
+
+
+@wp.kernel
+def _unpermute_cols_kernel(pinv: wp.array(dtype=wp.int32), x: wp.array2d(dtype=wp.float64),
+                           out: wp.array2d(dtype=wp.float64)):
+    i, c = wp.tid()
+    out[i, c] = x[pinv[i], c]
+
+
 @wp.kernel
 def _rotate_out_kernel(
     pinv: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.float64), dR: wp.array(dtype=wp.mat33d),
@@ -677,7 +845,7 @@ class DeviceLDLT:
     """A CHOLMOD LDL^T factor on a Warp device; ``apply(r, z, dR)`` only launches kernels."""
 
     def __init__(self, device, *, lanes: int | None = None, tail_width: int | None = None,
-                 tail_block: int | None = None):
+                 tail_block: int | None = None, cols_lanes: int | None = None):
         self.device = wp.get_device(device)
         cuda = self.device.is_cuda
         self.lanes = int(lanes if lanes is not None else (32 if cuda else 1))
@@ -697,6 +865,14 @@ class DeviceLDLT:
         self.factor_count = 0
         self.converted = False
         self._launches = {}
+        # many right-hand sides (solve_columns): lanes per (group, column) pair, buffers per width
+        self.cols_lanes = int(cols_lanes if cols_lanes is not None else (8 if cuda else 1))
+        if self.cols_lanes not in (1, 2, 4, 8, 16, 32) or (not cuda and self.cols_lanes != 1):
+            raise ValueError(f"cols_lanes must be 1 (CPU) or a power of two up to 32 on CUDA, got {self.cols_lanes}")
+        if cuda and self.tail_block % self.cols_lanes:
+            raise ValueError("tail_block must be a multiple of cols_lanes")
+        self._col_bufs = {}
+        self.column_solves = 0  # solve_columns calls (chunks)
 
     # ------------------------------------------------------------------ factor
     def set_factor(self, values: FactorValues) -> bool:
@@ -731,6 +907,7 @@ class DeviceLDLT:
             self.fwd_segments = _segments(np.diff(s.fwd_ptr), self.tail_width)
             self.bwd_segments = _segments(np.diff(s.bwd_ptr), self.tail_width)
             self._launches = {}
+            self._col_bufs = {}
             self.pattern_version += 1
         n_raw = len(values.data)
         if n_raw:
@@ -806,3 +983,113 @@ class DeviceLDLT:
             cmds = self._launches[key] = self._record(r, z, dR)
         for c in cmds:
             c.launch()
+
+    # ---------------------------------------------------- many right-hand sides
+    COLUMN_WIDTHS = (4, 8, 16, 32, 64, 128, 256)
+
+    def max_columns(self) -> int:
+        """The widest block solved in one go: at most 256 columns, and about 32M values per buffer."""
+        n = max(1, self.structure.n if self.structure is not None else 1)
+        fit = [w for w in self.COLUMN_WIDTHS if w * n <= 32_000_000]
+        return fit[-1] if fit else self.COLUMN_WIDTHS[0]
+
+    def _col_segments(self, ptr: np.ndarray, width: int) -> list[tuple[str, int, int]]:
+        """Levels whose (group, column) pairs fit twice in the tail block's warps run merged."""
+        if not self.device.is_cuda:
+            return _segments(np.diff(ptr), 0)
+        pairs = 2 * (self.tail_block // self.cols_lanes)
+        return _segments(np.diff(ptr), max(0, pairs // width))
+
+    def _col_buffers(self, width: int):
+        buf = self._col_bufs.get(width)
+        if buf is not None:
+            return buf
+        s, d = self.structure, self.device
+        shape = (max(1, s.n), width)
+        buf = {
+            "B": wp.zeros(shape, dtype=wp.float64, device=d), "y": wp.zeros(shape, dtype=wp.float64, device=d),
+            "x": wp.zeros(shape, dtype=wp.float64, device=d), "out": wp.zeros(shape, dtype=wp.float64, device=d),
+            "in": wp.zeros(shape, dtype=wp.float64, device="cpu", pinned=d.is_cuda),
+            "back": wp.zeros(shape, dtype=wp.float64, device="cpu", pinned=d.is_cuda),
+        }
+        buf["cmds"] = self._record_cols(buf, width)
+        self._col_bufs[width] = buf
+        return buf
+
+    def _record_cols(self, buf, width: int) -> list:
+        s, d, L = self.structure, self.device, self.cols_lanes
+        bd = 256 if L > 1 else 128
+        tb = self.tail_block if d.is_cuda else 1
+        cmds = []
+        for kind, l0, l1 in self._col_segments(s.fwd_ptr, width):
+            if kind == "level":
+                a, b = int(s.fwd_ptr[l0]), int(s.fwd_ptr[l1])
+                cmds.append(wp.launch(
+                    _forward_level_cols_kernel, (b - a) * width * L,
+                    [a, L, width, self.fwd_meta, self.fwd_coef, self.lo_indices, self.lo_vals, buf["B"], buf["y"]],
+                    device=d, block_dim=bd, record_cmd=True))
+            else:
+                cmds.append(wp.launch(
+                    _forward_tail_cols_kernel, tb,
+                    [self.fwd_ptr, l0, l1, L, width, self.fwd_meta, self.fwd_coef, self.lo_indices, self.lo_vals,
+                     buf["B"], buf["y"]], device=d, block_dim=tb, record_cmd=True))
+        for kind, l0, l1 in self._col_segments(s.bwd_ptr, width):
+            if kind == "level":
+                a, b = int(s.bwd_ptr[l0]), int(s.bwd_ptr[l1])
+                cmds.append(wp.launch(
+                    _backward_level_cols_kernel, (b - a) * width * L,
+                    [a, L, width, self.bwd_meta, self.bwd_coef, self.up_indices, self.up_vals, buf["y"], buf["x"]],
+                    device=d, block_dim=bd, record_cmd=True))
+            else:
+                cmds.append(wp.launch(
+                    _backward_tail_cols_kernel, tb,
+                    [self.bwd_ptr, l0, l1, L, width, self.bwd_meta, self.bwd_coef, self.up_indices, self.up_vals,
+                     buf["y"], buf["x"]], device=d, block_dim=tb, record_cmd=True))
+        cmds.append(wp.launch(_unpermute_cols_kernel, (s.n, width), [self.pinv, buf["x"], buf["out"]], device=d,
+                              record_cmd=True))
+        return cmds
+
+    def column_launches(self, ncols: int) -> int:
+        """Kernel launches of one block solve of ``ncols`` columns (one chunk)."""
+        w = next((w for w in self.COLUMN_WIDTHS if w >= ncols), self.COLUMN_WIDTHS[-1])
+        s = self.structure
+        return len(self._col_segments(s.fwd_ptr, w)) + len(self._col_segments(s.bwd_ptr, w)) + 1
+
+    def solve_columns(self, B: np.ndarray) -> np.ndarray:
+        """X = A^-1 B = P^T L^-T D^-1 L^-1 P B for a block of host columns (no rotation), host in
+        and out: every level is one launch for all the columns (each (group, column) pair is
+        solved by ``cols_lanes`` threads), so a block costs about what one column does -- the
+        columns of U (cutting, eq. 6) and of W (contact, eq. 4) in batches. Blocks wider than
+        :meth:`max_columns` go in chunks; a chunk is padded with zero columns to the next
+        width in ``COLUMN_WIDTHS`` (one recorded launch sequence per width and pattern)."""
+        if self.structure is None:
+            raise RuntimeError("no factor installed")
+        B = np.asarray(B, dtype=np.float64)
+        vec = B.ndim == 1
+        if vec:
+            B = B[:, None]
+        n = self.structure.n
+        if B.ndim != 2 or B.shape[0] != n:
+            raise ValueError(f"device factor is for {n} DOFs, got a block of shape {B.shape}")
+        c = B.shape[1]
+        X = np.empty((n, c))
+        step = self.max_columns()
+        for j0 in range(0, c, step):
+            j1 = min(c, j0 + step)
+            k = j1 - j0
+            width = next(w for w in self.COLUMN_WIDTHS if w >= k)
+            buf = self._col_buffers(width)
+            if self.device.is_cuda:
+                wp.synchronize_stream(self.device.stream)  # the staging buffers' last copies are done
+            stage = buf["in"].numpy()
+            stage[:, :k] = B[:, j0:j1]
+            stage[:, k:] = 0.0
+            wp.copy(buf["B"], buf["in"])
+            for cmd in buf["cmds"]:
+                cmd.launch()
+            wp.copy(buf["back"], buf["out"])
+            if self.device.is_cuda:
+                wp.synchronize_stream(self.device.stream)
+            X[:, j0:j1] = buf["back"].numpy()[:, :k]
+            self.column_solves += 1
+        return X[:, 0] if vec else X

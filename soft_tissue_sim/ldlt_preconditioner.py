@@ -117,11 +117,16 @@ class AsyncLDLTPreconditioner:
     name = "async_ldlt"
 
     def __init__(self, snapshot_fn, *, rotate=True, refresh_every=1, deterministic=False, mode="auto",
-                 ordering="default", device_layout=False):
+                 ordering="default", device_layout=False, columns_device=None, min_device_columns=4,
+                 columns_options=None):
         """``ordering``: CHOLMOD's fill-reducing ordering (default: its AMD-based choice; metis or
         nesdis give a shallower elimination tree, i.e. fewer levels for the device solve).
         ``device_layout``: also convert every factor to the device layout in the worker
-        (``factor_data``, for :class:`soft_tissue_sim.cg.DeviceLDLTPreconditioner`)."""
+        (``factor_data``, for :class:`soft_tissue_sim.cg.DeviceLDLTPreconditioner`).
+        ``columns_device``: a Warp device on which blocks of at least ``min_device_columns``
+        columns are solved with the factor (``DeviceLDLT.solve_columns``: the columns of U after
+        a cut, eq. 6, and of the contact compliance W, eq. 4, in one batch); None: CHOLMOD on
+        the host. Implies ``device_layout``. ``columns_options``: DeviceLDLT's options."""
         from .ldlt_device import ORDERINGS, StructureCache
 
         if ordering not in ORDERINGS:
@@ -133,7 +138,13 @@ class AsyncLDLTPreconditioner:
         self.ordering = ordering
         self._s = {"cv": threading.Condition(), "request": None, "result": None, "stop": False, "error": None,
                    "pattern": None, "symbolic": None, "analyses": 0, "thread": None, "mode": mode,
-                   "ordering": ordering, "device_cache": StructureCache() if device_layout else None}
+                   "ordering": ordering,
+                   "device_cache": StructureCache() if (device_layout or columns_device is not None) else None}
+        self.columns_device = columns_device
+        self.min_device_columns = max(1, int(min_device_columns))
+        self._columns_options = dict(columns_options or {})
+        self._cols = None  # the DeviceLDLT of the block solves, made on first use
+        self._cols_installed = None
         self._finalizer = weakref.finalize(self, _stop, self._s)
         self._gen = 0
         self.correction = None  # a ShermanMorrisonCorrection, attached by the cutter when a scene cuts
@@ -152,6 +163,10 @@ class AsyncLDLTPreconditioner:
         self.factorization_ms = 0.0
         self.precond_ms = 0.0
         self.factor_count = 0
+        self.factor_solve = None  # B -> A_tu^-1 B with the installed factor (host or device block solve)
+        self.device_column_solves = 0
+        self.device_columns = 0
+        self.device_column_ms = 0.0
 
     # -------------------------------------------------------------- worker
     def _ensure_thread(self):
@@ -168,15 +183,41 @@ class AsyncLDLTPreconditioner:
         return {"A": A, "R": np.array(R, dtype=np.float64, copy=True), "step": step, "t0": time.perf_counter(),
                 "gen": self._gen, "meta": meta}
 
+    def _solver_for(self, factor, data):
+        """B -> A^-1 B with one factor: CHOLMOD, or the device block solve (``columns_device``)
+        for blocks of at least ``min_device_columns`` columns."""
+        if self.columns_device is None or data is None:
+            return factor
+
+        def solve(B):
+            if np.ndim(B) != 2 or B.shape[1] < self.min_device_columns or B.shape[0] != data.structure.n:
+                return factor(B)
+            t0 = time.perf_counter()
+            if self._cols is None:
+                from .ldlt_device import DeviceLDLT
+
+                self._cols = DeviceLDLT(self.columns_device, **self._columns_options)
+            if self._cols_installed is not data:
+                self._cols.set_factor(data)
+                self._cols_installed = data
+            X = self._cols.solve_columns(B)
+            self.device_column_solves += 1
+            self.device_columns += B.shape[1]
+            self.device_column_ms += _ms_since(t0)
+            return X
+
+        return solve
+
     def _install(self, res):
         self.factor, self.R_tu, self.factor_step = res["factor"], res["R"], res["step"]
         self.factor_data = res.get("device")
+        self.factor_solve = self._solver_for(self.factor, self.factor_data)
         self.factorization_ms = res["ms"]
         self.factor_count += 1
         self.swaps.append(self.step)
         if self.correction is not None:  # drop what the factor contains, re-apply the rest (fig. 2)
             meta = res.get("meta") or {}
-            self.correction.set_factor(self.factor, self.R_tu, meta.get("uids"), meta.get("version", -1))
+            self.correction.set_factor(self.factor_solve, self.R_tu, meta.get("uids"), meta.get("version", -1))
 
     def _sync_refresh(self, step):
         req = self._snapshot(step)
@@ -246,10 +287,10 @@ class AsyncLDLTPreconditioner:
         if self.dR is not None:
             n = len(self.dR)
             Bl = np.einsum("nji,njc->nic", self.dR, B.reshape(n, 3, -1)).reshape(3 * n, -1)
-            Z = self.factor(Bl).reshape(n, 3, -1)
+            Z = self.factor_solve(Bl).reshape(n, 3, -1)
             out[:] = np.einsum("nij,njc->nic", self.dR, Z).reshape(B.shape)
         else:
-            out[:] = self.factor(B)
+            out[:] = self.factor_solve(B)
         return out
 
     def invalidate(self) -> None:
@@ -272,6 +313,8 @@ class AsyncLDLTPreconditioner:
             "worker_error": self._s["error"],
             "factor_count": self.factor_count,
             "analyses": self._s["analyses"],
+            "columns_on": "host" if self.columns_device is None else str(self.columns_device),
+            "device_column_solves": self.device_column_solves,
         }
 
     def close(self) -> None:

@@ -22,6 +22,8 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
              ldlt: {rotate: true, refresh_every: 1, deterministic: false,
                     mode: auto,                   # CHOLMOD: auto | simplicial | supernodal
                     apply_on: auto,               # auto (= host: see bench haptic) | host | device
+                    columns_on: auto,             # blocks of columns (U after a cut, contact's W):
+                                                  #   auto (= device on CUDA: see bench columns) | host | device
                     ordering: auto},              # auto (metis for a device apply, else CHOLMOD's
                                                   #   default) | amd | metis | nesdis | best | ...
              graph: auto}                         # auto (on CUDA with a device LDL^T) | true | false
@@ -209,10 +211,18 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu"):
             ordering = "metis" if apply_on == "device" else "default"
         if ordering not in ORDERINGS:
             raise ParameterError(f"ldlt ordering must be auto or one of {', '.join(ORDERINGS)}, got {ordering!r}")
+        columns_on = str(options.get("columns_on", "auto"))
+        if columns_on not in APPLY_ON:
+            raise ParameterError(f"ldlt columns_on must be one of {', '.join(APPLY_ON)}, got {columns_on!r}")
+        if columns_on == "auto":  # the device block solve: measured faster on an H100 (bench columns)
+            columns_on = "device" if wp.get_device(device).is_cuda else "host"
+        col_opts = {k: int(options[k]) for k in ("cols_lanes", "tail_block") if k in options}
+        cols = dict(columns_device=device if columns_on == "device" else None, columns_options=col_opts,
+                    min_device_columns=int(options.get("min_device_columns", 4)))
         layout = apply_on == "device"
         if kind == "direct":  # a fresh exact factor every step: the reference solution
             inner = AsyncLDLTPreconditioner(snapshot_fn, rotate=False, refresh_every=1, deterministic=True,
-                                            ordering=ordering, device_layout=layout)
+                                            ordering=ordering, device_layout=layout, **cols)
             inner.name = "direct"
         else:
             inner = AsyncLDLTPreconditioner(
@@ -223,9 +233,10 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu"):
                 mode=str(options.get("mode", "auto")),
                 ordering=ordering,
                 device_layout=layout,
+                **cols,
             )
         if apply_on == "device":
-            dev_opts = {k: int(options[k]) for k in ("lanes", "tail_width", "tail_block") if k in options}
+            dev_opts = {k: int(options[k]) for k in ("lanes", "tail_width", "tail_block", "cols_lanes") if k in options}
             try:
                 return DeviceLDLTPreconditioner(inner, device, **dev_opts)
             except ValueError as exc:

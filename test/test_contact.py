@@ -66,15 +66,18 @@ def test_scene_without_instruments_or_obstacles_builds_no_contact(monkeypatch):
 FLOOR_Z = -0.011  # the block's bottom is at z = -0.01: it falls 1 mm, lands, settles
 
 
-@pytest.mark.parametrize("kind", ["plane", "mesh"])
-def test_block_lands_and_rests_on_a_floor(kind):
+@pytest.mark.parametrize("kind, columns_on", [("plane", "host"), ("mesh", "host"), ("plane", "device")])
+def test_block_lands_and_rests_on_a_floor(kind, columns_on):
+    """columns_on=device: W's columns by the Warp block solve (here on Warp's CPU backend)."""
     if kind == "plane":
         floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
     else:
         floor = {"type": "mesh", "name": "floor", "triangles": [[0, 1, 2], [0, 2, 3]],
                  "vertices": [[-1, -1, FLOOR_Z], [1, -1, FLOOR_Z], [1, 1, FLOOR_Z], [-1, 1, FLOOR_Z]]}
     tol = 1e-8
-    with load_scene(scene(obstacles=[floor], contact={"tolerance": tol})) as sim:
+    cfg = scene(obstacles=[floor], contact={"tolerance": tol})
+    cfg["solver"]["ldlt"]["columns_on"] = columns_on
+    with load_scene(cfg) as sim:
         dt = sim.dt
         for i in range(150):
             x_before = sim.positions()
@@ -95,6 +98,7 @@ def test_block_lands_and_rests_on_a_floor(kind):
         np.testing.assert_allclose(sim.contact.contact_forces().sum(axis=0), -F, atol=1e-12)
         assert len(sim.contact_points()) == 12
         assert np.allclose(sim.contact_points()[:, 2], FLOOR_Z)
+        assert (sim.preconditioner.inner.device_column_solves > 0) == (columns_on == "device")
 
 
 def test_exact_compliance_with_the_jacobi_preconditioner_gives_the_weight():

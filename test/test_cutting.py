@@ -10,7 +10,8 @@ from soft_tissue_sim.mesh import tet_quality, validate_mesh
 
 
 def beam_scene(n_long=8, n_cross=3, pre="async_ldlt", correction="sherman_morrison", refresh_every=1000,
-               deterministic=True, script=None, fixed=True, gravity=(0.0, 0.0, -9.81), young=5e4, rotate=True):
+               deterministic=True, script=None, fixed=True, gravity=(0.0, 0.0, -9.81), young=5e4, rotate=True,
+               columns_on="auto"):
     cut = {"correction": correction}
     if script:
         cut["script"] = script
@@ -23,7 +24,8 @@ def beam_scene(n_long=8, n_cross=3, pre="async_ldlt", correction="sherman_morris
         "gravity": list(gravity),
         "time": {"dt": 0.01},
         "solver": {"preconditioner": pre, "tolerance": 1e-8, "max_iterations": 3000,
-                   "ldlt": {"deterministic": deterministic, "refresh_every": refresh_every, "rotate": rotate}},
+                   "ldlt": {"deterministic": deterministic, "refresh_every": refresh_every, "rotate": rotate,
+                            "columns_on": columns_on}},
         "cutting": cut,
     }
 
@@ -61,11 +63,13 @@ def corrected_vs_fresh(sim, rng, k=3):
     return err
 
 
-def test_corrected_preconditioner_equals_inverse_of_modified_matrix():
+@pytest.mark.parametrize("columns_on", ["host", "device"])
+def test_corrected_preconditioner_equals_inverse_of_modified_matrix(columns_on):
     # Unrotated: the averaged nodal rotations of eq. (2) change where a cut changes the elements
     # around a node, which is an approximation by design, not part of the correction.
+    # columns_on=device: the columns of U by the Warp block solve (here Warp's CPU backend).
     rng = np.random.default_rng(0)
-    with load_scene(beam_scene(rotate=False)) as sim:
+    with load_scene(beam_scene(rotate=False, columns_on=columns_on)) as sim:
         for _ in range(3):
             sim.step()  # deformed, rotated state; the factor is from step 0 (refresh_every large)
         # make the factor current, so that the only difference is the cut
@@ -85,6 +89,9 @@ def test_corrected_preconditioner_equals_inverse_of_modified_matrix():
         res3 = sim.remove_elements(sim.positions()[-1], 0.012)
         assert res3.changed and res3.nodes_removed > 0
         assert corrected_vs_fresh(sim, rng) < 1e-8
+        inner = sim.preconditioner.inner
+        assert inner.stats()["columns_on"] == ("host" if columns_on == "host" else "cpu")
+        assert (inner.device_column_solves >= 3) == (columns_on == "device")
 
 
 def test_without_correction_the_padded_factor_is_not_the_inverse():

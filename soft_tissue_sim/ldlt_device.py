@@ -696,26 +696,30 @@ def _backward_group_cols(
         x[g0, col] = y0 * d0 - sv[0] - c10 * x1 - c20 * x2
 
 
+# Shuffles name the whole warp, so every lane of a warp must reach them: the launches are
+# rounded up to whole warps and the loops run a warp-uniform number of times; a lane past the
+# last (group, column) pair repeats the last pair (it writes the same values to the same
+# places, which is harmless).
 @wp.kernel
 def _forward_level_cols_kernel(
-    offset: int, lanes: int, ncol: int, meta: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.float64),
-    indices: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64),
+    offset: int, lanes: int, ncol: int, npairs: int, meta: wp.array2d(dtype=wp.int32),
+    coef: wp.array2d(dtype=wp.float64), indices: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64),
     B: wp.array2d(dtype=wp.float64), y: wp.array2d(dtype=wp.float64),
 ):
     """One level, every column: ``lanes`` threads per (group, column) pair, columns fastest."""
     t = wp.tid()
-    p = t // lanes
+    p = wp.min(t // lanes, npairs - 1)
     _forward_group_cols(offset + p // ncol, p % ncol, t % lanes, lanes, lanes, meta, coef, indices, vals, B, y)
 
 
 @wp.kernel
 def _backward_level_cols_kernel(
-    offset: int, lanes: int, ncol: int, meta: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.float64),
-    indices: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64),
+    offset: int, lanes: int, ncol: int, npairs: int, meta: wp.array2d(dtype=wp.int32),
+    coef: wp.array2d(dtype=wp.float64), indices: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.float64),
     y: wp.array2d(dtype=wp.float64), x: wp.array2d(dtype=wp.float64),
 ):
     t = wp.tid()
-    p = t // lanes
+    p = wp.min(t // lanes, npairs - 1)
     _backward_group_cols(offset + p // ncol, p % ncol, t % lanes, lanes, lanes, meta, coef, indices, vals, y, x)
 
 
@@ -738,7 +742,9 @@ def _forward_tail_cols_kernel(
         bn = b
         if lev + 1 < lev1:
             bn = level_ptr[lev + 2]
-        for p in range(w, (b - a) * ncol, nw):
+        npairs = (b - a) * ncol
+        for i in range((npairs + nw - 1) // nw):
+            p = wp.min(i * nw + w, npairs - 1)
             _forward_group_cols(a + p // ncol, p % ncol, t % lanes, lanes, lanes, meta, coef, indices, vals, B, y)
         _block_sync()
         a = b
@@ -762,7 +768,9 @@ def _backward_tail_cols_kernel(
         bn = b
         if lev + 1 < lev1:
             bn = level_ptr[lev + 2]
-        for p in range(w, (b - a) * ncol, nw):
+        npairs = (b - a) * ncol
+        for i in range((npairs + nw - 1) // nw):
+            p = wp.min(i * nw + w, npairs - 1)
             _backward_group_cols(a + p // ncol, p % ncol, t % lanes, lanes, lanes, meta, coef, indices, vals, y, x)
         _block_sync()
         a = b
@@ -823,6 +831,10 @@ def identity_kernel(dR: wp.array(dtype=wp.mat33d)):
 
 
 # --------------------------------------------------------------------------------- device
+def _whole_warps(n: int, device) -> int:
+    return (n + 31) // 32 * 32 if device.is_cuda else n
+
+
 def _segments(widths: np.ndarray, tail_width: int) -> list[tuple[str, int, int]]:
     """Split levels into ('level', l, l+1) launches and ('tail', l0, l1) runs of narrow levels."""
     segs = []
@@ -1025,8 +1037,8 @@ class DeviceLDLT:
             if kind == "level":
                 a, b = int(s.fwd_ptr[l0]), int(s.fwd_ptr[l1])
                 cmds.append(wp.launch(
-                    _forward_level_cols_kernel, (b - a) * width * L,
-                    [a, L, width, self.fwd_meta, self.fwd_coef, self.lo_indices, self.lo_vals, buf["B"], buf["y"]],
+                    _forward_level_cols_kernel, _whole_warps((b - a) * width * L, d),
+                    [a, L, width, (b - a) * width, self.fwd_meta, self.fwd_coef, self.lo_indices, self.lo_vals, buf["B"], buf["y"]],
                     device=d, block_dim=bd, record_cmd=True))
             else:
                 cmds.append(wp.launch(
@@ -1037,8 +1049,8 @@ class DeviceLDLT:
             if kind == "level":
                 a, b = int(s.bwd_ptr[l0]), int(s.bwd_ptr[l1])
                 cmds.append(wp.launch(
-                    _backward_level_cols_kernel, (b - a) * width * L,
-                    [a, L, width, self.bwd_meta, self.bwd_coef, self.up_indices, self.up_vals, buf["y"], buf["x"]],
+                    _backward_level_cols_kernel, _whole_warps((b - a) * width * L, d),
+                    [a, L, width, (b - a) * width, self.bwd_meta, self.bwd_coef, self.up_indices, self.up_vals, buf["y"], buf["x"]],
                     device=d, block_dim=bd, record_cmd=True))
             else:
                 cmds.append(wp.launch(

@@ -125,18 +125,19 @@ def test_block_solve_of_many_columns_equals_cholmod(scene):
     f = analyze(A, mode="simplicial", ordering_method="metis")
     f.cholesky_inplace(A)
     vals = factor_values(f, StructureCache())
-    dev = DeviceLDLT(DEVICE)
-    dev.set_factor(vals)
     rng = np.random.default_rng(1)
     widths = [1, 3, 8, 13]
-    dev.COLUMN_WIDTHS = (4, 8)  # force chunking with small buffers (13 columns: 8 + 5)
-    for c in widths:
-        B = rng.standard_normal((A.shape[0], c))
-        X = dev.solve_columns(B)
-        ref = f(B)
-        assert X.shape == B.shape
-        assert np.linalg.norm(X - ref) <= 1e-10 * np.linalg.norm(ref), c
-        assert np.linalg.norm(A @ X - B) <= 1e-8 * np.linalg.norm(B), c
+    for lanes in ([4, 8, 32] if CUDA else [1]):  # threads per (group, column) pair
+        dev = DeviceLDLT(DEVICE, cols_lanes=lanes)
+        dev.set_factor(vals)
+        dev.COLUMN_WIDTHS = (4, 8)  # force chunking with small buffers (13 columns: 8 + 5)
+        for c in widths:
+            B = rng.standard_normal((A.shape[0], c))
+            X = dev.solve_columns(B)
+            ref = f(B)
+            assert X.shape == B.shape
+            assert np.linalg.norm(X - ref) <= 1e-10 * np.linalg.norm(ref), (lanes, c)
+            assert np.linalg.norm(A @ X - B) <= 1e-8 * np.linalg.norm(B), (lanes, c)
     # a single vector comes back as a vector; a block of the wrong height is refused
     b = rng.standard_normal(A.shape[0])
     assert np.allclose(dev.solve_columns(b), f(b), rtol=0, atol=1e-10 * np.abs(f(b)).max())

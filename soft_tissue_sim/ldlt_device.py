@@ -47,6 +47,7 @@ than CHOLMOD on the host (0.5-1.2 ms, 0.8-1.5 ms with the copies). With AMD orde
 from __future__ import annotations
 
 import hashlib
+import itertools
 import threading
 from dataclasses import dataclass, field
 
@@ -320,13 +321,15 @@ def build_structure(LD, perm: np.ndarray, pattern_id: int = 0) -> FactorStructur
     )
 
 
+_PATTERN_IDS = itertools.count(1)
+
+
 class StructureCache:
     """Patterns seen so far (the last few), keyed by the bytes of L's pattern and the permutation."""
 
     def __init__(self, keep: int = 4):
         self.keep = keep
         self._items: list[tuple[bytes, FactorStructure]] = []
-        self._next_id = 1
         self._lock = threading.Lock()
 
     def get(self, LD, perm) -> FactorStructure:
@@ -340,8 +343,7 @@ class StructureCache:
             for k, s in self._items:
                 if k == key:
                     return s
-            pid = self._next_id
-            self._next_id += 1
+            pid = next(_PATTERN_IDS)  # unique across caches: a DeviceLDLT may see factors of several
         s = build_structure(LD, perm, pid)
         with self._lock:
             self._items = ([(key, s)] + self._items)[: self.keep]
@@ -878,13 +880,14 @@ class DeviceLDLT:
         self.converted = False
         self._launches = {}
         # many right-hand sides (solve_columns): lanes per (group, column) pair, buffers per width
-        self.cols_lanes = int(cols_lanes if cols_lanes is not None else (8 if cuda else 1))
+        self.cols_lanes = int(cols_lanes if cols_lanes is not None else (32 if cuda else 1))
         if self.cols_lanes not in (1, 2, 4, 8, 16, 32) or (not cuda and self.cols_lanes != 1):
             raise ValueError(f"cols_lanes must be 1 (CPU) or a power of two up to 32 on CUDA, got {self.cols_lanes}")
         if cuda and self.tail_block % self.cols_lanes:
             raise ValueError("tail_block must be a multiple of cols_lanes")
-        self._col_bufs = {}
+        self._col_bufs = {}  # width -> buffers (kept across patterns while big enough) and launches
         self.column_solves = 0  # solve_columns calls (chunks)
+        self.raw = None
 
     # ------------------------------------------------------------------ factor
     def set_factor(self, values: FactorValues) -> bool:
@@ -909,9 +912,13 @@ class DeviceLDLT:
             self.lo_src = wp.array(s.lo_src.astype(np.int32), dtype=i32, device=d)
             self.up_src = wp.array(s.up_src.astype(np.int32), dtype=i32, device=d)
             n_raw = len(values.data)
-            self.raw = wp.zeros(max(1, n_raw), dtype=wp.float64, device=d)
-            # host staging for the factor's values (pinned on CUDA: an asynchronous copy)
-            self._staging = wp.zeros(max(1, n_raw), dtype=wp.float64, device="cpu", pinned=d.is_cuda)
+            if getattr(self, "raw", None) is None or self.raw.shape[0] < n_raw:
+                # with headroom, kept across patterns: a cut changes the pattern of every later
+                # factor, and pinned host memory is slow to allocate
+                cap = max(1, int(1.25 * n_raw))
+                self.raw = wp.zeros(cap, dtype=wp.float64, device=d)
+                # host staging for the factor's values (pinned on CUDA: an asynchronous copy)
+                self._staging = wp.zeros(cap, dtype=wp.float64, device="cpu", pinned=d.is_cuda)
             self.lo_vals = wp.zeros(max(1, len(s.lo_indices)), dtype=wp.float64, device=d)
             self.up_vals = wp.zeros(max(1, len(s.up_indices)), dtype=wp.float64, device=d)
             self.y = wp.zeros(max(1, s.n), dtype=wp.float64, device=d)
@@ -919,7 +926,6 @@ class DeviceLDLT:
             self.fwd_segments = _segments(np.diff(s.fwd_ptr), self.tail_width)
             self.bwd_segments = _segments(np.diff(s.bwd_ptr), self.tail_width)
             self._launches = {}
-            self._col_bufs = {}
             self.pattern_version += 1
         n_raw = len(values.data)
         if n_raw:
@@ -1013,19 +1019,24 @@ class DeviceLDLT:
         return _segments(np.diff(ptr), max(0, pairs // width))
 
     def _col_buffers(self, width: int):
+        """Buffers of (rows, width), rows >= the factor's DOFs (the kernels touch only those): kept
+        across factor patterns while big enough; the launches are recorded again per pattern."""
         buf = self._col_bufs.get(width)
-        if buf is not None:
-            return buf
         s, d = self.structure, self.device
-        shape = (max(1, s.n), width)
-        buf = {
-            "B": wp.zeros(shape, dtype=wp.float64, device=d), "y": wp.zeros(shape, dtype=wp.float64, device=d),
-            "x": wp.zeros(shape, dtype=wp.float64, device=d), "out": wp.zeros(shape, dtype=wp.float64, device=d),
-            "in": wp.zeros(shape, dtype=wp.float64, device="cpu", pinned=d.is_cuda),
-            "back": wp.zeros(shape, dtype=wp.float64, device="cpu", pinned=d.is_cuda),
-        }
-        buf["cmds"] = self._record_cols(buf, width)
-        self._col_bufs[width] = buf
+        if buf is None or buf["rows"] < s.n:
+            rows = max(1, int(1.25 * s.n))
+            shape = (rows, width)
+            buf = {
+                "rows": rows, "pattern": -1,
+                "B": wp.zeros(shape, dtype=wp.float64, device=d), "y": wp.zeros(shape, dtype=wp.float64, device=d),
+                "x": wp.zeros(shape, dtype=wp.float64, device=d), "out": wp.zeros(shape, dtype=wp.float64, device=d),
+                "in": wp.zeros(shape, dtype=wp.float64, device="cpu", pinned=d.is_cuda),
+                "back": wp.zeros(shape, dtype=wp.float64, device="cpu", pinned=d.is_cuda),
+            }
+            self._col_bufs[width] = buf
+        if buf["pattern"] != self.pattern_version:
+            buf["cmds"] = self._record_cols(buf, width)
+            buf["pattern"] = self.pattern_version
         return buf
 
     def _record_cols(self, buf, width: int) -> list:
@@ -1094,14 +1105,14 @@ class DeviceLDLT:
             if self.device.is_cuda:
                 wp.synchronize_stream(self.device.stream)  # the staging buffers' last copies are done
             stage = buf["in"].numpy()
-            stage[:, :k] = B[:, j0:j1]
-            stage[:, k:] = 0.0
-            wp.copy(buf["B"], buf["in"])
+            stage[:n, :k] = B[:, j0:j1]
+            stage[:n, k:] = 0.0
+            wp.copy(buf["B"], buf["in"], count=n * width)
             for cmd in buf["cmds"]:
                 cmd.launch()
-            wp.copy(buf["back"], buf["out"])
+            wp.copy(buf["back"], buf["out"], count=n * width)
             if self.device.is_cuda:
                 wp.synchronize_stream(self.device.stream)
-            X[:, j0:j1] = buf["back"].numpy()[:, :k]
+            X[:, j0:j1] = buf["back"].numpy()[:n, :k]
             self.column_solves += 1
         return X[:, 0] if vec else X

@@ -143,8 +143,17 @@ class AsyncLDLTPreconditioner:
         self.columns_device = columns_device
         self.min_device_columns = max(1, int(min_device_columns))
         self._columns_options = dict(columns_options or {})
-        self._cols = None  # the DeviceLDLT of the block solves, made on first use
+        self._cols = None  # the DeviceLDLT of the block solves
         self._cols_installed = None
+        if columns_device is not None:
+            import warp as wp
+
+            from . import ldlt_device
+            from .ldlt_device import DeviceLDLT
+
+            self._cols = DeviceLDLT(columns_device, **self._columns_options)
+            # compile / load the kernels now, not in the first step that has a block to solve
+            wp.load_module(ldlt_device, device=columns_device)
         self._finalizer = weakref.finalize(self, _stop, self._s)
         self._gen = 0
         self.correction = None  # a ShermanMorrisonCorrection, attached by the cutter when a scene cuts
@@ -193,10 +202,6 @@ class AsyncLDLTPreconditioner:
             if np.ndim(B) != 2 or B.shape[1] < self.min_device_columns or B.shape[0] != data.structure.n:
                 return factor(B)
             t0 = time.perf_counter()
-            if self._cols is None:
-                from .ldlt_device import DeviceLDLT
-
-                self._cols = DeviceLDLT(self.columns_device, **self._columns_options)
             if self._cols_installed is not data:
                 self._cols.set_factor(data)
                 self._cols_installed = data

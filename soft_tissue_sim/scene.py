@@ -23,7 +23,8 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
                     mode: auto,                   # CHOLMOD: auto | simplicial | supernodal
                     apply_on: auto,               # auto (= host: see bench haptic) | host | device
                     columns_on: auto,             # blocks of columns (U after a cut, contact's W):
-                                                  #   auto (= device on CUDA: see bench columns) | host | device
+                                                  #   auto (= device on CUDA in a scene with contact,
+                                                  #   else host: see bench columns) | host | device
                     ordering: auto},              # auto (metis for a device apply, else CHOLMOD's
                                                   #   default) | amd | metis | nesdis | best | ...
              graph: auto}                         # auto (on CUDA with a device LDL^T) | true | false
@@ -192,7 +193,7 @@ def _graph_option(value) -> str:
     return v
 
 
-def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu"):
+def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu", contact: bool = False):
     if kind == "none":
         return IdentityPreconditioner()
     if kind == "jacobi":
@@ -206,35 +207,43 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu"):
             raise ParameterError(f"ldlt apply_on must be one of {', '.join(APPLY_ON)}, got {apply_on!r}")
         if apply_on == "auto":  # host: measured on an H100 (bench haptic) the device solve is not faster yet
             apply_on = "host"
-        ordering = str(options.get("ordering", "auto"))
-        if ordering == "auto":  # METIS: a far shallower elimination tree (fewer levels) for the device solve
-            ordering = "metis" if apply_on == "device" else "default"
-        if ordering not in ORDERINGS:
-            raise ParameterError(f"ldlt ordering must be auto or one of {', '.join(ORDERINGS)}, got {ordering!r}")
         columns_on = str(options.get("columns_on", "auto"))
         if columns_on not in APPLY_ON:
             raise ParameterError(f"ldlt columns_on must be one of {', '.join(APPLY_ON)}, got {columns_on!r}")
-        if columns_on == "auto":  # the device block solve: measured faster on an H100 (bench columns)
-            columns_on = "device" if wp.get_device(device).is_cuda else "host"
+        if columns_on == "auto":
+            # The device block solve is 5-10x faster than CHOLMOD for blocks of >= 24 columns (bench
+            # columns, H100), but each factor must then be converted to the device layout in the
+            # worker (a new pattern after every cut: ~0.1 s of numpy holding the GIL). Contact needs a
+            # block every step (one column per contact); cutting alone one per cut, which does not
+            # pay for the conversion (bench cut-beam on the H100: SMF 96 ms/step with, 70 without).
+            columns_on = "device" if (contact and wp.get_device(device).is_cuda) else "host"
+        ordering = str(options.get("ordering", "auto"))
+        if ordering == "auto":  # METIS: a far shallower elimination tree (fewer levels) for the device solves
+            ordering = "metis" if "device" in (apply_on, columns_on) else "default"
+        if ordering not in ORDERINGS:
+            raise ParameterError(f"ldlt ordering must be auto or one of {', '.join(ORDERINGS)}, got {ordering!r}")
         col_opts = {k: int(options[k]) for k in ("cols_lanes", "tail_block") if k in options}
         cols = dict(columns_device=device if columns_on == "device" else None, columns_options=col_opts,
-                    min_device_columns=int(options.get("min_device_columns", 4)))
+                    min_device_columns=int(options.get("min_device_columns", 6)))
         layout = apply_on == "device"
-        if kind == "direct":  # a fresh exact factor every step: the reference solution
-            inner = AsyncLDLTPreconditioner(snapshot_fn, rotate=False, refresh_every=1, deterministic=True,
-                                            ordering=ordering, device_layout=layout, **cols)
-            inner.name = "direct"
-        else:
-            inner = AsyncLDLTPreconditioner(
-                snapshot_fn,
-                rotate=bool(options.get("rotate", True)),
-                refresh_every=int(options.get("refresh_every", 1)),
-                deterministic=bool(options.get("deterministic", False)),
-                mode=str(options.get("mode", "auto")),
-                ordering=ordering,
-                device_layout=layout,
-                **cols,
-            )
+        try:
+            if kind == "direct":  # a fresh exact factor every step: the reference solution
+                inner = AsyncLDLTPreconditioner(snapshot_fn, rotate=False, refresh_every=1, deterministic=True,
+                                                ordering=ordering, device_layout=layout, **cols)
+                inner.name = "direct"
+            else:
+                inner = AsyncLDLTPreconditioner(
+                    snapshot_fn,
+                    rotate=bool(options.get("rotate", True)),
+                    refresh_every=int(options.get("refresh_every", 1)),
+                    deterministic=bool(options.get("deterministic", False)),
+                    mode=str(options.get("mode", "auto")),
+                    ordering=ordering,
+                    device_layout=layout,
+                    **cols,
+                )
+        except ValueError as exc:  # the device block solve's options
+            raise ParameterError(f"ldlt columns options: {exc}") from None
         if apply_on == "device":
             dev_opts = {k: int(options[k]) for k in ("lanes", "tail_width", "tail_block", "cols_lanes") if k in options}
             try:
@@ -253,6 +262,11 @@ def _weak_call(method):
 
 class Simulation:
     """One soft body and the components its scene names. See :func:`load_scene`."""
+
+    @staticmethod
+    def _has_contact(config: dict) -> bool:
+        return bool(config.get("instruments") or config.get("obstacles")
+                    or (config.get("contact") or {}).get("self_collision"))
 
     def __init__(self, config: dict, base: Path | None = None, device: str | None = None):
         unknown = set(config) - _KNOWN_KEYS
@@ -284,7 +298,7 @@ class Simulation:
         self.preconditioner = make_preconditioner(
             str(solver.get("preconditioner", "async_ldlt")), dict(solver.get("ldlt") or {}),
             _weak_call(self._snapshot),  # weak: the simulation's finalizer owns the preconditioner
-            device=self.device,
+            device=self.device, contact=self._has_contact(config),
         )
         self.integrator = BackwardEuler(
             self.fem, dt, self.damping, config.get("gravity", [0.0, 0.0, -9.81]), self.preconditioner,
@@ -300,7 +314,7 @@ class Simulation:
         # Optional components: built only when the scene names them.
         self.contact = None
         self.cutting = None
-        if config.get("instruments") or config.get("obstacles") or (config.get("contact") or {}).get("self_collision"):
+        if self._has_contact(config):
             from .contact import ContactSolver
 
             self.contact = ContactSolver(self, config.get("contact") or {}, config.get("instruments") or [],

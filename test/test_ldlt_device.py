@@ -146,6 +146,27 @@ def test_block_solve_of_many_columns_equals_cholmod(scene):
     assert dev.column_solves == 1 + 1 + 1 + 2 + 1
 
 
+def test_block_solve_follows_factors_of_other_patterns_and_sizes():
+    """After a cut every factor has a new pattern: the block buffers are kept while big enough
+    and the launches recorded again; a bigger factor gets new buffers."""
+    mats = [_matrix("test_small.yaml"), _matrix(_layered_beam())]
+    facs = []
+    for A in mats:
+        f = analyze(A, mode="simplicial", ordering_method="metis")
+        f.cholesky_inplace(A)
+        facs.append((A, f, factor_values(f, StructureCache())))
+    assert mats[0].shape[0] < mats[1].shape[0]
+    dev = DeviceLDLT(DEVICE)
+    rng = np.random.default_rng(2)
+    for k in (0, 1, 0, 1):
+        A, f, vals = facs[k]
+        dev.set_factor(vals)
+        B = rng.standard_normal((A.shape[0], 7))
+        ref = f(B)
+        assert np.linalg.norm(dev.solve_columns(B) - ref) <= 1e-10 * np.linalg.norm(ref), k
+    assert dev._col_bufs[8]["rows"] >= mats[1].shape[0]
+
+
 def test_metis_gives_fewer_levels_than_amd_and_groups_are_nodes():
     A = _matrix("test_small.yaml")
     lv = {}
@@ -373,8 +394,14 @@ def test_scene_options():
                                                                            "graph": True}}) as sim:
         assert isinstance(sim.integrator.cg, DevicePCG) and sim.integrator.cg.graph
         assert sim.step().converged
+    with load_scene("test_small.yaml", device="cpu",
+                    overrides={"solver": {"preconditioner": "async_ldlt", "ldlt": {"columns_on": "device"}}}) as sim:
+        inner = sim.preconditioner.inner
+        assert type(sim.preconditioner) is HostPreconditioner and inner.ordering == "metis"
+        assert inner.stats()["columns_on"] == "cpu" and inner.min_device_columns == 6
     for bad in ({"ldlt": {"apply_on": "gpu"}}, {"ldlt": {"ordering": "fancy"}}, {"graph": "maybe"},
-                {"ldlt": {"apply_on": "device", "lanes": 3}}):
+                {"ldlt": {"apply_on": "device", "lanes": 3}}, {"ldlt": {"columns_on": "gpu"}},
+                {"ldlt": {"columns_on": "device", "cols_lanes": 8}}):  # the CPU backend takes 1 lane only
         with pytest.raises(ParameterError):
             load_scene("test_small.yaml", device="cpu", overrides={"solver": {"preconditioner": "async_ldlt", **bad}})
 

@@ -47,7 +47,7 @@ import scipy.sparse as sps
 from scipy.sparse.csgraph import breadth_first_order, connected_components, maximum_flow
 
 from ..report import Progress
-from ..scene import load_scene, resolve_device
+from ..scene import load_scene, read_scene, resolve_device
 from . import RESULTS_DIR, write_result
 
 IDENTITY = [0.0, 0.0, 0.0, 1.0]
@@ -176,8 +176,11 @@ def spare_tumour_bite(sim, center, radius: float):
     return sim.remove_elements(c, max(r, 1e-9)), r
 
 
-def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005):
-    sim = load_scene(scene, device=device)
+def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
+        columns_on="auto"):
+    solver = dict(read_scene(scene)[0].get("solver") or {})
+    solver["ldlt"] = {**(solver.get("ldlt") or {}), "columns_on": columns_on}
+    sim = load_scene(scene, device=device, overrides={"solver": solver})
     rows, mods, bites = [], [], []
     try:
         sim.step()  # warm-up: compile, first factorization
@@ -292,6 +295,8 @@ def main(argv=None) -> int:
     ap.add_argument("--step-len", type=float, default=0.0012, help="scalpel advance per step [m]")
     ap.add_argument("--max-cleanup", type=int, default=60, help="most extra (closed-loop) bites")
     ap.add_argument("--cleanup-radius", type=float, default=0.005, help="radius of a closed-loop bite [m]")
+    ap.add_argument("--columns-on", default="auto", choices=["auto", "host", "device"],
+                    help="where blocks of columns (contact's W, U after a cut) are solved")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
@@ -299,7 +304,7 @@ def main(argv=None) -> int:
     prog = Progress(1)
     t0 = time.perf_counter()
     rows, mods, freed, finite, n_end, t_end, info = run(device, args.scene, args.turns, args.step_len,
-                                                        args.max_cleanup, args.cleanup_radius)
+                                                        args.max_cleanup, args.cleanup_radius, args.columns_on)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
     summary = {
@@ -324,6 +329,7 @@ def main(argv=None) -> int:
     }
     prog.update(1, f"{summary['modifications']} modifications, {summary['iterations_mean']:.2f} it, "
                    f"{summary['fps_mean']:.1f} FPS")
+    summary["columns_on"] = args.columns_on
     result = {"summary": summary, "modifications": mods, "cleanup_bites": info["bites"], "steps_detail": rows}
     path = write_result("brain", device, result, args.out)
     result["device"] = json.load(open(path))["device"]

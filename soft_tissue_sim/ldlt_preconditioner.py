@@ -320,6 +320,8 @@ class AsyncLDLTPreconditioner:
             "analyses": self._s["analyses"],
             "columns_on": "host" if self.columns_device is None else str(self.columns_device),
             "device_column_solves": self.device_column_solves,
+            "device_columns": self.device_columns,
+            "device_column_ms": self.device_column_ms,
         }
 
     def close(self) -> None:

@@ -430,6 +430,28 @@ class Cutter:
         gone = np.linalg.norm(cen - c, axis=1) <= float(radius)
         if not gone.any():
             return CutResult(False, "no element within the removal sphere: nothing changed")
+        return self._remove_mask(sim, gone, t0)
+
+    def remove_tets(self, sim, tets) -> CutResult:
+        """Delete given tets (a boolean mask over the tets or their indices): the extraction of
+        a part cut free (a resected specimen), or any removal decided outside."""
+        t0 = time.perf_counter()
+        n = sim.mesh.n_tets
+        sel = np.asarray(tets)
+        if sel.dtype == bool:
+            if sel.shape != (n,):
+                return CutResult(False, f"tet mask must have one entry per tet ({n}), got shape {sel.shape}")
+            gone = sel.copy()
+        else:
+            if sel.size and (not np.issubdtype(sel.dtype, np.integer) or sel.min() < 0 or sel.max() >= n):
+                return CutResult(False, f"tet indices must be integers in [0, {n}), got {tets!r}")
+            gone = np.zeros(n, bool)
+            gone[sel.astype(np.int64).ravel()] = True
+        if not gone.any():
+            return CutResult(False, "no tet given: nothing changed")
+        return self._remove_mask(sim, gone, t0)
+
+    def _remove_mask(self, sim, gone: np.ndarray, t0: float) -> CutResult:
         if gone.all():
             return CutResult(False, "refused: the removal would delete every element of the body")
         res = self._remove_tets(sim, gone)

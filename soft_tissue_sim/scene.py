@@ -543,6 +543,12 @@ class Simulation:
             raise ValueError("this scene has no cutting")
         return self.cutting.remove_elements(self, center, radius, frame)
 
+    def remove_tets(self, tets):
+        """Delete given tets (boolean mask or indices): e.g. lift out a part that was cut free."""
+        if self.cutting is None:
+            raise ValueError("this scene has no cutting")
+        return self.cutting.remove_tets(self, tets)
+
     def set_cutting(self, active: bool) -> None:
         """Blade active: cut continuously while the instrument moves (like a pedal)."""
         if self.cutting is None:

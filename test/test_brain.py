@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 
-from soft_tissue_sim.bench.brain import attachment_cut, spare_tumour_bite, tumour_freed
+from soft_tissue_sim.bench.brain import attachment_cut, spare_tumour_bite, specimen_tets, tumour_freed
 from soft_tissue_sim.scene import load_scene
 
 
@@ -40,3 +40,20 @@ def test_bite_spares_the_tumour(sim):
     r, rad = spare_tumour_bite(sim, c, 0.01)  # aimed at the tumour's middle
     assert not r.changed and rad < 0.01
     assert int((sim.mesh.material_ids == 1).sum()) == n_tum
+
+
+def test_the_specimen_is_lifted_out_once_free():
+    """After the attachment cut is removed, the specimen (every part holding tumour and no fixed
+    node) is lifted out: no tumour is left, the base stays, nothing attached to it goes."""
+    with load_scene("brain_resection.yaml", device="cpu") as s:
+        assert not specimen_tets(s).any()  # attached: nothing to lift out yet
+        assert s.remove_tets(attachment_cut(s)).changed
+        assert tumour_freed(s)
+        spec = specimen_tets(s)
+        m = s.mesh
+        assert spec[m.material_ids == 1].all()
+        assert not np.isin(m.tets[spec], s.fem.fixed_nodes).any()
+        n_fixed = len(s.fem.fixed_nodes)
+        r = s.remove_tets(spec)
+        assert r.changed and r.tets_changed == spec.sum()
+        assert not (s.mesh.material_ids == 1).any() and len(s.fem.fixed_nodes) == n_fixed

@@ -245,6 +245,43 @@ def test_cut_through_empty_space_changes_nothing_and_says_so():
         assert sim.mesh_version == 0
 
 
+def test_a_part_cut_free_is_lifted_out_and_the_preconditioner_follows():
+    """remove_tets: the extraction of a resected part. Exactly the given tets go, the mass
+    follows, the corrected preconditioner is still the inverse of the new A; bad input is
+    refused and changes nothing."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(4)
+    with load_scene(beam_scene(rotate=False)) as sim:
+        sim.step()
+        sim.fem.update_rotations(sim.integrator.x)  # a current factor: the cuts are the only change
+        sim.preconditioner.inner._sync_refresh(sim.step_count)
+        assert crosswise(sim, 0.055).changed
+        T = sim.mesh.tets
+        g = coo_matrix((np.ones(T.size * 4), (np.repeat(T, 4, axis=1).ravel(), np.tile(T, (1, 4)).ravel())),
+                       shape=(sim.mesh.n_nodes,) * 2)
+        _, lab = connected_components(g, directed=False)
+        fixed_parts = np.unique(lab[sim.fem.fixed_nodes])
+        free_part = ~np.isin(lab[T[:, 0]], fixed_parts)
+        assert 5 < free_part.sum() < len(T)
+        n_tets, mass = sim.mesh.n_tets, sim.fem.total_mass
+        vol = sim.fem.volume.numpy()
+        x_before, v_before = sim.positions(), sim.velocities()
+        for bad in (np.ones(n_tets + 1, bool), [n_tets], [-1], np.ones(n_tets, bool), [], [0.5]):
+            res = sim.remove_tets(bad)
+            assert not res.changed and res.message
+        assert sim.mesh.n_tets == n_tets and np.array_equal(sim.positions(), x_before)
+        res = sim.remove_tets(free_part)
+        assert res.changed and res.tets_changed == free_part.sum()
+        assert sim.mesh.n_tets == n_tets - free_part.sum()
+        assert sim.fem.total_mass == pytest.approx(mass * (1.0 - vol[free_part].sum() / vol.sum()), rel=1e-12)
+        kept = np.isin(np.arange(len(x_before)), np.unique(T[~free_part]))
+        np.testing.assert_array_equal(sim.velocities(), v_before[kept])
+        assert corrected_vs_fresh(sim, rng) < 1e-8
+        assert sim.step().converged
+
+
 def test_five_hundred_cuts_keep_the_mesh_valid_and_the_state_finite():
     rng = np.random.default_rng(3)
     with load_scene(beam_scene(n_long=10, refresh_every=4, deterministic=False)) as sim:

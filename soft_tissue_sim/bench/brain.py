@@ -21,18 +21,21 @@ Scene ``config/scenes/brain_resection.yaml``, driven by a scripted surgeon:
    to the tumour, step the simulation, and look again; one bite per step, at most 60. Every
    bite is a removal modification in the statistics; ``cleanup_bites`` counts them and
    ``cut_sizes`` lists the size of the cut before each;
-5. everything settles (40 steps). The scene has no skull under the fixed base and the
-   aspiration opens the base under the tumour, so the freed specimen (tumour and its cuff)
-   falls out of the body under gravity during this phase (``tumour_drop_end_m``). A skull
-   plane (obstacle at z = 0) was tried: the stiff tumour then crushes the thin tissue left
-   between it and the plane, which inverts (about 100 inverted tets), so it is not used.
+5. once free, the specimen (the tumour and its cuff: the parts holding tumour and no fixed
+   node) is lifted out (``Simulation.remove_tets``, an "extraction" modification), and the
+   brain settles (40 steps). Before the extraction the specimen hangs in the opened base:
+   the scene has no skull, and a skull plane (obstacle at z = 0) was tried: the stiff tumour
+   then crushes the thin tissue left between it and the plane, which inverts (about 100
+   inverted tets), so it is not used.
 
 Reported: modifications (cuts and removals) with their affected nodes, PCG iterations
 (mean and max), step time (mean, median, p99) and frame rate, contacts, LCP residual, max
 penetration, rollbacks, whether the tumour ended in a part no longer attached to the fixed
 base (``tumour_freed``), whether the planned bites alone did it (``freed_by_plan``), that no
-tumour tet was removed (``tumour_tets_intact``), the step it was freed at, how far the tumour
-had sunk then and at the end, and the inverted tets at the end. JSON and PNG under
+tumour tet was removed before it was freed (``tumour_tets_intact``), the step it was freed
+at, how far the tumour had sunk then, the tets lifted out (``extracted_tets``), the tumour
+tets left in the body at the end (``tumour_left_end``: 0 when the resection is complete) and
+the inverted tets at the end. JSON and PNG under
 benchmarks/results/.
 """
 
@@ -148,6 +151,20 @@ def attachment_cut(sim) -> np.ndarray:
     return np.flatnonzero(reach[tin] & ~reach[tout] & ~tum)
 
 
+def specimen_tets(sim) -> np.ndarray:
+    """Mask of the tets in the parts that hold tumour and no fixed node: the freed specimen."""
+    m = sim.mesh
+    T = m.tets
+    rows = np.repeat(T, 4, axis=1).ravel()
+    cols = np.tile(T, (1, 4)).ravel()
+    g = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m.n_nodes, m.n_nodes))
+    _, lab = connected_components(g, directed=False)
+    base = np.unique(lab[sim.fem.fixed_nodes])
+    tum = np.unique(lab[np.unique(T[m.material_ids == 1])])
+    parts = np.setdiff1d(tum, base)
+    return np.isin(lab[T[:, 0]], parts)
+
+
 def tumour_drop(sim) -> float:
     """How far the tumour's nodes have moved down from their rest position, on average [m]."""
     m = sim.mesh
@@ -181,7 +198,7 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
     solver = dict(read_scene(scene)[0].get("solver") or {})
     solver["ldlt"] = {**(solver.get("ldlt") or {}), "columns_on": columns_on}
     sim = load_scene(scene, device=device, overrides={"solver": solver})
-    rows, mods, bites = [], [], []
+    rows, mods, bites, extracted = [], [], [], []
     try:
         sim.step()  # warm-up: compile, first factorization
         sim.reset()
@@ -202,6 +219,13 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                     mods.append({"kind": "removal", "affected_nodes": r.affected_nodes, "ms": r.ms,
                                  "u_ms": r.smf_u_ms, "q_ms": r.smf_q_ms, "step": sim.step_count,
                                  "cleanup": kind == "cleanup"})
+            elif "extract" in a:  # lift the freed specimen out (en bloc resection)
+                r = sim.remove_tets(specimen_tets(sim))
+                extra_ms = r.ms
+                extracted.append(int(r.tets_changed) if r.changed else 0)
+                if r.changed:
+                    mods.append({"kind": "extraction", "affected_nodes": r.affected_nodes, "ms": r.ms,
+                                 "u_ms": r.smf_u_ms, "q_ms": r.smf_q_ms, "step": sim.step_count})
             elif "cleanup_tet" in a:
                 c = sim.positions()[sim.mesh.tets[a["cleanup_tet"]]].mean(axis=0)  # that tet's centroid
                 r, rad = spare_tumour_bite(sim, c, cleanup_radius)
@@ -243,22 +267,25 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
             tc = sim.positions()[np.unique(sim.mesh.tets[sim.mesh.material_ids == 1])].mean(axis=0)
             pick = int(cut[np.argmin(np.linalg.norm(cen - tc, axis=1))])  # work in from the tumour
             do({**park, "cleanup_tet": pick}, "cleanup")
-        freed_step = sim.step_count if tumour_freed(sim) else None
-        z_freed = tumour_drop(sim)
-        for a in acts:
-            if a.get("phase") == "settle":
-                do(a)
         freed = tumour_freed(sim)
-        z_end = tumour_drop(sim)
-        inverted = inverted_tets(sim)
+        freed_step = sim.step_count if freed else None
+        z_freed = tumour_drop(sim)
         tumour_intact = int((sim.mesh.material_ids == 1).sum()) == n_tum
+        settle = [a for a in acts if a.get("phase") == "settle"]
+        if freed:  # the surgeon lifts the specimen out, then the brain settles
+            settle[0] = {**settle[0], "extract": True}
+        for a in settle:
+            do(a)
+        inverted = inverted_tets(sim)
+        tumour_left = int((sim.mesh.material_ids == 1).sum())
         finite = bool(np.isfinite(sim.positions()).all())
         nodes_end, tets_end = sim.mesh.n_nodes, sim.mesh.n_tets
     finally:
         sim.close()
     info = {"freed_by_plan": bool(freed_planned), "cleanup_bites": len(bites), "cut_sizes": cut_sizes,
             "tumour_tets_intact": tumour_intact, "bites": bites, "freed_at_step": freed_step,
-            "tumour_drop_when_freed_m": z_freed, "tumour_drop_end_m": z_end, "inverted_tets_end": inverted}
+            "tumour_drop_when_freed_m": z_freed, "extracted_tets": int(sum(extracted)),
+            "tumour_left_end": tumour_left, "inverted_tets_end": inverted}
     return rows, mods, freed, finite, nodes_end, tets_end, info
 
 
@@ -323,7 +350,8 @@ def main(argv=None) -> int:
         "tumour_freed": bool(freed), "freed_by_plan": info["freed_by_plan"],
         "tumour_tets_intact": info["tumour_tets_intact"], "cut_sizes": info["cut_sizes"],
         "freed_at_step": info["freed_at_step"], "tumour_drop_when_freed_m": info["tumour_drop_when_freed_m"],
-        "tumour_drop_end_m": info["tumour_drop_end_m"], "inverted_tets_end": info["inverted_tets_end"],
+        "extracted_tets": info["extracted_tets"], "tumour_left_end": info["tumour_left_end"],
+        "inverted_tets_end": info["inverted_tets_end"],
         "finite": finite, "nodes_end": n_end, "tets_end": t_end,
         "wall_s": time.perf_counter() - t0,
     }

@@ -470,11 +470,8 @@ class Cutter:
         """Mask of the tets in free fragments (no fixed node) of fewer than ``min_fragment`` tets."""
         if self.min_fragment <= 0 or mesh.n_tets == 0:
             return np.zeros(mesh.n_tets, bool)
-        T = mesh.tets.astype(np.int64)
-        rows, cols = np.repeat(T[:, 0], 3), T[:, 1:].ravel()  # a tet's nodes are connected through node 0
-        g = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(mesh.n_nodes, mesh.n_nodes))
-        _, lab = connected_components(g, directed=False)
-        tet_lab = lab[T[:, 0]]
+        lab = mesh.node_components()
+        tet_lab = lab[mesh.tets[:, 0]]
         count = np.bincount(tet_lab, minlength=lab.max() + 1)
         anchored = np.zeros(len(count), bool)
         anchored[lab[free == 0.0]] = True

@@ -88,6 +88,17 @@ class TetMesh:
         """(m, 3) tet centroids."""
         return self.points[self.tets].mean(axis=1)
 
+    def node_components(self) -> np.ndarray:
+        """(n,) label of each node's connected part (nodes joined through shared tets; a node
+        in no tet is a part of its own). A tet's part is the label of any of its nodes."""
+        import scipy.sparse as sps
+        from scipy.sparse.csgraph import connected_components
+
+        T = self.tets.astype(np.int64)
+        rows, cols = np.repeat(T[:, 0], 3), T[:, 1:].ravel()  # a tet's nodes are connected through node 0
+        g = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(self.n_nodes, self.n_nodes))
+        return connected_components(g, directed=False)[1]
+
     def boundary_faces(self) -> np.ndarray:
         """(k, 3) int32 faces used by exactly one tet, right-hand normal pointing out of it."""
         faces = self.tets[:, _FACES].reshape(-1, 3)

@@ -47,7 +47,7 @@ import time
 
 import numpy as np
 import scipy.sparse as sps
-from scipy.sparse.csgraph import breadth_first_order, connected_components, maximum_flow
+from scipy.sparse.csgraph import breadth_first_order, maximum_flow
 
 from ..report import Progress
 from ..scene import load_scene, read_scene, resolve_device
@@ -103,10 +103,7 @@ def plan(mesh, turns=4, step_len=0.0012, layers=3, bite=0.0045):
 def tumour_freed(sim) -> bool:
     m = sim.mesh
     T = m.tets
-    rows = np.repeat(T, 4, axis=1).ravel()
-    cols = np.tile(T, (1, 4)).ravel()
-    g = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m.n_nodes, m.n_nodes))
-    _, lab = connected_components(g, directed=False)
+    lab = m.node_components()
     fixed = sim.fem.fixed_nodes
     base = set(np.unique(lab[fixed]).tolist())
     tum_nodes = np.unique(T[m.material_ids == 1])
@@ -155,10 +152,7 @@ def specimen_tets(sim) -> np.ndarray:
     """Mask of the tets in the parts that hold tumour and no fixed node: the freed specimen."""
     m = sim.mesh
     T = m.tets
-    rows = np.repeat(T, 4, axis=1).ravel()
-    cols = np.tile(T, (1, 4)).ravel()
-    g = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m.n_nodes, m.n_nodes))
-    _, lab = connected_components(g, directed=False)
+    lab = m.node_components()
     base = np.unique(lab[sim.fem.fixed_nodes])
     tum = np.unique(lab[np.unique(T[m.material_ids == 1])])
     parts = np.setdiff1d(tum, base)

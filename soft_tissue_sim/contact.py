@@ -100,6 +100,7 @@ from scipy.sparse.csgraph import connected_components
 
 from .instrument import Instrument, MeshObstacle, PlaneObstacle, finite_number, obstacle_from_config
 from .material import ParameterError
+from .mesh import unique_rows
 
 _F64 = wp.float64
 COMPLIANCES = ("preconditioner", "diagonal", "exact")
@@ -847,7 +848,7 @@ def edge_ownership(faces: np.ndarray) -> np.ndarray:
     owner = np.zeros(3 * len(faces), np.int32)
     if len(faces):
         edges = np.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=1).reshape(-1, 2)
-        _, first = np.unique(np.sort(edges, axis=1), axis=0, return_index=True)
+        _, first = unique_rows(np.sort(edges, axis=1), return_index=True)
         owner[first] = 1
     return owner.reshape(-1, 3)
 

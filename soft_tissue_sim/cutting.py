@@ -41,7 +41,7 @@ import scipy.sparse as sps
 from scipy.sparse.csgraph import connected_components
 
 from .material import ParameterError
-from .mesh import _FACES, TetMesh, tet_quality
+from .mesh import _FACES, TetMesh, tet_quality, unique_rows
 from .sherman_morrison import ShermanMorrisonCorrection, modification_from_blocks
 
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
@@ -199,7 +199,7 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
     _, label = connected_components(g, directed=False)
     # per node: its distinct groups; the first keeps the node, the others get copies
     new_tets = tets.copy()
-    pair = np.unique(np.stack([inc_node, label], axis=1), axis=0)  # sorted by node then label
+    pair = unique_rows(np.stack([inc_node, label], axis=1))  # sorted by node then label
     first_of_node = np.r_[True, pair[1:, 0] != pair[:-1, 0]]
     extra = pair[~first_of_node]
     source = extra[:, 0]

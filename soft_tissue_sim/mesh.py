@@ -40,6 +40,30 @@ class MeshError(ValueError):
     """A mesh (or mesh file) is unusable; the message names the problem and the cells."""
 
 
+def unique_rows(rows: np.ndarray, **kw):
+    """``np.unique(rows, axis=0, **kw)`` for rows of non-negative integers, as fast as a 1-D
+    unique: each row is packed into one int64 key (mixed radix, so the keys sort like the rows)
+    when that cannot overflow; the general (structured, several times slower) path otherwise.
+    Same outputs as ``np.unique(..., axis=0)``: unique rows (sorted), then index, inverse,
+    counts as asked."""
+    rows = np.asarray(rows)
+    w = rows.shape[1] if rows.ndim == 2 else 0
+    base = int(rows.max()) + 1 if rows.size else 1
+    if w == 0 or rows.min(initial=0) < 0 or base ** w >= 2**62:
+        return np.unique(rows, axis=0, **kw)
+    key = np.zeros(len(rows), np.int64)
+    for c in range(w):
+        key = key * base + rows[:, c].astype(np.int64)
+    out = np.unique(key, **kw)
+    if not isinstance(out, tuple):
+        out = (out,)
+    uk, rest = out[0], list(out[1:])
+    uniq = np.empty((len(uk), w), dtype=rows.dtype)
+    for c in range(w - 1, -1, -1):
+        uk, uniq[:, c] = np.divmod(uk, base)
+    return (uniq, *rest) if rest else uniq
+
+
 def _list(idx, limit: int = 10) -> str:
     """'[3, 7, 9]' or '[0, 1, ..., 9] and 25 more (35 in all)'."""
     idx = [int(i) for i in np.asarray(idx).ravel()]
@@ -103,13 +127,13 @@ class TetMesh:
         """(k, 3) int32 faces used by exactly one tet, right-hand normal pointing out of it."""
         faces = self.tets[:, _FACES].reshape(-1, 3)
         key = np.sort(faces, axis=1)
-        _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        _, inv, cnt = unique_rows(key, return_inverse=True, return_counts=True)
         return np.ascontiguousarray(faces[cnt[inv.ravel()] == 1], dtype=np.int32)
 
     def edges(self) -> np.ndarray:
         """(e, 2) unique edges, each as (i, j) with i < j, rows sorted."""
         e = np.sort(self.tets[:, _EDGES].reshape(-1, 2), axis=1)
-        return np.unique(e, axis=0).astype(np.int32)
+        return unique_rows(e).astype(np.int32)
 
 
 def _signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -163,7 +187,7 @@ def validate_mesh(points, tets, material_ids=None, *, min_quality: float = 1e-6)
     bad = np.flatnonzero(np.any(s[:, 1:] == s[:, :-1], axis=1))
     if bad.size:
         raise MeshError(f"repeated node inside one tet in tets {_list(bad)}")
-    _, first, inv = np.unique(s, axis=0, return_index=True, return_inverse=True)
+    _, first, inv = unique_rows(s, return_index=True, return_inverse=True)
     bad = np.flatnonzero(first[inv.ravel()] != np.arange(m))
     if bad.size:
         raise MeshError(

@@ -16,6 +16,7 @@ from soft_tissue_sim.mesh import (
     load_mesh,
     save_mesh,
     tet_quality,
+    unique_rows,
     validate_mesh,
 )
 
@@ -33,6 +34,20 @@ def small():
 
 
 # ---------------------------------------------------------------- quality
+
+
+@pytest.mark.parametrize("high", [7, 50_000, 2**40])  # packed keys (3 and 4 columns), and the fallback
+def test_unique_rows_matches_numpy(high):
+    rng = np.random.default_rng(3)
+    for w in (2, 3, 4):
+        rows = rng.integers(0, high, size=(400, w))
+        rows = np.concatenate([rows, rows[::7]])  # repeats
+        got = unique_rows(rows, return_index=True, return_inverse=True, return_counts=True)
+        want = np.unique(rows, axis=0, return_index=True, return_inverse=True, return_counts=True)
+        for g, e in zip(got, want):
+            np.testing.assert_array_equal(g, e)
+        np.testing.assert_array_equal(unique_rows(rows), np.unique(rows, axis=0))
+    assert unique_rows(np.zeros((0, 3), np.int64)).shape == (0, 3)
 
 
 def test_tet_quality_regular_flat_inverted():

@@ -26,9 +26,12 @@ velocity change, :mod:`soft_tissue_sim.implicit_integration`). A force f [N] hel
 step adds dt f to b, so it changes v by dt A^-1 f and x by dt^2 A^-1 f. Here lambda is that
 force [N] (not an impulse): W = dt^2 H P^-1 H^T [m/N] with P ~ A, which is eq. (4) (the paper
 factorizes A / dt^2). P^-1 is the asynchronous rotated LDL^T preconditioner,
-``sim.preconditioner.inner.apply`` (``apply_columns`` when it has one), which includes the
-Sherman-Morrison cut correction and the identity padding of added nodes (eq. 11-12): W is
-built from the columns P^-1 H^T computed in one batch. For the ``jacobi`` and ``none``
+which includes the Sherman-Morrison cut correction and the identity padding of added nodes
+(eq. 11-12). W is built by ``inner.delassus`` from the forward solves L^-1 P H^T alone, each
+column walking only its reach in the elimination tree (:mod:`soft_tissue_sim.delassus`),
+and dx = dt^2 P^-1 (H^T lambda) is one full solve; where the factor is on the device
+(``ldlt.columns_on: device``) the columns P^-1 H^T are computed in one batch there instead
+(``apply_columns``). For the ``jacobi`` and ``none``
 preconditioners (no factorization), or with ``contact: {compliance: diagonal}``, P is the
 block-Jacobi diagonal of A: cheap, but it ignores the coupling between nodes, so the
 correction reaches the contact nodes only. It keeps bodies out of each other, but the
@@ -1134,6 +1137,9 @@ class ContactSolver:
         if mode == "preconditioner":
             Hd = H.toarray()  # (m, 3n): one row per constraint
             try:
+                W = inner.delassus(Hd.T) if hasattr(inner, "delassus") else None
+                if W is not None:  # forward solves alone; dx = P^-1 H^T lambda by one full solve
+                    return W, (lambda lam: inner.apply_columns((H.T @ lam)[:, None])[:, 0]), mode
                 if hasattr(inner, "apply_columns"):
                     Yt = np.ascontiguousarray(np.asarray(inner.apply_columns(np.ascontiguousarray(Hd.T))).T)
                 else:

@@ -38,7 +38,7 @@ def _worker_loop(state):
         try:
             factor = _factorize(state, req["A"])
             result = {"factor": factor, "R": req["R"], "step": req["step"], "ms": _ms_since(req["t0"]), "gen": req["gen"],
-                      "meta": req["meta"], "device": _device_values(state, factor)}
+                      "meta": req["meta"], "device": _device_values(state, factor), "lower": _lower(state, factor)}
             with state["cv"]:
                 state["result"] = result
         except Exception as exc:  # noqa: BLE001 - reported in stats, last good factor kept
@@ -104,6 +104,15 @@ def _device_values(state, factor):
     return factor_values(factor, cache, supernodal=state.get("mode_used") == "supernodal")
 
 
+def _lower(state, factor):
+    """The factor's L and D for the forward solves of the Delassus operator, when asked for."""
+    if not state.get("lower_factor"):
+        return None
+    from .delassus import LowerFactor
+
+    return LowerFactor.from_cholmod(factor)
+
+
 def _stop(state):
     with state["cv"]:
         state["stop"] = True
@@ -118,7 +127,7 @@ class AsyncLDLTPreconditioner:
 
     def __init__(self, snapshot_fn, *, rotate=True, refresh_every=1, deterministic=False, mode="auto",
                  ordering="default", device_layout=False, columns_device=None, min_device_columns=4,
-                 columns_options=None):
+                 columns_options=None, lower_factor=False):
         """``ordering``: CHOLMOD's fill-reducing ordering (default: its AMD-based choice; metis or
         nesdis give a shallower elimination tree, i.e. fewer levels for the device solve).
         ``device_layout``: also convert every factor to the device layout in the worker
@@ -126,7 +135,9 @@ class AsyncLDLTPreconditioner:
         ``columns_device``: a Warp device on which blocks of at least ``min_device_columns``
         columns are solved with the factor (``DeviceLDLT.solve_columns``: the columns of U after
         a cut, eq. 6, and of the contact compliance W, eq. 4, in one batch); None: CHOLMOD on
-        the host. Implies ``device_layout``. ``columns_options``: DeviceLDLT's options."""
+        the host. Implies ``device_layout``. ``columns_options``: DeviceLDLT's options.
+        ``lower_factor``: also keep every factor's L and D for :meth:`delassus` (contact's W by
+        forward solves alone, :mod:`soft_tissue_sim.delassus`); ignored with ``columns_device``."""
         from .ldlt_device import ORDERINGS, StructureCache
 
         if ordering not in ORDERINGS:
@@ -138,7 +149,7 @@ class AsyncLDLTPreconditioner:
         self.ordering = ordering
         self._s = {"cv": threading.Condition(), "request": None, "result": None, "stop": False, "error": None,
                    "pattern": None, "symbolic": None, "analyses": 0, "thread": None, "mode": mode,
-                   "ordering": ordering,
+                   "ordering": ordering, "lower_factor": bool(lower_factor) and columns_device is None,
                    "device_cache": StructureCache() if (device_layout or columns_device is not None) else None}
         self.columns_device = columns_device
         self.min_device_columns = max(1, int(min_device_columns))
@@ -162,6 +173,7 @@ class AsyncLDLTPreconditioner:
     def _reset_counters(self):
         self.factor = None
         self.factor_data = None  # the factor in the device layout (device_layout=True)
+        self.lower = None  # the factor's L and D for the Delassus operator (lower_factor=True)
         self.factor_step = -1
         self.R_tu = None
         self.dR = None
@@ -216,6 +228,7 @@ class AsyncLDLTPreconditioner:
     def _install(self, res):
         self.factor, self.R_tu, self.factor_step = res["factor"], res["R"], res["step"]
         self.factor_data = res.get("device")
+        self.lower = res.get("lower")
         self.factor_solve = self._solver_for(self.factor, self.factor_data)
         self.factorization_ms = res["ms"]
         self.factor_count += 1
@@ -228,7 +241,7 @@ class AsyncLDLTPreconditioner:
         req = self._snapshot(step)
         factor = _factorize(self._s, req["A"])
         self._install({"factor": factor, "R": req["R"], "step": step, "ms": _ms_since(req["t0"]), "meta": req["meta"],
-                       "device": _device_values(self._s, factor)})
+                       "device": _device_values(self._s, factor), "lower": _lower(self._s, factor)})
         self.last_request_step = step
 
     # ---------------------------------------------------------------- API
@@ -297,6 +310,24 @@ class AsyncLDLTPreconditioner:
         else:
             out[:] = self.factor_solve(B)
         return out
+
+    def delassus(self, B: np.ndarray) -> np.ndarray | None:
+        """B^T P^-1 B for a block of constraint columns B = H^T (3n, m): the Delassus operator
+        W / dt^2 of eq. (4), corrected after cuts (eq. 11-12), rotated (eq. 2, 8), from the
+        factor's forward solves alone (:mod:`soft_tissue_sim.delassus`). None when this
+        preconditioner keeps no host L (``lower_factor`` off): use :meth:`apply_columns`."""
+        if self.lower is None:
+            return None
+        B = np.asarray(B, dtype=np.float64)
+        if self.correction is not None and self.correction.active:
+            return self.correction.delassus(B, self.lower)
+        if self.R_tu is None or 3 * len(self.R_tu) != B.shape[0]:
+            raise ValueError(f"preconditioner is for {3 * (0 if self.R_tu is None else len(self.R_tu))} DOFs, "
+                             f"got a block of {B.shape[0]} rows: invalidate() after a size change")
+        if self.dR is not None:
+            n = len(self.dR)
+            B = np.einsum("nji,njc->nic", self.dR, B.reshape(n, 3, -1)).reshape(3 * n, -1)
+        return self.lower.quadratic(B)
 
     def invalidate(self) -> None:
         if self.correction is not None:

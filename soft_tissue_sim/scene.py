@@ -223,8 +223,10 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu", con
         if ordering not in ORDERINGS:
             raise ParameterError(f"ldlt ordering must be auto or one of {', '.join(ORDERINGS)}, got {ordering!r}")
         col_opts = {k: int(options[k]) for k in ("cols_lanes", "tail_block") if k in options}
+        # Contact on the host: keep each factor's L and D too, for W by forward solves (delassus.py)
         cols = dict(columns_device=device if columns_on == "device" else None, columns_options=col_opts,
-                    min_device_columns=int(options.get("min_device_columns", 6)))
+                    min_device_columns=int(options.get("min_device_columns", 6)),
+                    lower_factor=contact and columns_on == "host")
         layout = apply_on == "device"
         try:
             if kind == "direct":  # a fresh exact factor every step: the reference solution

@@ -261,7 +261,8 @@ class ShermanMorrisonCorrection:
         """out = D (P_ext^-1 - sum U Q U^T) D^T r, in the current numbering (eq. 8-10)."""
         self.apply_columns(r.reshape(-1, 1), out.reshape(-1, 1))
 
-    def apply_columns(self, B: np.ndarray, out: np.ndarray) -> None:
+    def _to_ext(self, B: np.ndarray) -> np.ndarray:
+        """D^T B in the extended numbering (3 n_ext, c): current rows scattered, vanished ones 0."""
         n_ext = len(self.ext_uids)
         c = B.shape[1]
         if self.cur_to_ext is None:
@@ -271,10 +272,32 @@ class ShermanMorrisonCorrection:
             Be[self.cur_to_ext] = B.reshape(-1, 3, c)
         if self.dR is not None:
             Be = np.einsum("nji,njc->nic", self.dR, Be)
-        X = self._solve_ext(Be.reshape(3 * n_ext, c)).reshape(n_ext, 3, c)
+        return Be.reshape(3 * n_ext, c)
+
+    def apply_columns(self, B: np.ndarray, out: np.ndarray) -> None:
+        n_ext = len(self.ext_uids)
+        c = B.shape[1]
+        X = self._solve_ext(self._to_ext(B)).reshape(n_ext, 3, c)
         if self.dR is not None:
             X = np.einsum("nij,njc->nic", self.dR, X)
         out[:] = (X if self.cur_to_ext is None else X[self.cur_to_ext]).reshape(-1, c)
+
+    def delassus(self, B: np.ndarray, lower) -> np.ndarray:
+        """B^T P~^-1 B for constraint columns B (3n, c) in the current numbering (eq. 11-12):
+        W^a from the factor's forward solves (``lower``: a :class:`soft_tissue_sim.delassus.
+        LowerFactor` of the installed factor), plus the identity padding of added DOFs (eq. 12),
+        minus the corrections W^c = sum (U^T B)^T Q (U^T B), the rotations around all (eq. 8)."""
+        Be = self._to_ext(np.asarray(B, dtype=np.float64))
+        nf3 = 3 * self.n_factor
+        W = lower.quadratic(Be[:nf3])
+        Ba = Be[nf3:]
+        W += Ba.T @ Ba
+        rows = np.flatnonzero(np.any(Be != 0.0, axis=1))  # a constraint column touches a few DOFs
+        for U, Q in self.terms:
+            r = rows[rows < U.shape[0]]
+            V = U[r].T @ Be[r]  # U^T B (3k, c)
+            W -= V.T @ (Q @ V)
+        return 0.5 * (W + W.T)
 
     def stats(self) -> dict:
         s = {"smf_terms": len(self.terms), "smf_columns": int(sum(u.shape[1] for u, _ in self.terms)),

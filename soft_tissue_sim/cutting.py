@@ -1,26 +1,36 @@
 """Cutting and element removal by incremental mesh change (paper section 3.1, fig. 1).
 
-The scheme: separation along element faces (node splitting), not geometric subdivision.
+Two schemes (``cutting: {scheme: split | subdivide}``); both remove the tets the cut
+touches, re-create them with new connectivity and add them back, like the paper's three
+steps, and both end by node splitting along the faces of the cut.
 
-A blade is one or more triangles: the quad swept by an instrument's blade segment between
-two poses, or a plane patch from a scene script (in the rest or the world frame). For each
-blade triangle we find the intersected tets (their section by the triangle's plane overlaps
-the triangle), give every tet a side by the sign of its centroid's distance to that plane,
-and mark as *cut faces* the interior faces between tets of opposite sides of which at least
-one is intersected. Then, like the paper's three steps, the tets touching the cut are
-removed, re-created with new connectivity and added back: at each node of a cut face the
-incident tets are grouped into the sets that stay connected through uncut faces; every group
-beyond the first gets its own copy of the node (same rest and current position, velocity,
-fixed flag). Where the blade stops, the tets around the tip stay connected and the crack ends.
+``split`` (the default): separation along the existing faces. A blade is one or more
+triangles: the quad swept by an instrument's blade segment between two poses, or a plane
+patch from a scene script (in the rest or the world frame). For each blade triangle we find
+the intersected tets (their section by the triangle's plane overlaps the triangle), give
+every tet a side by the sign of its centroid's distance to that plane, and mark as *cut
+faces* the interior faces between tets of opposite sides of which at least one is
+intersected. At each node of a cut face the incident tets are grouped into the sets that
+stay connected through uncut faces; every group beyond the first gets its own copy of the
+node (same rest and current position, velocity, fixed flag). Where the blade stops, the
+tets around the tip stay connected and the crack ends. Every element keeps its shape (no
+sliver, the quality floor holds by construction), the two sides separate for real, mass and
+momentum are conserved; the cut surface is a staircase of faces within an element of the
+blade.
 
-Why not subdivide at the intersection points (Mor & Kanade)? Splitting tets exactly at the
-blade creates slivers of arbitrarily small quality, which wreck the conditioning and the time
-step, and needs quality repair; snapping the cut to existing faces keeps every element's
-shape exactly (the quality floor holds by construction and is still checked), separates the
-two sides for real, and conserves mass and momentum. The price is a cut surface at element
-resolution (a staircase on coarse meshes). The topological change is the same for the
-solver: elements removed and added, new degrees of freedom, a local change of A, which the
-Sherman-Morrison correction (:mod:`soft_tissue_sim.sherman_morrison`) follows.
+``subdivide``: the cut on the blade itself, by subdivision (after Mor & Kanade, the
+paper's [7]). Every mesh edge that the blade's path crosses gets a new node at the crossing
+(its rest and current position and its velocity interpolated on the edge, so the
+displacement field is unchanged), and every tet holding that edge is bisected there: the
+edge bisection of all the tets around an edge keeps the mesh conforming, and once all the
+crossed edges are split no edge crosses the path, so the path inside the body is a surface
+of faces. Those faces (three nodes on the cut, both tets on opposite sides) are then
+separated by node splitting as above. A crossing closer than ``snap`` (a fraction of its
+edge) to an end point is snapped to that end point, which avoids slivers; ``min_quality``
+refuses any change that would still go below the floor. With the pedal down the blade's
+last ``path_steps`` sweeps are kept as its path: a tet is separated once the path has
+crossed it whole (until then nothing changes), and the nodes already on the path's cut
+stay on it. More nodes per modification (the new ones), the mesh grows with every cut.
 
 Element removal (ablation, aspiration) deletes the tets whose centroid lies in a sphere;
 nodes left without a tet are deleted and the rest renumbered (uids keep their identity for
@@ -46,6 +56,7 @@ from .sherman_morrison import ShermanMorrisonCorrection, modification_from_block
 
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 CORRECTIONS = ("sherman_morrison", "none")
+SCHEMES = ("split", "subdivide")
 
 
 @dataclass
@@ -215,6 +226,125 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
     return new_tets, source
 
 
+# ------------------------------------------------------ subdivision (Mor-Kanade)
+def _path_planes(tris):
+    """Unit normals (T, 3) and first vertices (T, 3) of blade triangles; degenerate ones dropped."""
+    tris = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
+    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    area2 = np.linalg.norm(n, axis=1)
+    ok = area2 > 0.0
+    return tris[ok], n[ok] / area2[ok, None]
+
+
+def path_query(P, tris, dist):
+    """For points P (k, 3) and blade triangles (T, 3, 3): whether each point lies within
+    ``dist`` of a triangle (of its plane, its projection inside it up to ``dist``), and the
+    normal (k, 3) of the nearest such triangle (zero where none)."""
+    P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+    tris, nrm = _path_planes(tris)
+    best = np.full(len(P), np.inf)
+    normal = np.zeros((len(P), 3))
+    for (a, b, c), n in zip(tris, nrm):
+        d = (P - a) @ n
+        close = np.abs(d) < np.minimum(best, dist)
+        if not close.any():
+            continue
+        idx = np.flatnonzero(close)
+        q = P[idx] - d[idx, None] * n
+        inside = _points_in_triangle(q, a, b, c, dist)
+        idx = idx[inside]
+        best[idx] = np.abs(d[idx])
+        normal[idx] = n
+    return np.isfinite(best), normal
+
+
+def edge_crossings(P, edges, tris, tol):
+    """For edges (e, 2) of points P: the parameter t in (0, 1) where each crosses one of the
+    blade triangles strictly (its end points on opposite sides of the triangle's plane, the
+    crossing point inside the triangle up to ``tol``), NaN where it crosses none."""
+    t_out = np.full(len(edges), np.nan)
+    if not len(edges):
+        return t_out
+    tris, nrm = _path_planes(tris)
+    X0, X1 = P[edges[:, 0]], P[edges[:, 1]]
+    for (a, b, c), n in zip(tris, nrm):
+        d0, d1 = (X0 - a) @ n, (X1 - a) @ n
+        cross = (d0 * d1 < 0.0) & np.isnan(t_out)
+        if not cross.any():
+            continue
+        idx = np.flatnonzero(cross)
+        t = d0[idx] / (d0[idx] - d1[idx])
+        q = X0[idx] + t[:, None] * (X1[idx] - X0[idx])
+        inside = _points_in_triangle(q, a, b, c, tol)
+        t_out[idx[inside]] = t[inside]
+    return t_out
+
+
+def subdivide_for_cut(P, tets, tris, on_nodes, snap: float, tol: float):
+    """Refine the tets around the blade so that the cut becomes a surface of mesh faces
+    (progressive cutting by subdivision, after Mor & Kanade; paper section 3.1).
+
+    Every mesh edge that the blade triangles cross strictly gets a new node at the crossing,
+    and every tet holding that edge is bisected there (the edge bisection of all the tets
+    around an edge keeps the mesh conforming; a bisected tet keeps its orientation). A
+    crossing closer than ``snap`` (a fraction of the edge) to an end point is snapped to that
+    end point instead, which is then on the cut: no sliver is created. ``on_nodes`` (bool,
+    n) marks nodes already on the cut (from earlier steps of the same blade path).
+
+    Returns (tets, parent, fresh, edge_a, edge_b, edge_t, on) where the new nodes are numbered
+    from n on, new node k at (1 - t) P[a_k] + t P[b_k]; ``parent`` (m',) is the old tet each tet
+    comes from, ``fresh`` (m',) whether it is a new (bisected) one; ``on`` (n + k,) marks the
+    nodes on the cut.
+    """
+    n = len(P)
+    tets = np.asarray(tets, dtype=np.int64)
+    parent = np.arange(len(tets))
+    fresh = np.zeros(len(tets), bool)
+    on = np.zeros(n, bool)
+    on[: len(on_nodes)] = on_nodes[:n]
+    tris = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
+    if not len(tris):
+        return tets, parent, fresh, *(np.zeros(0, np.int64),) * 2, np.zeros(0), on
+    lo, hi = tris.min(axis=(0, 1)) - tol, tris.max(axis=(0, 1)) + tol
+    X = P[tets]
+    near = np.all((X.max(axis=1) >= lo) & (X.min(axis=1) <= hi), axis=1)
+    E = np.sort(tets[near][:, _TET_EDGES].reshape(-1, 2), axis=1)
+    E = unique_rows(E)
+    t = edge_crossings(P, E, tris, tol)
+    crossed = np.flatnonzero(np.isfinite(t))
+    E, t = E[crossed], t[crossed]
+    # snapping: a crossing near an end point puts that end point on the cut instead
+    on[E[t < snap, 0]] = True
+    on[E[t > 1.0 - snap, 1]] = True
+    split = ~on[E[:, 0]] & ~on[E[:, 1]]
+    E, t = E[split], t[split]
+    new_ids = n + np.arange(len(E))
+    for (i, j), p in zip(E, new_ids):
+        has = np.any(tets == i, axis=1) & np.any(tets == j, axis=1)
+        T = tets[has]
+        tets = np.concatenate([tets[~has], np.where(T == j, p, T), np.where(T == i, p, T)])
+        parent = np.concatenate([parent[~has], parent[has], parent[has]])
+        fresh = np.concatenate([fresh[~has], np.ones(2 * len(T), bool)])
+    return tets, parent, fresh, E[:, 0], E[:, 1], t, np.concatenate([on, np.ones(len(E), bool)])
+
+
+def faces_on_cut(P, tets, on, tris, dist):
+    """Interior faces to separate after a subdivision: all three nodes on the cut, the face
+    on the blade path (its centroid within ``dist`` of a blade triangle) and its two tets on
+    opposite sides of that triangle's plane. Returns (pairs, face nodes, mask over the faces)."""
+    pairs, fnodes = interior_faces(tets)
+    cand = np.flatnonzero(np.all(on[fnodes], axis=1))
+    mask = np.zeros(len(pairs), bool)
+    if len(cand):
+        cen = P[fnodes[cand]].mean(axis=1)
+        close, nrm = path_query(cen, tris, dist)
+        Ta, Tb = tets[pairs[cand, 0]], tets[pairs[cand, 1]]
+        sa = np.einsum("kj,kj->k", P[Ta].mean(axis=1) - cen, nrm)
+        sb = np.einsum("kj,kj->k", P[Tb].mean(axis=1) - cen, nrm)
+        mask[cand] = close & (sa * sb < 0.0)
+    return pairs, fnodes, mask
+
+
 # -------------------------------------------------------------------- cutter
 def _vec3(v, what):
     a = np.asarray(v, dtype=np.float64)
@@ -234,6 +364,12 @@ class Cutter:
           tolerance: 1.0e-9                # geometric tolerance [m]
           min_fragment: 5                  # a free fragment of fewer tets that a change leaves is
                                            # removed as debris (0: keep every fragment)
+          scheme: split                    # split: separate along existing faces (node splitting);
+                                           # subdivide: split the crossed edges first (Mor-Kanade)
+          snap: 0.2                        # subdivide: a crossing closer than this fraction of
+                                           # its edge to an end snaps to that end (no slivers)
+          path_steps: 12                   # subdivide: the blade's last sweeps kept while the
+                                           # pedal is down (a tet is separated once they cross it)
           script:                          # planned cuts: a plane patch that advances every few steps
             {frame: rest, start_step: 1, every: 3, count: 40,
              origin: [x, y, z], edge: [ex, ey, ez], direction: [dx, dy, dz], advance: 0.01}
@@ -242,7 +378,7 @@ class Cutter:
     def __init__(self, sim, cfg):
         cfg = dict(cfg) if isinstance(cfg, dict) else {}
         unknown = set(cfg) - {"instrument", "correction", "min_quality", "tolerance", "script", "enabled",
-                            "min_fragment"}
+                            "min_fragment", "scheme", "snap", "path_steps"}
         if unknown:
             raise ParameterError(f"unknown cutting keys: {sorted(unknown)}")
         self.instrument = cfg.get("instrument")
@@ -259,6 +395,18 @@ class Cutter:
         if isinstance(mf, bool) or not isinstance(mf, int) or mf < 0:
             raise ParameterError(f"cutting min_fragment must be an integer >= 0, got {mf!r}")
         self.min_fragment = mf
+        self.scheme = str(cfg.get("scheme", "split"))
+        if self.scheme not in SCHEMES:
+            raise ParameterError(f"cutting scheme must be one of {SCHEMES}, got {self.scheme!r}")
+        self.snap = float(cfg.get("snap", 0.2))
+        if not 0.0 < self.snap < 0.5:
+            raise ParameterError(f"cutting snap must be in (0, 0.5), got {self.snap}")
+        ps = cfg.get("path_steps", 12)
+        if isinstance(ps, bool) or not isinstance(ps, int) or ps < 1:
+            raise ParameterError(f"cutting path_steps must be an integer >= 1, got {ps!r}")
+        self.path_steps = ps
+        e = sim.mesh.points[sim.mesh.edges()]
+        self._edge_length = float(np.median(np.linalg.norm(e[:, 1] - e[:, 0], axis=1)))
         self.script = self._parse_script(cfg.get("script"))
         self.active = False
         self.correction = None
@@ -274,6 +422,8 @@ class Cutter:
         self.history: list[CutResult] = []
         self._blade_at_last_cut = None
         self._script_done = 0
+        self._path = []  # subdivide: the blade's last sweeps (world), while the pedal is down
+        self._on_uids = np.zeros(0, np.int64)  # subdivide: nodes on that path's cut
 
     @staticmethod
     def _parse_script(s):
@@ -348,7 +498,11 @@ class Cutter:
         self._blade_at_last_cut = blade
         if prev is None:
             return CutResult(False, "blade position recorded; the next cut follows its path from here")
-        return self.cut_triangles(sim, sweep_triangles(prev[0], prev[1], blade[0], blade[1]), frame="world")
+        sweep = sweep_triangles(prev[0], prev[1], blade[0], blade[1])
+        if self.scheme == "subdivide":  # the path so far: a tet partly crossed now is separated later
+            self._path = (self._path + [sweep])[-self.path_steps:]
+            return self._cut_subdivide(sim, np.concatenate(self._path), "world", time.perf_counter(), keep_on=True)
+        return self.cut_triangles(sim, sweep, frame="world")
 
     def step(self, sim) -> dict:
         """Per step: scripted cuts due now, and the blade's sweep while cutting is active."""
@@ -361,8 +515,9 @@ class Cutter:
                 self._script_done += 1
         if self.active:
             results.append(self.cut(sim))
-        else:
-            self._blade_at_last_cut = None  # a pedal press starts a new path
+        else:  # a pedal press starts a new path
+            self._blade_at_last_cut = None
+            self._path, self._on_uids = [], np.zeros(0, np.int64)
         done = [r for r in results if r.changed]
         return {
             "cuts": self.modifications,
@@ -382,6 +537,8 @@ class Cutter:
             return CutResult(False, "blade has non-finite coordinates: no cut")
         if frame not in ("world", "rest"):
             raise ValueError(f"frame must be 'world' or 'rest', got {frame!r}")
+        if self.scheme == "subdivide":
+            return self._cut_subdivide(sim, tris, frame, t0)
         mesh = sim.mesh
         pts = sim.positions() if frame == "world" else mesh.points
         tets = mesh.tets.astype(np.int64)
@@ -412,10 +569,62 @@ class Cutter:
             return CutResult(False, "the cut faces do not separate anything yet (the blade only grazed the "
                              "tissue): nothing changed", faces_cut=int(cut.sum()),
                              ms=1000.0 * (time.perf_counter() - t0))
-        res = self._commit(sim, new_tets, source, changed, changed, keep=np.arange(mesh.n_nodes))
+        res = self._commit(sim, new_tets, (source, source, np.zeros(len(source))), changed, changed,
+                           keep=np.arange(mesh.n_nodes))
         res.faces_cut = int(cut.sum())
         self._remove_debris(sim, res)
         res.ms = 1000.0 * (time.perf_counter() - t0)
+        return res
+
+    def _cut_subdivide(self, sim, tris, frame: str, t0: float, keep_on: bool = False) -> CutResult:
+        """The subdivision scheme: refine the crossed tets so that the blade's path is a surface
+        of faces (:func:`subdivide_for_cut`), then separate along the faces on it that have both
+        sides (:func:`split_along_faces`, as the split scheme). Where no face separates yet (the
+        blade has only entered a tet), nothing is changed: the refinement is not kept."""
+        ms = lambda: 1000.0 * (time.perf_counter() - t0)  # noqa: E731
+        if not len(_path_planes(tris)[0]):
+            return CutResult(False, "the blade swept no area: no cut", ms=ms())
+        mesh = sim.mesh
+        n = mesh.n_nodes
+        pts = sim.positions() if frame == "world" else mesh.points
+        tets = mesh.tets.astype(np.int64)
+        h = self._edge_length
+        tol = self.tolerance + 1e-9 * h
+        on_prev = np.zeros(n, bool)
+        if keep_on and len(self._on_uids):
+            on_prev = np.isin(sim.node_uids, self._on_uids)
+        on_prev |= path_query(pts, tris, 1e-3 * h)[0]  # nodes on the blade's surface
+        new_tets, parent, fresh, ea, eb, et, on = subdivide_for_cut(pts, tets, tris, on_prev, self.snap, tol)
+        P = np.concatenate([pts, (1.0 - et)[:, None] * pts[ea] + et[:, None] * pts[eb]])
+        pairs, fnodes, cut = faces_on_cut(P, new_tets, on, tris, self.snap * h)
+        if not cut.any():
+            if not len(ea):
+                return CutResult(False, "the blade crossed no tissue (no edge, no face on its path): nothing "
+                                 "changed", ms=ms())
+            return CutResult(False, "the blade has not yet crossed a whole element on its path: nothing changed",
+                             ms=ms())
+        split_tets, dup = split_along_faces(new_tets, pairs[cut], fnodes[cut], pairs, fnodes, len(P))
+        if not len(dup):
+            return CutResult(False, "the cut faces do not separate anything yet: nothing changed",
+                             faces_cut=int(cut.sum()), ms=ms())
+        # new nodes: the edge nodes, then the copies (of old or of edge nodes), as (a, b, t) of old nodes
+        ext_a, ext_b = np.concatenate([np.arange(n), ea]), np.concatenate([np.arange(n), eb])
+        ext_t = np.concatenate([np.zeros(n), et])
+        a, b, t = (np.concatenate([ea, ext_a[dup]]), np.concatenate([eb, ext_b[dup]]),
+                   np.concatenate([et, ext_t[dup]]))
+        same = ~fresh & np.all(split_tets == tets[parent], axis=1)
+        removed_ids = np.setdiff1d(np.arange(len(tets)), parent[same])
+        added_ids = np.flatnonzero(~same)
+        on_old = sim.node_uids[on[:n]]
+        res = self._commit(sim, split_tets, (a, b, t), removed_ids, added_ids, keep=np.arange(n),
+                           mats=mesh.material_ids[parent])
+        if res.changed:
+            res.message = res.message.replace("cut:", "cut (subdivision):", 1)
+            res.faces_cut = int(cut.sum())
+            if keep_on:
+                self._on_uids = np.union1d(self._on_uids, np.concatenate([on_old, sim.node_uids[n:]]))
+            self._remove_debris(sim, res)
+        res.ms = ms()
         return res
 
     def remove_elements(self, sim, center, radius: float, frame: str = "world") -> CutResult:
@@ -496,8 +705,14 @@ class Cutter:
             res.message += f"; {res.debris_tets} debris tets of fragments under {self.min_fragment} tets removed"
 
     # ------------------------------------------------------------- commit
-    def _commit(self, sim, new_tets, source, removed_ids, added_ids, keep, kept_tets=None) -> CutResult:
-        """Apply a topology change to mesh, FEM, state and preconditioner, or refuse it unchanged."""
+    def _commit(self, sim, new_tets, source, removed_ids, added_ids, keep, kept_tets=None, mats=None) -> CutResult:
+        """Apply a topology change to mesh, FEM, state and preconditioner, or refuse it unchanged.
+
+        ``new_tets``: the new tets (None: element removal, ``keep`` the nodes kept, ``kept_tets``
+        the tets). New nodes are appended after the old ones, node k at (1 - t) a + t b of old
+        nodes ``source = (a, b, t)`` (a copy of node a: b = a, t = 0), for its rest and current
+        position and its velocity: a node on an edge follows the displacement field exactly.
+        ``mats``: the new tets' material ids (default: unchanged)."""
         fem, integ, mesh = sim.fem, sim.integrator, sim.mesh
         old_uids = sim.node_uids
         x, v = sim.positions(), sim.velocities()
@@ -514,16 +729,22 @@ class Cutter:
             mats = mesh.material_ids[kept_tets]
             created = np.zeros(0, np.int64)
             removed = np.setdiff1d(old_uids, uids_new)
-        else:  # node splitting: copies appended
+        else:  # node splitting and subdivision: new nodes appended
+            a, b, t = source
+            t = np.asarray(t, dtype=np.float64)[:, None]
+
+            def along(arr):
+                return np.concatenate([arr, (1.0 - t) * arr[a] + t * arr[b]])
+
             tets_new = new_tets
-            pts_new = np.concatenate([mesh.points, mesh.points[source]])
-            x_new, v_new = np.concatenate([x, x[source]]), np.concatenate([v, v[source]])
+            pts_new, x_new, v_new = along(mesh.points), along(x), along(v)
             first = int(old_uids.max()) + 1 if len(old_uids) else 0
-            created = np.arange(first, first + len(source), dtype=np.int64)
+            created = np.arange(first, first + len(a), dtype=np.int64)
             uids_new = np.concatenate([old_uids, created])
-            free_new = np.concatenate([free_old, free_old[source]])
-            mats = mesh.material_ids
+            free_new = np.concatenate([free_old, np.maximum(free_old[a], free_old[b])])  # fixed if both ends are
+            mats = mesh.material_ids if mats is None else mats
             removed = np.zeros(0, np.int64)
+            source = np.where(t[:, 0] <= 0.5, a, b)  # the old node whose rotation a new one takes
         # the quality floor (node splitting keeps shapes; this guards the invariant) and no orphan node
         q = tet_quality(pts_new, tets_new[added_ids]) if len(added_ids) else np.ones(1)
         used = np.zeros(len(pts_new), bool)

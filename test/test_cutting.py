@@ -11,8 +11,8 @@ from soft_tissue_sim.mesh import tet_quality, validate_mesh
 
 def beam_scene(n_long=8, n_cross=3, pre="async_ldlt", correction="sherman_morrison", refresh_every=1000,
                deterministic=True, script=None, fixed=True, gravity=(0.0, 0.0, -9.81), young=5e4, rotate=True,
-               columns_on="auto"):
-    cut = {"correction": correction}
+               columns_on="auto", scheme="split"):
+    cut = {"correction": correction, "scheme": scheme}
     if script:
         cut["script"] = script
     return {
@@ -63,13 +63,14 @@ def corrected_vs_fresh(sim, rng, k=3):
     return err
 
 
-@pytest.mark.parametrize("columns_on", ["host", "device"])
-def test_corrected_preconditioner_equals_inverse_of_modified_matrix(columns_on):
+@pytest.mark.parametrize("columns_on, scheme", [("host", "split"), ("device", "split"), ("host", "subdivide")])
+def test_corrected_preconditioner_equals_inverse_of_modified_matrix(columns_on, scheme):
     # Unrotated: the averaged nodal rotations of eq. (2) change where a cut changes the elements
     # around a node, which is an approximation by design, not part of the correction.
     # columns_on=device: the columns of U by the Warp block solve (here Warp's CPU backend).
+    # subdivide: the cut also bisects the crossed tets (new nodes on edges, eq. 10 padding).
     rng = np.random.default_rng(0)
-    with load_scene(beam_scene(rotate=False, columns_on=columns_on)) as sim:
+    with load_scene(beam_scene(rotate=False, columns_on=columns_on, scheme=scheme)) as sim:
         for _ in range(3):
             sim.step()  # deformed, rotated state; the factor is from step 0 (refresh_every large)
         # make the factor current, so that the only difference is the cut
@@ -230,8 +231,9 @@ def test_a_sliver_cut_free_is_removed_as_debris_unless_disabled(min_fragment):
             assert sim.step().converged
 
 
-def test_cut_through_empty_space_changes_nothing_and_says_so():
-    with load_scene(beam_scene()) as sim:
+@pytest.mark.parametrize("scheme", ["split", "subdivide"])
+def test_cut_through_empty_space_changes_nothing_and_says_so(scheme):
+    with load_scene(beam_scene(scheme=scheme)) as sim:
         sim.step()
         x = sim.positions()
         T = sim.mesh.tets.copy()
@@ -282,15 +284,19 @@ def test_a_part_cut_free_is_lifted_out_and_the_preconditioner_follows():
         assert sim.step().converged
 
 
-def test_five_hundred_cuts_keep_the_mesh_valid_and_the_state_finite():
+@pytest.mark.parametrize("scheme, cuts, size", [("split", 500, 0.006), ("subdivide", 25, 0.02)])
+def test_five_hundred_cuts_keep_the_mesh_valid_and_the_state_finite(scheme, cuts, size):
+    """Random blades anywhere: the mesh stays valid, no node is orphaned, the state finite;
+    splitting never lowers the quality, subdivision keeps it above the floor. (Subdivision
+    separates only where a blade crosses whole elements: its blades are larger than one.)"""
     rng = np.random.default_rng(3)
-    with load_scene(beam_scene(n_long=10, refresh_every=4, deterministic=False)) as sim:
-        q0 = tet_quality(sim.mesh.points, sim.mesh.tets).min()
+    with load_scene(beam_scene(n_long=10, refresh_every=4, deterministic=False, scheme=scheme)) as sim:
+        q0 = tet_quality(sim.mesh.points, sim.mesh.tets).min() if scheme == "split" else sim.cutting.min_quality
         changed = 0
-        for i in range(500):
+        for i in range(cuts):
             P = sim.positions()
             c = P[rng.integers(len(P))]
-            d = rng.standard_normal((2, 3)) * 0.006
+            d = rng.standard_normal((2, 3)) * size
             tri = np.array([c - d[0] - d[1], c + d[0], c + d[1]])
             changed += sim.cut_triangles([tri]).changed
             if i % 5 == 0:
@@ -303,7 +309,7 @@ def test_five_hundred_cuts_keep_the_mesh_valid_and_the_state_finite():
         used[m.tets.ravel()] = True
         assert used.all()
         assert np.isfinite(sim.positions()).all()
-        assert changed > 50
+        assert changed > cuts // 10
 
 
 def test_scripted_cut_and_reset():
@@ -335,3 +341,88 @@ def test_jacobi_scene_cuts_too():
         sim.step()
         assert lengthwise(sim, 0.035, 0.08).changed
         assert sim.step().converged
+
+
+# ------------------------------------------------------------ subdivision scheme
+def test_subdivision_cuts_at_the_blade_and_conserves_mass_and_volume():
+    """A crosswise cut between two layers of nodes: the split scheme would cut along a layer of
+    faces; subdivision splits exactly the tets of the crossed layer, puts the new nodes on the
+    blade's plane (rest and current positions on their edges at the same parameter), conserves
+    mass and volume, parts the body in two, and the free part falls."""
+    x_cut = 0.0637  # layers at 0.06 and 0.07
+    with load_scene(beam_scene(n_long=10, scheme="subdivide", young=2e5)) as sim:
+        for _ in range(5):
+            sim.step()
+        n0, m0, V0 = sim.mesh.n_nodes, sim.fem.total_mass, sim.mesh.signed_volumes().sum()
+        layer = np.all((sim.mesh.points[sim.mesh.tets][:, :, 0] > 0.055) & (sim.mesh.points[sim.mesh.tets][:, :, 0] < 0.075),
+                       axis=1)
+        x_before, tets_before = sim.positions(), sim.mesh.tets.copy()
+        res = crosswise(sim, x_cut)
+        assert res.changed and "subdivision" in res.message
+        assert res.tets_changed == layer.sum()  # exactly the crossed layer
+        assert abs(sim.fem.total_mass - m0) < 1e-12 * m0
+        assert sim.mesh.signed_volumes().sum() == pytest.approx(V0, rel=1e-12)
+        new = sim.mesh.points[n0:]
+        assert len(new) == res.nodes_added > 0
+        np.testing.assert_allclose(new[:, 0], x_cut, atol=1e-12)  # on the blade
+        # the displacement field is unchanged: each new node is where the old (linear) field puts it
+        X = sim.positions()
+        P0 = sim.mesh.points[:n0][tets_before]  # (m, 4, 3) old tets, rest
+        T = np.stack([P0[:, 1] - P0[:, 0], P0[:, 2] - P0[:, 0], P0[:, 3] - P0[:, 0]], axis=2)
+        for p in range(n0, sim.mesh.n_nodes):
+            b = np.linalg.solve(T, (sim.mesh.points[p] - P0[:, 0])[:, :, None])[:, :, 0]
+            w = np.concatenate([1.0 - b.sum(axis=1, keepdims=True), b], axis=1)
+            e = int(np.argmax(w.min(axis=1)))  # a tet holding the node (on its edge)
+            assert w[e].min() > -1e-9
+            np.testing.assert_allclose(X[p], w[e] @ x_before[tets_before[e]], atol=1e-12)
+        assert len(np.unique(sim.mesh.node_components())) == 2
+        assert tet_quality(sim.mesh.points, sim.mesh.tets).min() >= sim.cutting.min_quality
+        free = sim.mesh.points[:, 0] > x_cut
+        z0 = sim.positions()[free, 2].mean()
+        for _ in range(10):
+            assert sim.step().converged
+        assert sim.positions()[free, 2].mean() < z0 - 0.5 * 9.81 * (10 * sim.dt) ** 2 * 0.8  # it falls
+
+
+@pytest.mark.parametrize("scheme", ["split", "subdivide"])
+def test_a_blade_swept_in_small_steps_cuts_along_its_path(scheme):
+    """Continuous cutting (pedal down): the scalpel's blade moves lengthwise 1.2 mm a step,
+    less than an element. Both schemes open a crack along its path; subdivision puts it on the
+    blade (the new nodes within a fraction of a millimetre of its plane), splitting along the
+    faces within about an element."""
+    cfg = beam_scene(n_long=12, n_cross=4, scheme=scheme, gravity=(0.0, 0.0, 0.0))
+    cfg["cutting"]["instrument"] = "scalpel"
+    cfg["instruments"] = [{"name": "scalpel", "shape": "capsule", "radius": 0.0005, "length": 0.08,
+                           "blade": [[0, 0, 0], [0, 0, 0.05]],
+                           "pose": {"position": [0.0, 0.0, 0.2], "orientation": [0, 0, 0, 1]}}]
+    with load_scene(cfg) as sim:
+        n0, faces0 = sim.mesh.n_nodes, len(sim.surface_triangles())
+        P = sim.mesh.points
+        y = P[:, 1].min() + 0.0137
+        z = P[:, 2].min() - 0.01
+        sim.set_cutting(True)
+        for x in np.arange(0.025, P[:, 0].max() + 0.01, 0.0012):
+            sim.set_instrument_pose("scalpel", [x, y, z], [0, 0, 0, 1])
+            assert sim.step().converged
+        sim.set_cutting(False)
+        assert sim.cutting.modifications >= 5
+        assert len(sim.surface_triangles()) > faces0 + 20  # the crack's two faces
+        dy = np.abs(sim.mesh.points[n0:, 1] - y)
+        if scheme == "subdivide":
+            assert dy.max() < 0.2 * 0.01  # within the snap distance of the blade
+            assert tet_quality(sim.mesh.points, sim.mesh.tets).min() >= sim.cutting.min_quality
+        else:
+            assert dy.max() > 0.2 * 0.01  # on faces of the mesh, off the blade
+
+
+@pytest.mark.parametrize("extra, match", [
+    ({"scheme": "mor-kanade"}, "scheme"), ({"snap": 0.5}, "snap"), ({"snap": 0}, "snap"),
+    ({"path_steps": 0}, "path_steps"), ({"path_steps": 2.5}, "path_steps"),
+])
+def test_bad_cutting_options_are_refused(extra, match):
+    from soft_tissue_sim import ParameterError
+
+    cfg = beam_scene()
+    cfg["cutting"].update(extra)
+    with pytest.raises(ParameterError, match=match):
+        load_scene(cfg)

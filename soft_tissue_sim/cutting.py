@@ -18,19 +18,19 @@ sliver, the quality floor holds by construction), the two sides separate for rea
 momentum are conserved; the cut surface is a staircase of faces within an element of the
 blade.
 
-``subdivide``: the cut on the blade itself, by subdivision (after Mor & Kanade, the
-paper's [7]). Every mesh edge that the blade's path crosses gets a new node at the crossing
-(its rest and current position and its velocity interpolated on the edge, so the
-displacement field is unchanged), and every tet holding that edge is bisected there: the
-edge bisection of all the tets around an edge keeps the mesh conforming, and once all the
-crossed edges are split no edge crosses the path, so the path inside the body is a surface
-of faces. Those faces (three nodes on the cut, both tets on opposite sides) are then
-separated by node splitting as above. A crossing closer than ``snap`` (a fraction of its
-edge) to an end point is snapped to that end point, which avoids slivers; ``min_quality``
-refuses any change that would still go below the floor. With the pedal down the blade's
-last ``path_steps`` sweeps are kept as its path: a tet is separated once the path has
-crossed it whole (until then nothing changes), and the nodes already on the path's cut
-stay on it. More nodes per modification (the new ones), the mesh grows with every cut.
+``subdivide``: the cut on the blade itself, progressively, by subdivision (after Mor &
+Kanade, the paper's [7]). At every sweep of the blade, every mesh edge it crosses gets a new
+node at the crossing (its rest and current position and its velocity interpolated on the
+edge, so the displacement field is unchanged), and every tet holding that edge is bisected
+there: the edge bisection of all the tets around an edge keeps the mesh conforming, and
+once the crossed edges are split no edge crosses the blade, so the blade inside the body
+lies on faces. Then the split rule above runs on the refined mesh and separates the faces
+the blade has passed. While the blade is inside an element (it has crossed some of its edges,
+no whole face yet) the refinement alone is the step's modification; the crack opens as the
+blade moves on. A crossing closer than ``snap`` (a fraction of its edge) to an end point is
+not split (that end point is taken as on the cut), which avoids slivers; ``min_quality``
+refuses any change that would still go below the floor. More nodes per modification (the
+new ones), a modification at nearly every step of a moving blade, and the mesh grows.
 
 Element removal (ablation, aspiration) deletes the tets whose centroid lies in a sphere;
 nodes left without a tet are deleted and the rest renumbered (uids keep their identity for
@@ -236,28 +236,6 @@ def _path_planes(tris):
     return tris[ok], n[ok] / area2[ok, None]
 
 
-def path_query(P, tris, dist):
-    """For points P (k, 3) and blade triangles (T, 3, 3): whether each point lies within
-    ``dist`` of a triangle (of its plane, its projection inside it up to ``dist``), and the
-    normal (k, 3) of the nearest such triangle (zero where none)."""
-    P = np.asarray(P, dtype=np.float64).reshape(-1, 3)
-    tris, nrm = _path_planes(tris)
-    best = np.full(len(P), np.inf)
-    normal = np.zeros((len(P), 3))
-    for (a, b, c), n in zip(tris, nrm):
-        d = (P - a) @ n
-        close = np.abs(d) < np.minimum(best, dist)
-        if not close.any():
-            continue
-        idx = np.flatnonzero(close)
-        q = P[idx] - d[idx, None] * n
-        inside = _points_in_triangle(q, a, b, c, dist)
-        idx = idx[inside]
-        best[idx] = np.abs(d[idx])
-        normal[idx] = n
-    return np.isfinite(best), normal
-
-
 def edge_crossings(P, edges, tris, tol):
     """For edges (e, 2) of points P: the parameter t in (0, 1) where each crosses one of the
     blade triangles strictly (its end points on opposite sides of the triangle's plane, the
@@ -280,69 +258,77 @@ def edge_crossings(P, edges, tris, tol):
     return t_out
 
 
-def subdivide_for_cut(P, tets, tris, on_nodes, snap: float, tol: float):
-    """Refine the tets around the blade so that the cut becomes a surface of mesh faces
+def subdivide_for_cut(P, tets, tris, snap: float, tol: float):
+    """Refine the tets the blade crosses so that its triangles cut no edge of the mesh any more
     (progressive cutting by subdivision, after Mor & Kanade; paper section 3.1).
 
     Every mesh edge that the blade triangles cross strictly gets a new node at the crossing,
-    and every tet holding that edge is bisected there (the edge bisection of all the tets
-    around an edge keeps the mesh conforming; a bisected tet keeps its orientation). A
-    crossing closer than ``snap`` (a fraction of the edge) to an end point is snapped to that
-    end point instead, which is then on the cut: no sliver is created. ``on_nodes`` (bool,
-    n) marks nodes already on the cut (from earlier steps of the same blade path).
+    and every tet holding that edge is bisected there: the edge bisection of all the tets
+    around an edge keeps the mesh conforming, a bisected tet keeps its orientation, and no new
+    edge crosses the blade (each has an end on it). A crossing closer than ``snap`` (a
+    fraction of the edge) to an end point is not split: that end point is taken as on the cut
+    (no sliver is created).
 
-    Returns (tets, parent, fresh, edge_a, edge_b, edge_t, on) where the new nodes are numbered
-    from n on, new node k at (1 - t) P[a_k] + t P[b_k]; ``parent`` (m',) is the old tet each tet
-    comes from, ``fresh`` (m',) whether it is a new (bisected) one; ``on`` (n + k,) marks the
-    nodes on the cut.
+    Returns (tets, parent, fresh, edge_a, edge_b, edge_t): the new nodes are numbered from n
+    on, new node k at (1 - t) P[a_k] + t P[b_k]; ``parent`` (m',) is the old tet each tet comes
+    from, ``fresh`` (m',) whether it is a new (bisected) one.
     """
-    n = len(P)
     tets = np.asarray(tets, dtype=np.int64)
     parent = np.arange(len(tets))
     fresh = np.zeros(len(tets), bool)
-    on = np.zeros(n, bool)
-    on[: len(on_nodes)] = on_nodes[:n]
     tris = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
+    none = np.zeros(0, np.int64)
     if not len(tris):
-        return tets, parent, fresh, *(np.zeros(0, np.int64),) * 2, np.zeros(0), on
+        return tets, parent, fresh, none, none, np.zeros(0)
     lo, hi = tris.min(axis=(0, 1)) - tol, tris.max(axis=(0, 1)) + tol
     X = P[tets]
     near = np.all((X.max(axis=1) >= lo) & (X.min(axis=1) <= hi), axis=1)
-    E = np.sort(tets[near][:, _TET_EDGES].reshape(-1, 2), axis=1)
-    E = unique_rows(E)
+    E = unique_rows(np.sort(tets[near][:, _TET_EDGES].reshape(-1, 2), axis=1))
     t = edge_crossings(P, E, tris, tol)
-    crossed = np.flatnonzero(np.isfinite(t))
+    crossed = np.isfinite(t)
     E, t = E[crossed], t[crossed]
-    # snapping: a crossing near an end point puts that end point on the cut instead
+    on = np.zeros(len(P), bool)  # snapping: a crossing near an end point puts that end point on the cut
     on[E[t < snap, 0]] = True
     on[E[t > 1.0 - snap, 1]] = True
     split = ~on[E[:, 0]] & ~on[E[:, 1]]
     E, t = E[split], t[split]
-    new_ids = n + np.arange(len(E))
-    for (i, j), p in zip(E, new_ids):
+    for (i, j), p in zip(E, len(P) + np.arange(len(E))):
         has = np.any(tets == i, axis=1) & np.any(tets == j, axis=1)
         T = tets[has]
         tets = np.concatenate([tets[~has], np.where(T == j, p, T), np.where(T == i, p, T)])
         parent = np.concatenate([parent[~has], parent[has], parent[has]])
         fresh = np.concatenate([fresh[~has], np.ones(2 * len(T), bool)])
-    return tets, parent, fresh, E[:, 0], E[:, 1], t, np.concatenate([on, np.ones(len(E), bool)])
+    return tets, parent, fresh, E[:, 0], E[:, 1], t
 
 
-def faces_on_cut(P, tets, on, tris, dist):
-    """Interior faces to separate after a subdivision: all three nodes on the cut, the face
-    on the blade path (its centroid within ``dist`` of a blade triangle) and its two tets on
-    opposite sides of that triangle's plane. Returns (pairs, face nodes, mask over the faces)."""
+def faces_cut_by_triangles(P, tets, tris, tol, on_plane: float | None = None):
+    """The interior faces a blade separates: for each blade triangle, the faces between tets
+    on opposite sides of its plane (the sign of their centroid's distance) of which at least
+    one is intersected (its section overlaps the triangle). With ``on_plane``, only the faces
+    lying on that plane (each node within ``on_plane`` times the face's longest edge of it):
+    after a subdivision, the faces of the blade, not the staircase of faces around the tets
+    the blade has not crossed yet. Returns (pairs, face nodes, mask)."""
     pairs, fnodes = interior_faces(tets)
-    cand = np.flatnonzero(np.all(on[fnodes], axis=1))
-    mask = np.zeros(len(pairs), bool)
-    if len(cand):
-        cen = P[fnodes[cand]].mean(axis=1)
-        close, nrm = path_query(cen, tris, dist)
-        Ta, Tb = tets[pairs[cand, 0]], tets[pairs[cand, 1]]
-        sa = np.einsum("kj,kj->k", P[Ta].mean(axis=1) - cen, nrm)
-        sb = np.einsum("kj,kj->k", P[Tb].mean(axis=1) - cen, nrm)
-        mask[cand] = close & (sa * sb < 0.0)
-    return pairs, fnodes, mask
+    cut = np.zeros(len(pairs), bool)
+    if on_plane is not None:
+        F = P[fnodes]
+        reach = on_plane * np.max(np.linalg.norm(F - F[:, [1, 2, 0]], axis=2), axis=1)
+    for tri in tris:
+        hit, side = tets_cut_by_triangle(P, tets, tri, tol)
+        if side is None or not len(hit):
+            continue
+        is_hit = np.zeros(len(tets), bool)
+        is_hit[hit] = True
+        sa, sb = side[pairs[:, 0]] >= 0.0, side[pairs[:, 1]] >= 0.0
+        faces = (sa != sb) & (is_hit[pairs[:, 0]] | is_hit[pairs[:, 1]])
+        if on_plane is not None and faces.any():
+            a, b, c = (np.asarray(v, dtype=np.float64) for v in tri)
+            nrm = np.cross(b - a, c - a)
+            nrm /= np.linalg.norm(nrm)
+            k = np.flatnonzero(faces)
+            faces[k] = np.all(np.abs((F[k] - a) @ nrm) <= reach[k, None], axis=1)
+        cut |= faces
+    return pairs, fnodes, cut
 
 
 # -------------------------------------------------------------------- cutter
@@ -368,8 +354,6 @@ class Cutter:
                                            # subdivide: split the crossed edges first (Mor-Kanade)
           snap: 0.2                        # subdivide: a crossing closer than this fraction of
                                            # its edge to an end snaps to that end (no slivers)
-          path_steps: 12                   # subdivide: the blade's last sweeps kept while the
-                                           # pedal is down (a tet is separated once they cross it)
           script:                          # planned cuts: a plane patch that advances every few steps
             {frame: rest, start_step: 1, every: 3, count: 40,
              origin: [x, y, z], edge: [ex, ey, ez], direction: [dx, dy, dz], advance: 0.01}
@@ -378,7 +362,7 @@ class Cutter:
     def __init__(self, sim, cfg):
         cfg = dict(cfg) if isinstance(cfg, dict) else {}
         unknown = set(cfg) - {"instrument", "correction", "min_quality", "tolerance", "script", "enabled",
-                            "min_fragment", "scheme", "snap", "path_steps"}
+                            "min_fragment", "scheme", "snap"}
         if unknown:
             raise ParameterError(f"unknown cutting keys: {sorted(unknown)}")
         self.instrument = cfg.get("instrument")
@@ -401,12 +385,6 @@ class Cutter:
         self.snap = float(cfg.get("snap", 0.2))
         if not 0.0 < self.snap < 0.5:
             raise ParameterError(f"cutting snap must be in (0, 0.5), got {self.snap}")
-        ps = cfg.get("path_steps", 12)
-        if isinstance(ps, bool) or not isinstance(ps, int) or ps < 1:
-            raise ParameterError(f"cutting path_steps must be an integer >= 1, got {ps!r}")
-        self.path_steps = ps
-        e = sim.mesh.points[sim.mesh.edges()]
-        self._edge_length = float(np.median(np.linalg.norm(e[:, 1] - e[:, 0], axis=1)))
         self.script = self._parse_script(cfg.get("script"))
         self.active = False
         self.correction = None
@@ -422,8 +400,6 @@ class Cutter:
         self.history: list[CutResult] = []
         self._blade_at_last_cut = None
         self._script_done = 0
-        self._path = []  # subdivide: the blade's last sweeps (world), while the pedal is down
-        self._on_uids = np.zeros(0, np.int64)  # subdivide: nodes on that path's cut
 
     @staticmethod
     def _parse_script(s):
@@ -498,11 +474,7 @@ class Cutter:
         self._blade_at_last_cut = blade
         if prev is None:
             return CutResult(False, "blade position recorded; the next cut follows its path from here")
-        sweep = sweep_triangles(prev[0], prev[1], blade[0], blade[1])
-        if self.scheme == "subdivide":  # the path so far: a tet partly crossed now is separated later
-            self._path = (self._path + [sweep])[-self.path_steps:]
-            return self._cut_subdivide(sim, np.concatenate(self._path), "world", time.perf_counter(), keep_on=True)
-        return self.cut_triangles(sim, sweep, frame="world")
+        return self.cut_triangles(sim, sweep_triangles(prev[0], prev[1], blade[0], blade[1]), frame="world")
 
     def step(self, sim) -> dict:
         """Per step: scripted cuts due now, and the blade's sweep while cutting is active."""
@@ -515,9 +487,8 @@ class Cutter:
                 self._script_done += 1
         if self.active:
             results.append(self.cut(sim))
-        else:  # a pedal press starts a new path
-            self._blade_at_last_cut = None
-            self._path, self._on_uids = [], np.zeros(0, np.int64)
+        else:
+            self._blade_at_last_cut = None  # a pedal press starts a new path
         done = [r for r in results if r.changed]
         return {
             "cuts": self.modifications,
@@ -530,100 +501,62 @@ class Cutter:
 
     # ------------------------------------------------------------- cutting
     def cut_triangles(self, sim, triangles, frame: str = "world") -> CutResult:
-        """Cut along blade triangles (k, 3, 3), given in the current (world) or rest frame."""
+        """Cut along blade triangles (k, 3, 3), given in the current (world) or rest frame.
+
+        ``subdivide``: first the crossed edges are split and their tets bisected
+        (:func:`subdivide_for_cut`); then, on that mesh, the faces the blade separates are split
+        as in the ``split`` scheme (:func:`faces_cut_by_triangles`, :func:`split_along_faces`).
+        Where the blade is still inside an element the refinement alone is the modification: the
+        crack opens once the blade has passed a whole face."""
         t0 = time.perf_counter()
         tris = np.asarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
         if not np.all(np.isfinite(tris)):
             return CutResult(False, "blade has non-finite coordinates: no cut")
         if frame not in ("world", "rest"):
             raise ValueError(f"frame must be 'world' or 'rest', got {frame!r}")
-        if self.scheme == "subdivide":
-            return self._cut_subdivide(sim, tris, frame, t0)
-        mesh = sim.mesh
-        pts = sim.positions() if frame == "world" else mesh.points
-        tets = mesh.tets.astype(np.int64)
-        pairs, fnodes = interior_faces(tets)
-        scale = float(np.ptp(mesh.points, axis=0).max())
-        tol = self.tolerance + 1e-9 * scale
-        cut = np.zeros(len(pairs), bool)
-        any_area = False
-        for tri in tris:
-            hit, side = tets_cut_by_triangle(pts, tets, tri, tol)
-            if side is None:
-                continue
-            any_area = True
-            if not len(hit):
-                continue
-            is_hit = np.zeros(len(tets), bool)
-            is_hit[hit] = True
-            sa, sb = side[pairs[:, 0]] >= 0.0, side[pairs[:, 1]] >= 0.0
-            cut |= (sa != sb) & (is_hit[pairs[:, 0]] | is_hit[pairs[:, 1]])
-        if not any_area:
-            return CutResult(False, "the blade swept no area: no cut", ms=1000.0 * (time.perf_counter() - t0))
-        if not cut.any():
-            return CutResult(False, "the blade crossed no tissue (no uncut face on its path): nothing changed",
-                             ms=1000.0 * (time.perf_counter() - t0))
-        new_tets, source = split_along_faces(tets, pairs[cut], fnodes[cut], pairs, fnodes, mesh.n_nodes)
-        changed = np.flatnonzero(np.any(new_tets != tets, axis=1))
-        if not len(source):
-            return CutResult(False, "the cut faces do not separate anything yet (the blade only grazed the "
-                             "tissue): nothing changed", faces_cut=int(cut.sum()),
-                             ms=1000.0 * (time.perf_counter() - t0))
-        res = self._commit(sim, new_tets, (source, source, np.zeros(len(source))), changed, changed,
-                           keep=np.arange(mesh.n_nodes))
-        res.faces_cut = int(cut.sum())
-        self._remove_debris(sim, res)
-        res.ms = 1000.0 * (time.perf_counter() - t0)
-        return res
 
-    def _cut_subdivide(self, sim, tris, frame: str, t0: float, keep_on: bool = False) -> CutResult:
-        """The subdivision scheme: refine the crossed tets so that the blade's path is a surface
-        of faces (:func:`subdivide_for_cut`), then separate along the faces on it that have both
-        sides (:func:`split_along_faces`, as the split scheme). Where no face separates yet (the
-        blade has only entered a tet), nothing is changed: the refinement is not kept."""
-        ms = lambda: 1000.0 * (time.perf_counter() - t0)  # noqa: E731
+        def ms():
+            return 1000.0 * (time.perf_counter() - t0)
+
         if not len(_path_planes(tris)[0]):
             return CutResult(False, "the blade swept no area: no cut", ms=ms())
         mesh = sim.mesh
         n = mesh.n_nodes
         pts = sim.positions() if frame == "world" else mesh.points
         tets = mesh.tets.astype(np.int64)
-        h = self._edge_length
-        tol = self.tolerance + 1e-9 * h
-        on_prev = np.zeros(n, bool)
-        if keep_on and len(self._on_uids):
-            on_prev = np.isin(sim.node_uids, self._on_uids)
-        on_prev |= path_query(pts, tris, 1e-3 * h)[0]  # nodes on the blade's surface
-        new_tets, parent, fresh, ea, eb, et, on = subdivide_for_cut(pts, tets, tris, on_prev, self.snap, tol)
+        tol = self.tolerance + 1e-9 * float(np.ptp(mesh.points, axis=0).max())
+        if self.scheme == "subdivide":
+            work, parent, fresh, ea, eb, et = subdivide_for_cut(pts, tets, tris, self.snap, tol)
+        else:
+            work, parent, fresh = tets, np.arange(len(tets)), np.zeros(len(tets), bool)
+            ea, eb, et = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
         P = np.concatenate([pts, (1.0 - et)[:, None] * pts[ea] + et[:, None] * pts[eb]])
-        pairs, fnodes, cut = faces_on_cut(P, new_tets, on, tris, self.snap * h)
-        if not cut.any():
-            if not len(ea):
-                return CutResult(False, "the blade crossed no tissue (no edge, no face on its path): nothing "
-                                 "changed", ms=ms())
-            return CutResult(False, "the blade has not yet crossed a whole element on its path: nothing changed",
-                             ms=ms())
-        split_tets, dup = split_along_faces(new_tets, pairs[cut], fnodes[cut], pairs, fnodes, len(P))
-        if not len(dup):
-            return CutResult(False, "the cut faces do not separate anything yet: nothing changed",
-                             faces_cut=int(cut.sum()), ms=ms())
+        pairs, fnodes, cut = faces_cut_by_triangles(P, work, tris, tol,
+                                                    on_plane=self.snap if self.scheme == "subdivide" else None)
+        new_tets, dup = work, np.zeros(0, np.int64)
+        if cut.any():
+            new_tets, dup = split_along_faces(work, pairs[cut], fnodes[cut], pairs, fnodes, len(P))
+        if not len(ea) and not len(dup):
+            if not cut.any():
+                return CutResult(False, "the blade crossed no tissue (no uncut face on its path): nothing changed",
+                                 ms=ms())
+            return CutResult(False, "the cut faces do not separate anything yet (the blade only grazed the "
+                             "tissue): nothing changed", faces_cut=int(cut.sum()), ms=ms())
         # new nodes: the edge nodes, then the copies (of old or of edge nodes), as (a, b, t) of old nodes
         ext_a, ext_b = np.concatenate([np.arange(n), ea]), np.concatenate([np.arange(n), eb])
         ext_t = np.concatenate([np.zeros(n), et])
         a, b, t = (np.concatenate([ea, ext_a[dup]]), np.concatenate([eb, ext_b[dup]]),
                    np.concatenate([et, ext_t[dup]]))
-        same = ~fresh & np.all(split_tets == tets[parent], axis=1)
+        same = ~fresh & np.all(new_tets == tets[parent], axis=1)
         removed_ids = np.setdiff1d(np.arange(len(tets)), parent[same])
-        added_ids = np.flatnonzero(~same)
-        on_old = sim.node_uids[on[:n]]
-        res = self._commit(sim, split_tets, (a, b, t), removed_ids, added_ids, keep=np.arange(n),
+        res = self._commit(sim, new_tets, (a, b, t), removed_ids, np.flatnonzero(~same), keep=np.arange(n),
                            mats=mesh.material_ids[parent])
-        if res.changed:
+        res.faces_cut = int(cut.sum())
+        if res.changed and len(ea):
             res.message = res.message.replace("cut:", "cut (subdivision):", 1)
-            res.faces_cut = int(cut.sum())
-            if keep_on:
-                self._on_uids = np.union1d(self._on_uids, np.concatenate([on_old, sim.node_uids[n:]]))
-            self._remove_debris(sim, res)
+            if not len(dup):
+                res.message += " (refined inside the elements the blade is crossing, not separated yet)"
+        self._remove_debris(sim, res)
         res.ms = ms()
         return res
 

@@ -188,10 +188,14 @@ def spare_tumour_bite(sim, center, radius: float):
 
 
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
-        columns_on="auto"):
-    solver = dict(read_scene(scene)[0].get("solver") or {})
+        columns_on="auto", scheme=None):
+    cfg = read_scene(scene)[0]
+    solver = dict(cfg.get("solver") or {})
     solver["ldlt"] = {**(solver.get("ldlt") or {}), "columns_on": columns_on}
-    sim = load_scene(scene, device=device, overrides={"solver": solver})
+    overrides = {"solver": solver}
+    if scheme is not None:
+        overrides["cutting"] = {"scheme": scheme}
+    sim = load_scene(scene, device=device, overrides=overrides)
     rows, mods, bites, extracted = [], [], [], []
     try:
         sim.step()  # warm-up: compile, first factorization
@@ -318,6 +322,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cleanup-radius", type=float, default=0.005, help="radius of a closed-loop bite [m]")
     ap.add_argument("--columns-on", default="auto", choices=["auto", "host", "device"],
                     help="where blocks of columns (contact's W, U after a cut) are solved")
+    ap.add_argument("--scheme", default=None, choices=["split", "subdivide"],
+                    help="cutting scheme (default: the scene's)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
@@ -325,7 +331,8 @@ def main(argv=None) -> int:
     prog = Progress(1)
     t0 = time.perf_counter()
     rows, mods, freed, finite, n_end, t_end, info = run(device, args.scene, args.turns, args.step_len,
-                                                        args.max_cleanup, args.cleanup_radius, args.columns_on)
+                                                        args.max_cleanup, args.cleanup_radius, args.columns_on,
+                                                        args.scheme)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
     summary = {
@@ -333,6 +340,8 @@ def main(argv=None) -> int:
         "cuts": sum(m["kind"] == "cut" for m in mods), "removals": sum(m["kind"] == "removal" for m in mods),
         "cleanup_bites": info["cleanup_bites"], "cleanup_removals": sum(bool(m.get("cleanup")) for m in mods),
         "affected_nodes_mean": float(np.mean([m["affected_nodes"] for m in mods])) if mods else 0.0,
+        **{f"affected_nodes_{k}s_mean": float(np.mean([m["affected_nodes"] for m in mods if m["kind"] == k]))
+           for k in ("cut", "removal") if any(m["kind"] == k for m in mods)},
         "modification_every_steps": len(rows) / max(1, len(mods)),
         "iterations_mean": float(its.mean()), "iterations_max": int(its.max()),
         "converged_fraction": float(np.mean([r["converged"] for r in rows])),
@@ -352,6 +361,7 @@ def main(argv=None) -> int:
     prog.update(1, f"{summary['modifications']} modifications, {summary['iterations_mean']:.2f} it, "
                    f"{summary['fps_mean']:.1f} FPS")
     summary["columns_on"] = args.columns_on
+    summary["cutting_scheme"] = args.scheme or str((read_scene(args.scene)[0].get("cutting") or {}).get("scheme", "split"))
     result = {"summary": summary, "modifications": mods, "cleanup_bites": info["bites"], "steps_detail": rows}
     path = write_result("brain", device, result, args.out)
     result["device"] = json.load(open(path))["device"]

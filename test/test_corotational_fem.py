@@ -5,7 +5,7 @@ import pytest
 import scipy.sparse.linalg as spla
 import warp as wp
 
-from soft_tissue_sim.corotational_fem import CorotationalFEM
+from soft_tissue_sim.corotational_fem import CorotationalFEM, rotation_from, rotation_svd
 from soft_tissue_sim.material import Material, MaterialTable, ParameterError
 from soft_tissue_sim.mesh import beam_mesh
 
@@ -21,6 +21,39 @@ def fem():
     mesh = beam_mesh(6, n_cross=3, spacing=0.01)
     mat = MaterialTable({0: Material(1e5, 0.3, 1000.0)})
     return CorotationalFEM(mesh, mat, "cpu")
+
+
+@wp.kernel
+def _polar_kernel(F: wp.array(dtype=wp.mat33d), R: wp.array(dtype=wp.mat33d), R_svd: wp.array(dtype=wp.mat33d)):
+    i = wp.tid()
+    R[i] = rotation_from(F[i])
+    R_svd[i] = rotation_svd(F[i])
+
+
+def test_polar_rotation_by_newton_iteration_equals_the_svd_one():
+    """rotation_from (scaled Newton, SVD fallback) = the SVD polar rotation: for stretched and
+    sheared elements, exact rotations, inverted (reflected) and nearly flat ones; always a
+    proper rotation."""
+    rng = np.random.default_rng(0)
+    n = 3000
+    Q = np.stack([rotation(rng.standard_normal(3), rng.uniform(0, np.pi)) for _ in range(n)])
+    S = np.eye(3) + 0.3 * rng.standard_normal((n, 3, 3))
+    F = Q @ (0.5 * (S + S.transpose(0, 2, 1)))
+    F[:100] = Q[:100] * np.array([1.0, 1.0, -1.0])  # inverted
+    F[100:200] = Q[100:200] @ np.diag([1.0, 1.0, 1e-9])  # nearly flat
+    F[200:300] = Q[200:300]  # pure rotations
+    F[300:400] *= 1e-4  # tiny elements: the tests are scale free
+    Fw = wp.array(F, dtype=wp.mat33d, device="cpu")
+    R, R_svd = wp.zeros_like(Fw), wp.zeros_like(Fw)
+    wp.launch(_polar_kernel, n, [Fw, R, R_svd], device="cpu")
+    R, R_svd = R.numpy(), R_svd.numpy()
+    np.testing.assert_allclose(R, R_svd, atol=1e-12)
+    np.testing.assert_allclose(R[200:300], Q[200:300], atol=1e-13)
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    assert np.linalg.det(R).min() > 0.999999
+    # the polar factor: R^T F is symmetric (and positive definite where det F > 0)
+    S_ = R.transpose(0, 2, 1) @ F
+    np.testing.assert_allclose(S_, S_.transpose(0, 2, 1), atol=1e-10 * np.abs(F).max())
 
 
 def forces(fem, x, rotate=True):

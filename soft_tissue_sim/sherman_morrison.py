@@ -45,6 +45,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .ldlt_preconditioner import rotate_nodes
+
 
 @dataclass
 class Modification:
@@ -205,11 +207,12 @@ class ShermanMorrisonCorrection:
         idx = self._ext_index(mod.uids)
         k = len(idx)
         if self.rotate:
-            D = np.einsum("kij,klj->kil", mod.R, self.R_ref[idx])  # R(t_cut) R_ref^T
+            D = np.matmul(mod.R, np.swapaxes(self.R_ref[idx], 1, 2))  # R(t_cut) R_ref^T
         else:
             D = np.tile(np.eye(3), (k, 1, 1))
         dA = mod.dA.reshape(k, 3, k, 3)
-        N = np.einsum("aji,ajbk,bkl->aibl", D, dA, D).reshape(3 * k, 3 * k)  # D^T dA D, blockwise
+        blocks = np.swapaxes(D, 1, 2)[:, None] @ dA.transpose(0, 2, 1, 3) @ D[None, :]  # D_a^T dA_ab D_b
+        N = blocks.transpose(0, 2, 1, 3).reshape(3 * k, 3 * k)
         N = 0.5 * (N + N.T)
         pad = np.zeros(k)
         pad[np.isin(mod.uids, new)] -= 1.0  # P_ext has I there: N = A_new - I
@@ -254,7 +257,7 @@ class ShermanMorrisonCorrection:
         n_ext = len(self.ext_uids)
         dR = np.tile(np.eye(3), (n_ext, 1, 1))
         idx = self.cur_to_ext if self.cur_to_ext is not None else np.arange(n_ext)
-        dR[idx] = np.einsum("nij,nkj->nik", np.asarray(R_current, dtype=np.float64), self.R_ref[idx])
+        dR[idx] = np.matmul(np.asarray(R_current, dtype=np.float64), np.swapaxes(self.R_ref[idx], 1, 2))
         self.dR = dR
 
     def apply(self, r: np.ndarray, out: np.ndarray) -> None:
@@ -270,16 +273,16 @@ class ShermanMorrisonCorrection:
         else:
             Be = np.zeros((n_ext, 3, c))
             Be[self.cur_to_ext] = B.reshape(-1, 3, c)
-        if self.dR is not None:
-            Be = np.einsum("nji,njc->nic", self.dR, Be)
-        return Be.reshape(3 * n_ext, c)
+        Be = Be.reshape(3 * n_ext, c)
+        return Be if self.dR is None else rotate_nodes(self.dR, Be, transpose=True)
 
     def apply_columns(self, B: np.ndarray, out: np.ndarray) -> None:
         n_ext = len(self.ext_uids)
         c = B.shape[1]
-        X = self._solve_ext(self._to_ext(B)).reshape(n_ext, 3, c)
+        X = self._solve_ext(self._to_ext(B))
         if self.dR is not None:
-            X = np.einsum("nij,njc->nic", self.dR, X)
+            X = rotate_nodes(self.dR, X)
+        X = X.reshape(n_ext, 3, c)
         out[:] = (X if self.cur_to_ext is None else X[self.cur_to_ext]).reshape(-1, c)
 
     def delassus(self, B: np.ndarray, lower) -> np.ndarray:

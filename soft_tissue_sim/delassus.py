@@ -92,40 +92,49 @@ class LowerFactor:
                    wp.array(Li, dtype=wp.int32, device=_HOST), wp.array(Lx, dtype=wp.float64, device=_HOST),
                    1.0 / d)
 
-    def forward(self, B: np.ndarray) -> np.ndarray:
-        """Y^T = (L^-1 P B)^T, (c, n), for B (n, c) in the original numbering.
+    def _solve_groups(self, B: np.ndarray):
+        """Forward solves of the columns of B (n, c), original numbering, in the kernel's layout:
+        (Yg (groups, n, GROUP), slot (c,)), column k of B being lane slot[k] % GROUP of group
+        slot[k] // GROUP.
 
         Columns are grouped GROUP at a time in the order of their first non-zero row: columns
         that start close in the elimination order share most of their way to the root (for
-        contacts: the nodes under one instrument)."""
+        contacts: the nodes under one instrument). The block is written once into the group
+        layout, which Warp then uses in place (no copy on the CPU)."""
         B = np.asarray(B, dtype=np.float64)
         if B.ndim != 2 or B.shape[0] != self.n:
             raise ValueError(f"factor is for {self.n} DOFs, got a block of shape {B.shape}")
         n, c = B.shape
-        Yt = B[self.perm].T
-        if c == 0:
-            return np.ascontiguousarray(Yt)
-        nz = Yt != 0.0
-        first = np.where(nz.any(axis=1), nz.argmax(axis=1), n)
-        order = np.argsort(first, kind="stable")
         groups = -(-c // GROUP)
-        Yg = np.zeros((groups * GROUP, n))
-        Yg[:c] = Yt[order]
+        Yg = np.zeros((groups, n, GROUP))
+        slot = np.zeros(c, np.int64)
+        if c == 0:
+            return Yg, slot
+        Pb = B[self.perm]
+        nz = Pb != 0.0
+        first = np.where(nz.any(axis=0), nz.argmax(axis=0), n)
+        order = np.argsort(first, kind="stable")
+        slot[order] = np.arange(c)
+        Yg[slot // GROUP, :, slot % GROUP] = Pb.T
         first_g = np.full(groups * GROUP, n, np.int64)
-        first_g[:c] = first[order]
+        first_g[slot] = first
         first_g = first_g.reshape(groups, GROUP).min(axis=1).astype(np.int32)
-        Y_wp = wp.array(np.ascontiguousarray(Yg.reshape(groups, GROUP, n).transpose(0, 2, 1)), dtype=vec_group,
-                        device=_HOST)
         wp.launch(forward_columns_kernel, groups,
-                  [self.Lp, self.Li, self.Lx, wp.array(first_g, dtype=wp.int32, device=_HOST), Y_wp], device=_HOST)
-        out = np.empty((c, n))
-        out[order] = Y_wp.numpy().transpose(0, 2, 1).reshape(groups * GROUP, n)[:c]
-        return out
+                  [self.Lp, self.Li, self.Lx, wp.array(first_g, dtype=wp.int32, device=_HOST),
+                   wp.array(Yg, dtype=vec_group, device=_HOST, copy=False)], device=_HOST)
+        return Yg, slot
+
+    def forward(self, B: np.ndarray) -> np.ndarray:
+        """Y^T = (L^-1 P B)^T, (c, n), for B (n, c) in the original numbering."""
+        Yg, slot = self._solve_groups(B)
+        return Yg[slot // GROUP, :, slot % GROUP]
 
     def quadratic(self, B: np.ndarray) -> np.ndarray:
-        """B^T A^-1 B = Y^T D^-1 Y (c, c), symmetric, from the forward solves alone."""
-        Yt = self.forward(B)
-        used = np.flatnonzero(np.any(Yt != 0.0, axis=0))  # the union of the columns' reaches
-        Yu = Yt[:, used]
-        W = (Yu * self.dinv[used]) @ Yu.T
+        """B^T A^-1 B = Y^T D^-1 Y (c, c), symmetric, from the forward solves alone, summed over
+        the rows the columns' reaches touch."""
+        Yg, slot = self._solve_groups(B)
+        used = np.flatnonzero(np.any(Yg != 0.0, axis=(0, 2)))
+        Z = Yg[:, used, :].transpose(1, 0, 2).reshape(len(used), Yg.shape[0] * GROUP)  # rows j, all lanes
+        W = Z.T @ (Z * self.dinv[used, None])
+        W = W[np.ix_(slot, slot)]
         return 0.5 * (W + W.T)

@@ -103,7 +103,8 @@ class ShermanMorrisonCorrection:
         self.enabled = bool(enabled)
         self.rotate = bool(rotate)  # False: the preconditioner is not rotated (eq. 2 off), D = I
         self.mods: list[Modification] = []
-        self.terms: list[tuple[np.ndarray, np.ndarray]] = []  # (U, Q), U rows = 3 * n_ext at its time
+        # (U, Q, rows): U rows = 3 * n_ext at its time, rows = its G's rows (the affected DOFs)
+        self.terms: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.factor = None
         self.factor_version = -1
         self.current_uids: np.ndarray | None = None
@@ -189,14 +190,17 @@ class ShermanMorrisonCorrection:
 
     # --------------------------------------------------------------- algebra
     def _solve_ext(self, B: np.ndarray) -> np.ndarray:
-        """Corrected, unrotated P_ext^-1 B for B (3 n_ext, c): eq. (9)-(10) without rotations."""
+        """Corrected, unrotated P_ext^-1 B for B (3 n_ext, c): eq. (9)-(10) without rotations.
+
+        The terms chain: P_j^-1 = P_{j-1}^-1 - U_j Q_j U_j^T with U_j = P_{j-1}^-1 G_j, so
+        U_j^T B = G_j^T (P_{j-1}^-1 B) is the rows of the solution corrected so far: each term
+        costs one product with U_j (not two), the correction's memory traffic halved."""
         nf3 = 3 * self.n_factor
         X = np.empty_like(B)
         X[:nf3] = self.factor(B[:nf3])
         X[nf3:] = B[nf3:]  # identity padding of added DOFs
-        for U, Q in self.terms:
-            m = U.shape[0]
-            X[:m] -= U @ (Q @ (U.T @ B[:m]))
+        for U, Q, rows in self.terms:
+            X[: U.shape[0]] -= U @ (Q @ X[rows])
         return X
 
     def _apply(self, mod: Modification) -> None:
@@ -230,8 +234,8 @@ class ShermanMorrisonCorrection:
         S = U[rows]
         Q = np.linalg.solve(np.eye(3 * k) + N @ S, N)  # Woodbury form of eq. (7), no N^-1
         Q = 0.5 * (Q + Q.T)
-        self.terms.append((U, Q))
-        self.columns = sum(u.shape[1] for u, _ in self.terms)
+        self.terms.append((U, Q, rows))
+        self.columns = sum(u.shape[1] for u, _, _ in self.terms)
         self.u_ms += 1000.0 * (t1 - t0)
         self.q_ms += 1000.0 * (time.perf_counter() - t1)
 
@@ -296,13 +300,13 @@ class ShermanMorrisonCorrection:
         Ba = Be[nf3:]
         W += Ba.T @ Ba
         rows = np.flatnonzero(np.any(Be != 0.0, axis=1))  # a constraint column touches a few DOFs
-        for U, Q in self.terms:
+        for U, Q, _ in self.terms:
             r = rows[rows < U.shape[0]]
             V = U[r].T @ Be[r]  # U^T B (3k, c)
             W -= V.T @ (Q @ V)
         return 0.5 * (W + W.T)
 
     def stats(self) -> dict:
-        s = {"smf_terms": len(self.terms), "smf_columns": int(sum(u.shape[1] for u, _ in self.terms)),
+        s = {"smf_terms": len(self.terms), "smf_columns": int(sum(u.shape[1] for u, _, _ in self.terms)),
              "pending_modifications": len(self.mods)}
         return s

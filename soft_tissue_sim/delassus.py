@@ -59,6 +59,21 @@ def forward_columns_kernel(
                 Y[g, i] = Y[g, i] - Lx[p] * yj
 
 
+def lower_arrays(factor):
+    """(perm, Lp, Li, Lx, 1/D) of a scikit-sparse Factor: the permutation and the strictly lower
+    part of L in CSC. A supernodal factor is turned into a simplicial LDL^T by CHOLMOD, in
+    place (its solves keep working). CHOLMOD stores each column's diagonal first: the strictly
+    lower part is each column without its first entry."""
+    LD = factor.LD()
+    n = LD.shape[0]
+    ip = LD.indptr.astype(np.int64)
+    keep = np.ones(LD.nnz, bool)
+    keep[ip[:-1]] = False
+    return (np.asarray(factor.P(), np.int64), (ip - np.arange(n + 1)).astype(np.int32),
+            np.ascontiguousarray(LD.indices[keep], dtype=np.int32), np.ascontiguousarray(LD.data[keep]),
+            1.0 / LD.data[ip[:-1]])
+
+
 @dataclass
 class LowerFactor:
     """The host factor as the forward solves need it: permutation, strictly lower L (CSC, as
@@ -76,21 +91,18 @@ class LowerFactor:
 
     @classmethod
     def from_cholmod(cls, factor) -> "LowerFactor":
-        """From a scikit-sparse Factor (a supernodal one is turned into a simplicial LDL^T by
-        CHOLMOD, in place: its solves keep working). CHOLMOD stores each column's diagonal
-        first: the strictly lower part is each column without its first entry."""
-        LD = factor.LD()
-        n = LD.shape[0]
-        ip = LD.indptr.astype(np.int64)
-        d = LD.data[ip[:-1]]
-        keep = np.ones(LD.nnz, bool)
-        keep[ip[:-1]] = False
-        Lp = (ip - np.arange(n + 1)).astype(np.int32)
-        Li = np.ascontiguousarray(LD.indices[keep], dtype=np.int32)
-        Lx = np.ascontiguousarray(LD.data[keep], dtype=np.float64)
-        return cls(np.asarray(factor.P(), np.int64), wp.array(Lp, dtype=wp.int32, device=_HOST),
-                   wp.array(Li, dtype=wp.int32, device=_HOST), wp.array(Lx, dtype=wp.float64, device=_HOST),
-                   1.0 / d)
+        """From a scikit-sparse Factor (see :func:`lower_arrays`)."""
+        return cls.from_arrays(*lower_arrays(factor))
+
+    @classmethod
+    def from_arrays(cls, perm, Lp, Li, Lx, dinv) -> "LowerFactor":
+        """From the arrays of :func:`lower_arrays` (e.g. sent by a factorization process); the
+        Warp arrays use their memory in place."""
+        host = dict(device=_HOST, copy=False)
+        return cls(np.asarray(perm, np.int64), wp.array(np.ascontiguousarray(Lp, np.int32), dtype=wp.int32, **host),
+                   wp.array(np.ascontiguousarray(Li, np.int32), dtype=wp.int32, **host),
+                   wp.array(np.ascontiguousarray(Lx, np.float64), dtype=wp.float64, **host),
+                   np.asarray(dinv, np.float64))
 
     def _solve_groups(self, B: np.ndarray):
         """Forward solves of the columns of B (n, c), original numbering, in the kernel's layout:

@@ -6,16 +6,33 @@ between now and t_u:  P^-1 r = dR (LDL^T)^-1 dR^T r,  dR_n = R_n(t) R_n(t_u)^T.
 
 The snapshot (assembly of A and the nodal rotations) is taken on the caller's thread;
 only the factorization runs in the worker. The symbolic analysis is reused while the
-sparsity pattern is unchanged. Note: scikit-sparse 0.4 holds the GIL while it factorizes,
-so on CPython the worker overlaps with the simulation only where the main thread is in
-GIL-free code (Warp kernels, numpy); the design lets a GIL-free backend be swapped in.
+sparsity pattern is unchanged.
+
+Two workers (``worker``):
+
+* ``thread`` (the default): a background thread. scikit-sparse 0.4 holds the GIL while it
+  factorizes, so on CPython the thread overlaps with the simulation only where the main
+  thread is in GIL-free code (Warp kernels, BLAS): measured on the brain on a 2-core CPU,
+  the step is no faster than with the factorization made synchronously.
+* ``process``: two worker processes that swap roles. Each holds its own CHOLMOD factor
+  (a scikit-sparse Factor cannot cross processes): one serves the solves with the installed
+  factor (the vector goes through a pipe, about 0.2 ms there and back), the other
+  factorizes the next snapshot at the same time, on another core, sharing no GIL; when its
+  factor is installed the two swap. The main process keeps only the factor's L and D when
+  the Delassus operator needs them (:mod:`soft_tissue_sim.delassus`). Host solves only (no
+  device layout).
 """
 
 from __future__ import annotations
 
+import os
+import socket
+import subprocess
+import sys
 import threading
 import time
 import weakref
+from multiprocessing.connection import Connection
 
 import numpy as np
 import scipy.sparse as sps
@@ -130,12 +147,198 @@ def _stop(state):
         t.join(timeout=10.0)
 
 
+WORKERS = ("thread", "process")
+
+
+def _serve(conn, mode, ordering, want_lower):
+    """A factorization process: factorizes the matrices it is sent (with its own symbolic
+    analysis, reused while the pattern holds); with its last factor it solves (``solve``) and,
+    with ``want_lower``, forms B^T A^-1 B by the forward solves of the Delassus operator
+    (``quadratic``, B sent sparse), so that L never has to leave the process. Replies in the
+    order of the requests."""
+    state = {"pattern": None, "symbolic": None, "analyses": 0, "mode": mode, "ordering": ordering}
+    factor = lower = None
+    if want_lower:
+        import warp as wp
+
+        wp.config.quiet = True  # no start-up banner from the worker
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg[0] == "stop":
+            return
+        try:
+            if msg[0] == "factor":
+                t0 = time.perf_counter()
+                factor = _factorize(state, msg[1])
+                if want_lower:
+                    from .delassus import LowerFactor
+
+                    lower = LowerFactor.from_cholmod(factor)
+                conn.send(("factored", _ms_since(t0), state["analyses"]))
+            elif factor is None:
+                raise RuntimeError("this process holds no factor")
+            elif msg[0] == "solve":
+                conn.send(("solved", factor(msg[1])))
+            else:  # ("quadratic", B sparse)
+                conn.send(("quadratic", lower.quadratic(msg[1].toarray())))
+        except Exception as exc:  # noqa: BLE001 - sent back, the caller reports it
+            conn.send(("error", f"{type(exc).__name__}: {exc}"))
+
+
+# The workers' BLAS: one thread (simplicial CHOLMOD uses none, and idle BLAS threads spinning
+# in three processes take the cores the solves wait for: measured on a 2-core CPU).
+_WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+_WORKER_MAIN = ("import sys; from multiprocessing.connection import Connection; "
+                "from soft_tissue_sim.ldlt_preconditioner import _serve; "
+                "_serve(Connection(int(sys.argv[1])), sys.argv[2], sys.argv[3], sys.argv[4] == '1')")
+
+
+class _Worker:
+    """One factorization process and the parent's end of its socket.
+
+    Started as ``python -c`` with one end of a socketpair (what multiprocessing's Pipe is on
+    Unix), not through multiprocessing's spawn: that would re-import the user's main script in
+    the child, which breaks any script without an ``if __name__ == "__main__"`` guard."""
+
+    def __init__(self, mode, ordering, want_lower):
+        parent, child = socket.socketpair()
+        env = dict(os.environ, **_WORKER_ENV)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)  # where the parent found us
+        self.proc = subprocess.Popen([sys.executable, "-c", _WORKER_MAIN, str(child.fileno()), mode, ordering,
+                                      "1" if want_lower else "0"], pass_fds=(child.fileno(),), env=env,
+                                     stdin=subprocess.DEVNULL)
+        child.close()
+        self.conn = Connection(parent.detach())
+        self.sent = []  # the factorization requests sent and not answered yet, in order
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def ask(self, kind, B):
+        """One request to the installed factor (``solve`` or ``quadratic``) and its answer."""
+        try:
+            self.conn.send((kind, B))
+            reply = self.conn.recv()
+        except (EOFError, OSError) as exc:
+            raise RuntimeError(f"the factorization process is gone ({type(exc).__name__})") from None
+        if reply[0] == "error":
+            raise ValueError(f"{kind} in the factorization process failed: {reply[-1]}")
+        return reply[1]
+
+    def stop(self):
+        try:
+            self.conn.send(("stop",))
+        except (OSError, ValueError):
+            pass
+        try:
+            self.proc.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(timeout=5.0)
+        self.conn.close()
+
+
+class RemoteFactor:
+    """B -> A^-1 B with the factor a worker process holds: callable like a CHOLMOD Factor; and
+    ``quadratic(B)`` = B^T A^-1 B there, as :class:`soft_tissue_sim.delassus.LowerFactor`'s."""
+
+    def __init__(self, worker: _Worker):
+        self.worker = worker
+
+    def __call__(self, B):
+        return self.worker.ask("solve", np.ascontiguousarray(B, dtype=np.float64))
+
+    def quadratic(self, B):
+        return self.worker.ask("quadratic", sps.csc_matrix(np.asarray(B, dtype=np.float64)))
+
+
+class _Processes:
+    """The two factorization processes of ``worker: process``: the one whose factor is
+    installed serves the solves; the other takes the next factorization request."""
+
+    def __init__(self, mode, ordering, want_lower):
+        self._args = (mode, ordering, bool(want_lower))
+        self.workers = [_Worker(*self._args) for _ in range(2)]
+        self.installed = None  # the worker whose factor is installed
+        self.want_lower = bool(want_lower)
+        self.error = None
+        self.analyses = 0
+        self.restarts = 0
+
+    def revive(self) -> bool:
+        """Restart a worker that has exited (killed, crashed). Returns True when it was the one
+        whose factor was installed: that factor is lost, the caller must factorize anew."""
+        lost = False
+        for i, w in enumerate(self.workers):
+            if not w.alive():
+                self.error = f"factorization process {i} exited (code {w.proc.returncode}); restarted"
+                lost |= w is self.installed
+                w.stop()
+                self.workers[i] = _Worker(*self._args)
+                self.restarts += 1
+        if lost:
+            self.installed = None
+        return lost
+
+    def free(self) -> _Worker:
+        return self.workers[1] if self.installed is self.workers[0] else self.workers[0]
+
+    def request(self, req) -> None:
+        w = self.free()
+        w.conn.send(("factor", req["A"]))
+        w.sent.append(req)
+
+    def _result(self, w, req, reply):
+        if reply[0] != "factored":
+            self.error = reply[-1]
+            return {"failed": True}
+        _, ms, analyses = reply
+        self.analyses = max(self.analyses, analyses)
+        factor = RemoteFactor(w)
+        return {"factor": factor, "R": req["R"], "step": req["step"], "ms": ms, "gen": req["gen"],
+                "meta": req["meta"], "device": None, "lower": factor if self.want_lower else None}
+
+    def poll(self):
+        """The result of the latest request once it is in (older replies are dropped), else None."""
+        w = self.free()
+        while w.sent and w.conn.poll():
+            req, reply = w.sent.pop(0), w.conn.recv()
+            if not w.sent:
+                return self._result(w, req, reply)
+        return None
+
+    def run_now(self, req):
+        """Factorize now (waiting for anything still running in that process first)."""
+        w = self.free()
+        while w.sent:
+            w.sent.pop(0)
+            w.conn.recv()
+        w.sent.append(req)
+        w.conn.send(("factor", req["A"]))
+        res = self._result(w, w.sent.pop(0), w.conn.recv())
+        if res.get("failed"):
+            raise RuntimeError(f"factorization failed in the worker process: {self.error}")
+        return res
+
+    def close(self):
+        for w in self.workers:
+            w.stop()
+
+
+def _stop_processes(procs):
+    if procs is not None:
+        procs.close()
+
+
 class AsyncLDLTPreconditioner:
     name = "async_ldlt"
 
     def __init__(self, snapshot_fn, *, rotate=True, refresh_every=1, deterministic=False, mode="auto",
                  ordering="default", device_layout=False, columns_device=None, min_device_columns=4,
-                 columns_options=None, lower_factor=False):
+                 columns_options=None, lower_factor=False, worker="thread"):
         """``ordering``: CHOLMOD's fill-reducing ordering (default: its AMD-based choice; metis or
         nesdis give a shallower elimination tree, i.e. fewer levels for the device solve).
         ``device_layout``: also convert every factor to the device layout in the worker
@@ -145,11 +348,18 @@ class AsyncLDLTPreconditioner:
         a cut, eq. 6, and of the contact compliance W, eq. 4, in one batch); None: CHOLMOD on
         the host. Implies ``device_layout``. ``columns_options``: DeviceLDLT's options.
         ``lower_factor``: also keep every factor's L and D for :meth:`delassus` (contact's W by
-        forward solves alone, :mod:`soft_tissue_sim.delassus`); ignored with ``columns_device``."""
+        forward solves alone, :mod:`soft_tissue_sim.delassus`); ignored with ``columns_device``.
+        ``worker``: ``thread`` or ``process`` (see the module's docstring; host solves only)."""
         from .ldlt_device import ORDERINGS, StructureCache
 
         if ordering not in ORDERINGS:
             raise ValueError(f"unknown CHOLMOD ordering {ordering!r}: use one of {', '.join(ORDERINGS)}")
+        if worker not in WORKERS:
+            raise ValueError(f"ldlt worker must be one of {', '.join(WORKERS)}, got {worker!r}")
+        if worker == "process" and (device_layout or columns_device is not None):
+            raise ValueError("ldlt worker 'process' solves on the host: it cannot be combined with a device "
+                             "apply or device columns (use worker: thread there)")
+        self.worker = worker
         self.snapshot_fn = snapshot_fn
         self.rotate = bool(rotate)
         self.refresh_every = max(1, int(refresh_every))
@@ -173,7 +383,12 @@ class AsyncLDLTPreconditioner:
             self._cols = DeviceLDLT(columns_device, **self._columns_options)
             # compile / load the kernels now, not in the first step that has a block to solve
             wp.load_module(ldlt_device, device=columns_device)
-        self._finalizer = weakref.finalize(self, _stop, self._s)
+        self._procs = None
+        if worker == "process":
+            self._procs = _Processes(mode, ordering, self._s["lower_factor"])
+            self._finalizer = weakref.finalize(self, _stop_processes, self._procs)
+        else:
+            self._finalizer = weakref.finalize(self, _stop, self._s)
         self._gen = 0
         self.correction = None  # a ShermanMorrisonCorrection, attached by the cutter when a scene cuts
         self._reset_counters()
@@ -234,6 +449,8 @@ class AsyncLDLTPreconditioner:
         return solve
 
     def _install(self, res):
+        if isinstance(res["factor"], RemoteFactor):  # that process now serves the solves
+            self._procs.installed = res["factor"].worker
         self.factor, self.R_tu, self.factor_step = res["factor"], res["R"], res["step"]
         self.factor_data = res.get("device")
         self.lower = res.get("lower")
@@ -247,6 +464,10 @@ class AsyncLDLTPreconditioner:
 
     def _sync_refresh(self, step):
         req = self._snapshot(step)
+        if self._procs is not None:
+            self._install(self._procs.run_now(req))
+            self.last_request_step = step
+            return
         factor = _factorize(self._s, req["A"])
         self._install({"factor": factor, "R": req["R"], "step": step, "ms": _ms_since(req["t0"]), "meta": req["meta"],
                        "device": _device_values(self._s, factor), "lower": _lower(self._s, factor)})
@@ -254,6 +475,11 @@ class AsyncLDLTPreconditioner:
 
     # ---------------------------------------------------------------- API
     def begin_step(self, step: int, node_rotations: np.ndarray) -> None:
+        if self._procs is not None:
+            if self._procs.revive():  # the installed factor died with its process: factorize anew
+                self.invalidate()
+            elif self.pending and not self._procs.free().sent:  # the factorizing one died
+                self.pending = False
         self.step = int(step)
         self.precond_ms = 0.0
         if self.factor is None:
@@ -262,18 +488,24 @@ class AsyncLDLTPreconditioner:
             if self.step - self.last_request_step >= self.refresh_every:
                 self._sync_refresh(self.step)
         else:
-            with self._s["cv"]:
-                res, self._s["result"] = self._s["result"], None
+            if self._procs is not None:
+                res = self._procs.poll()
+            else:
+                with self._s["cv"]:
+                    res, self._s["result"] = self._s["result"], None
             if res is not None:
                 self.pending = False
                 if not res.get("failed") and res.get("gen") == self._gen:
                     self._install(res)
             if not self.pending and self.step - self.last_request_step >= self.refresh_every:
                 req = self._snapshot(self.step)
-                self._ensure_thread()
-                with self._s["cv"]:
-                    self._s["request"] = req
-                    self._s["cv"].notify_all()
+                if self._procs is not None:
+                    self._procs.request(req)
+                else:
+                    self._ensure_thread()
+                    with self._s["cv"]:
+                        self._s["request"] = req
+                        self._s["cv"].notify_all()
                 self.pending = True
                 self.last_request_step = self.step
         R = np.asarray(node_rotations, dtype=np.float64)
@@ -348,9 +580,11 @@ class AsyncLDLTPreconditioner:
             "factorization_ms": self.factorization_ms,
             "refresh_interval": float(np.mean(np.diff(sw))) if len(sw) > 1 else 0.0,
             "precond_ms": self.precond_ms,
-            "worker_error": self._s["error"],
+            "worker": self.worker,
+            "worker_error": self._s["error"] if self._procs is None else self._procs.error,
+            "worker_restarts": 0 if self._procs is None else self._procs.restarts,
             "factor_count": self.factor_count,
-            "analyses": self._s["analyses"],
+            "analyses": self._s["analyses"] if self._procs is None else self._procs.analyses,
             "columns_on": "host" if self.columns_device is None else str(self.columns_device),
             "device_column_solves": self.device_column_solves,
             "device_columns": self.device_columns,

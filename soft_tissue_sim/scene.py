@@ -25,8 +25,10 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
                     columns_on: auto,             # blocks of columns (U after a cut, contact's W):
                                                   #   auto (= device on CUDA in a scene with contact,
                                                   #   else host: see bench columns) | host | device
-                    ordering: auto},              # auto (metis for a device apply, else CHOLMOD's
+                    ordering: auto,               # auto (metis for a device apply, else CHOLMOD's
                                                   #   default) | amd | metis | nesdis | best | ...
+                    worker: thread},              # thread | process: two factorization processes
+                                                  #   (no GIL shared; host solves only)
              graph: auto}                         # auto (on CUDA with a device LDL^T) | true | false
 
 ``apply_on: device`` applies the LDL^T factor with Warp kernels (soft_tissue_sim.ldlt_device)
@@ -226,7 +228,7 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu", con
         # Contact on the host: keep each factor's L and D too, for W by forward solves (delassus.py)
         cols = dict(columns_device=device if columns_on == "device" else None, columns_options=col_opts,
                     min_device_columns=int(options.get("min_device_columns", 6)),
-                    lower_factor=contact and columns_on == "host")
+                    lower_factor=contact and columns_on == "host", worker=str(options.get("worker", "thread")))
         layout = apply_on == "device"
         try:
             if kind == "direct":  # a fresh exact factor every step: the reference solution
@@ -244,8 +246,8 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu", con
                     device_layout=layout,
                     **cols,
                 )
-        except ValueError as exc:  # the device block solve's options
-            raise ParameterError(f"ldlt columns options: {exc}") from None
+        except ValueError as exc:  # the device block solve's options, the worker
+            raise ParameterError(f"ldlt options: {exc}") from None
         if apply_on == "device":
             dev_opts = {k: int(options[k]) for k in ("lanes", "tail_width", "tail_block", "cols_lanes") if k in options}
             try:

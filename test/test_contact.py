@@ -66,9 +66,11 @@ def test_scene_without_instruments_or_obstacles_builds_no_contact(monkeypatch):
 FLOOR_Z = -0.011  # the block's bottom is at z = -0.01: it falls 1 mm, lands, settles
 
 
-@pytest.mark.parametrize("kind, columns_on", [("plane", "host"), ("mesh", "host"), ("plane", "device")])
-def test_block_lands_and_rests_on_a_floor(kind, columns_on):
-    """columns_on=device: W's columns by the Warp block solve (here on Warp's CPU backend)."""
+@pytest.mark.parametrize("kind, columns_on, worker", [("plane", "host", "thread"), ("mesh", "host", "thread"),
+                                                      ("plane", "device", "thread"), ("plane", "host", "process")])
+def test_block_lands_and_rests_on_a_floor(kind, columns_on, worker):
+    """columns_on=device: W's columns by the Warp block solve (here on Warp's CPU backend);
+    worker=process: the factor in a worker process, which also forms W from its L and D."""
     if kind == "plane":
         floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
     else:
@@ -76,7 +78,7 @@ def test_block_lands_and_rests_on_a_floor(kind, columns_on):
                  "vertices": [[-1, -1, FLOOR_Z], [1, -1, FLOOR_Z], [1, 1, FLOOR_Z], [-1, 1, FLOOR_Z]]}
     tol = 1e-8
     cfg = scene(obstacles=[floor], contact={"tolerance": tol})
-    cfg["solver"]["ldlt"]["columns_on"] = columns_on
+    cfg["solver"]["ldlt"].update(columns_on=columns_on, worker=worker)
     with load_scene(cfg) as sim:
         dt = sim.dt
         for i in range(150):

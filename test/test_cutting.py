@@ -11,7 +11,7 @@ from soft_tissue_sim.mesh import tet_quality, validate_mesh
 
 def beam_scene(n_long=8, n_cross=3, pre="async_ldlt", correction="sherman_morrison", refresh_every=1000,
                deterministic=True, script=None, fixed=True, gravity=(0.0, 0.0, -9.81), young=5e4, rotate=True,
-               columns_on="auto", scheme="split"):
+               columns_on="auto", scheme="split", worker="thread"):
     cut = {"correction": correction, "scheme": scheme}
     if script:
         cut["script"] = script
@@ -25,7 +25,7 @@ def beam_scene(n_long=8, n_cross=3, pre="async_ldlt", correction="sherman_morris
         "time": {"dt": 0.01},
         "solver": {"preconditioner": pre, "tolerance": 1e-8, "max_iterations": 3000,
                    "ldlt": {"deterministic": deterministic, "refresh_every": refresh_every, "rotate": rotate,
-                            "columns_on": columns_on}},
+                            "columns_on": columns_on, "worker": worker}},
         "cutting": cut,
     }
 
@@ -63,14 +63,15 @@ def corrected_vs_fresh(sim, rng, k=3):
     return err
 
 
-@pytest.mark.parametrize("columns_on, scheme", [("host", "split"), ("device", "split"), ("host", "subdivide")])
-def test_corrected_preconditioner_equals_inverse_of_modified_matrix(columns_on, scheme):
+@pytest.mark.parametrize("columns_on, scheme, worker", [("host", "split", "thread"), ("device", "split", "thread"),
+                                                        ("host", "subdivide", "thread"), ("host", "split", "process")])
+def test_corrected_preconditioner_equals_inverse_of_modified_matrix(columns_on, scheme, worker):
     # Unrotated: the averaged nodal rotations of eq. (2) change where a cut changes the elements
     # around a node, which is an approximation by design, not part of the correction.
     # columns_on=device: the columns of U by the Warp block solve (here Warp's CPU backend).
     # subdivide: the cut also bisects the crossed tets (new nodes on edges, eq. 10 padding).
     rng = np.random.default_rng(0)
-    with load_scene(beam_scene(rotate=False, columns_on=columns_on, scheme=scheme)) as sim:
+    with load_scene(beam_scene(rotate=False, columns_on=columns_on, scheme=scheme, worker=worker)) as sim:
         for _ in range(3):
             sim.step()  # deformed, rotated state; the factor is from step 0 (refresh_every large)
         # make the factor current, so that the only difference is the cut

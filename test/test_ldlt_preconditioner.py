@@ -139,3 +139,61 @@ def test_deterministic_mode_reproduces_bit_for_bit():
             runs.append((its, sim.positions()))
     assert runs[0][0] == runs[1][0]
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
+
+
+# ------------------------------------------------------------- worker processes
+def test_process_workers_give_the_thread_workers_trajectory():
+    """Deterministic refresh every 2 steps: the factors are the same wherever they are made,
+    so the trajectory is the same (to the solver's rounding) with the factor in a process."""
+    runs = {}
+    for worker in ("thread", "process"):
+        with load_scene(beam(deterministic=True, refresh_every=2, worker=worker)) as sim:
+            its = [sim.step().iterations for _ in range(8)]
+            runs[worker] = (sim.positions(), its, sim.preconditioner.stats())
+    (x_t, it_t, _), (x_p, it_p, st) = runs["thread"], runs["process"]
+    assert it_t == it_p
+    np.testing.assert_allclose(x_p, x_t, rtol=0, atol=1e-12)
+    assert st["worker"] == "process" and st["worker_error"] is None and st["factor_count"] == 4
+
+
+def test_process_workers_refresh_in_the_background_swap_roles_and_stop():
+    with load_scene(beam(refresh_every=2, worker="process")) as sim:
+        procs = sim.preconditioner.inner._procs
+        served = set()
+        for _ in range(40):
+            s = sim.step()
+            assert s.converged
+            served.add(id(procs.installed))
+        st = sim.preconditioner.stats()
+        assert st["factor_count"] >= 3 and st["worker_error"] is None
+        assert served == {id(w) for w in procs.workers}  # both processes have served the solves
+        pids = [w.proc for w in procs.workers]
+        assert all(p.poll() is None for p in pids)
+    assert all(p.poll() is not None for p in pids)  # closed with the simulation
+
+
+def test_a_killed_factorization_process_is_restarted_and_the_step_goes_on():
+    with load_scene(beam(refresh_every=2, worker="process")) as sim:
+        for _ in range(4):
+            sim.step()
+        procs = sim.preconditioner.inner._procs
+        victim = procs.installed
+        victim.proc.kill()
+        victim.proc.wait(timeout=10)
+        s = sim.step()
+        assert s.converged and s.factor_age == 0  # a fresh factor, made at once
+        st = sim.preconditioner.stats()
+        assert st["worker_restarts"] == 1 and "restarted" in st["worker_error"]
+        assert all(w.alive() for w in procs.workers) and victim not in procs.workers
+        assert all(sim.step().converged for _ in range(6))
+
+
+def test_worker_option_is_checked():
+    import pytest
+
+    from soft_tissue_sim import ParameterError
+
+    with pytest.raises(ParameterError, match="worker"):
+        load_scene(beam(worker="fiber"))
+    with pytest.raises(ParameterError, match="process"):
+        load_scene(beam(worker="process", apply_on="device"))

@@ -189,8 +189,10 @@ def _serve(conn, mode, ordering, want_lower):
 
 
 # The workers' BLAS: one thread (simplicial CHOLMOD uses none, and idle BLAS threads spinning
-# in three processes take the cores the solves wait for: measured on a 2-core CPU).
-_WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+# in three processes take the cores the solves wait for: measured on a 2-core CPU). No GPU:
+# they solve on the host (Warp's CPU backend for W), and a CUDA context each would be waste.
+_WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+               "CUDA_VISIBLE_DEVICES": ""}
 _WORKER_MAIN = ("import sys; from multiprocessing.connection import Connection; "
                 "from soft_tissue_sim.ldlt_preconditioner import _serve; "
                 "_serve(Connection(int(sys.argv[1])), sys.argv[2], sys.argv[3], sys.argv[4] == '1')")

@@ -18,8 +18,8 @@ resection's step fell from 130 to 98 ms median with this in place of CHOLMOD's f
 Why our own kernel: CHOLMOD solves a sparse right-hand side by its reach only for a single
 column (``cholmod_solve2`` with ``Bset``), which scikit-sparse 0.4 does not expose, and
 scipy's ``spsolve_triangular`` takes dense right-hand sides. The kernel runs on Warp's CPU
-backend next to the host factor (a thread per column): the factor lives on the host, and a
-column's solve is a sequential walk up the tree, a poor fit for a GPU thread (the device
+backend next to the host factor (a thread per group of 16 columns): the factor lives on the
+host, and a column's solve is a sequential walk up the tree, a poor fit for a GPU thread (the device
 path for blocks of columns is :meth:`soft_tissue_sim.ldlt_device.DeviceLDLT.solve_columns`).
 
 The displacement correction dx = P^-1 H^T lambda needs one full solve, of one column.
@@ -60,21 +60,6 @@ def forward_columns_kernel(
                 Y[g, i] = Y[g, i] - Lx[p] * yj
 
 
-def lower_arrays(factor):
-    """(perm, Lp, Li, Lx, 1/D) of a scikit-sparse Factor: the permutation and the strictly lower
-    part of L in CSC. A supernodal factor is turned into a simplicial LDL^T by CHOLMOD, in
-    place (its solves keep working). CHOLMOD stores each column's diagonal first: the strictly
-    lower part is each column without its first entry."""
-    LD = factor.LD()
-    n = LD.shape[0]
-    ip = LD.indptr.astype(np.int64)
-    keep = np.ones(LD.nnz, bool)
-    keep[ip[:-1]] = False
-    return (np.asarray(factor.P(), np.int64), (ip - np.arange(n + 1)).astype(np.int32),
-            np.ascontiguousarray(LD.indices[keep], dtype=np.int32), np.ascontiguousarray(LD.data[keep]),
-            1.0 / LD.data[ip[:-1]])
-
-
 @dataclass
 class LowerFactor:
     """The host factor as the forward solves need it: permutation, strictly lower L (CSC, as
@@ -92,18 +77,20 @@ class LowerFactor:
 
     @classmethod
     def from_cholmod(cls, factor) -> "LowerFactor":
-        """From a scikit-sparse Factor (see :func:`lower_arrays`)."""
-        return cls.from_arrays(*lower_arrays(factor))
-
-    @classmethod
-    def from_arrays(cls, perm, Lp, Li, Lx, dinv) -> "LowerFactor":
-        """From the arrays of :func:`lower_arrays` (e.g. sent by a factorization process); the
-        Warp arrays use their memory in place."""
-        host = dict(device=_HOST, copy=False)
-        return cls(np.asarray(perm, np.int64), wp.array(np.ascontiguousarray(Lp, np.int32), dtype=wp.int32, **host),
-                   wp.array(np.ascontiguousarray(Li, np.int32), dtype=wp.int32, **host),
-                   wp.array(np.ascontiguousarray(Lx, np.float64), dtype=wp.float64, **host),
-                   np.asarray(dinv, np.float64))
+        """From a scikit-sparse Factor (a supernodal one is turned into a simplicial LDL^T by
+        CHOLMOD, in place: its solves keep working). CHOLMOD stores each column's diagonal
+        first: the strictly lower part is each column without its first entry."""
+        LD = factor.LD()
+        n = LD.shape[0]
+        ip = LD.indptr.astype(np.int64)
+        keep = np.ones(LD.nnz, bool)
+        keep[ip[:-1]] = False
+        host = dict(device=_HOST, copy=False)  # Warp uses these new arrays in place
+        return cls(np.asarray(factor.P(), np.int64),
+                   wp.array((ip - np.arange(n + 1)).astype(np.int32), dtype=wp.int32, **host),
+                   wp.array(np.ascontiguousarray(LD.indices[keep], dtype=np.int32), dtype=wp.int32, **host),
+                   wp.array(np.ascontiguousarray(LD.data[keep]), dtype=wp.float64, **host),
+                   1.0 / LD.data[ip[:-1]])
 
     def _solve_groups(self, B: np.ndarray):
         """Forward solves of the columns of B (n, c), original numbering, in the kernel's layout:

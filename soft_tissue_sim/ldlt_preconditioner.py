@@ -18,9 +18,13 @@ Two workers (``worker``):
   (a scikit-sparse Factor cannot cross processes): one serves the solves with the installed
   factor (the vector goes through a pipe, about 0.2 ms there and back), the other
   factorizes the next snapshot at the same time, on another core, sharing no GIL; when its
-  factor is installed the two swap. The main process keeps only the factor's L and D when
-  the Delassus operator needs them (:mod:`soft_tissue_sim.delassus`). Host solves only (no
-  device layout).
+  factor is installed the two swap. The process holding the factor also forms contact's W
+  from its own L and D (:mod:`soft_tissue_sim.delassus`), so L never leaves it. Host solves
+  only (no device layout).
+
+Both are one interface (``request``, ``poll``, ``run_now``, ``revive``, ``lost_request``,
+``cancel``, ``close``, ``error``, ``analyses``, ``restarts``): :class:`_Thread`,
+:class:`_Processes`.
 """
 
 from __future__ import annotations
@@ -53,15 +57,20 @@ def _worker_loop(state):
             req = state["request"]
             state["request"] = None
         try:
-            factor = _factorize(state, req["A"])
-            result = {"factor": factor, "R": req["R"], "step": req["step"], "ms": _ms_since(req["t0"]), "gen": req["gen"],
-                      "meta": req["meta"], "device": _device_values(state, factor), "lower": _lower(state, factor)}
+            result = _local_result(state, req)
             with state["cv"]:
                 state["result"] = result
         except Exception as exc:  # noqa: BLE001 - reported in stats, last good factor kept
             with state["cv"]:
                 state["error"] = f"{type(exc).__name__}: {exc}"
                 state["result"] = {"failed": True}
+
+
+def _local_result(state, req):
+    """Factorize a snapshot in this process: the result as the preconditioner installs it."""
+    factor = _factorize(state, req["A"])
+    return {"factor": factor, "R": req["R"], "step": req["step"], "ms": _ms_since(req["t0"]), "gen": req["gen"],
+            "meta": req["meta"], "device": _device_values(state, factor), "lower": _lower(state, factor)}
 
 
 def _ms_since(t0):
@@ -145,6 +154,55 @@ def _stop(state):
     t = state.get("thread")
     if t is not None and t.is_alive() and t is not threading.current_thread():
         t.join(timeout=10.0)
+
+
+class _Thread:
+    """The ``thread`` worker: one background thread (:func:`_worker_loop`) sharing ``state``."""
+
+    restarts = 0
+
+    def __init__(self, state):
+        self.state = state
+
+    @property
+    def error(self):
+        return self.state["error"]
+
+    @property
+    def analyses(self):
+        return self.state["analyses"]
+
+    def request(self, req) -> None:
+        s = self.state
+        t = s["thread"]
+        if t is None or not t.is_alive():
+            s["thread"] = threading.Thread(target=_worker_loop, args=(s,), name="ldlt-factorizer", daemon=True)
+            s["thread"].start()
+        with s["cv"]:
+            s["request"] = req
+            s["cv"].notify_all()
+
+    def poll(self):
+        with self.state["cv"]:
+            res, self.state["result"] = self.state["result"], None
+        return res
+
+    def run_now(self, req):
+        return _local_result(self.state, req)
+
+    def revive(self) -> bool:
+        return False
+
+    def lost_request(self) -> bool:
+        return False
+
+    def cancel(self) -> None:
+        with self.state["cv"]:
+            self.state["request"] = None
+            self.state["result"] = None
+
+    def close(self) -> None:
+        _stop(self.state)
 
 
 WORKERS = ("thread", "process")
@@ -318,21 +376,22 @@ class _Processes:
         while w.sent:
             w.sent.pop(0)
             w.conn.recv()
-        w.sent.append(req)
-        w.conn.send(("factor", req["A"]))
+        self.request(req)
         res = self._result(w, w.sent.pop(0), w.conn.recv())
         if res.get("failed"):
             raise RuntimeError(f"factorization failed in the worker process: {self.error}")
         return res
 
+    def lost_request(self) -> bool:
+        """True when no factorization is under way any more (its process died and was revived)."""
+        return not self.free().sent
+
+    def cancel(self) -> None:
+        """Nothing to withdraw: replies to older requests carry an older generation and are dropped."""
+
     def close(self):
         for w in self.workers:
             w.stop()
-
-
-def _stop_processes(procs):
-    if procs is not None:
-        procs.close()
 
 
 class AsyncLDLTPreconditioner:
@@ -385,12 +444,9 @@ class AsyncLDLTPreconditioner:
             self._cols = DeviceLDLT(columns_device, **self._columns_options)
             # compile / load the kernels now, not in the first step that has a block to solve
             wp.load_module(ldlt_device, device=columns_device)
-        self._procs = None
-        if worker == "process":
-            self._procs = _Processes(mode, ordering, self._s["lower_factor"])
-            self._finalizer = weakref.finalize(self, _stop_processes, self._procs)
-        else:
-            self._finalizer = weakref.finalize(self, _stop, self._s)
+        self._workers = (_Processes(mode, ordering, self._s["lower_factor"]) if worker == "process"
+                         else _Thread(self._s))
+        self._finalizer = weakref.finalize(self, self._workers.close)
         self._gen = 0
         self.correction = None  # a ShermanMorrisonCorrection, attached by the cutter when a scene cuts
         self._reset_counters()
@@ -415,13 +471,6 @@ class AsyncLDLTPreconditioner:
         self.device_column_ms = 0.0
 
     # -------------------------------------------------------------- worker
-    def _ensure_thread(self):
-        t = self._s["thread"]
-        if t is None or not t.is_alive():
-            t = threading.Thread(target=_worker_loop, args=(self._s,), name="ldlt-factorizer", daemon=True)
-            self._s["thread"] = t
-            t.start()
-
     def _snapshot(self, step):
         snap = self.snapshot_fn()  # (A, R) or (A, R, meta); meta: node uids and mesh version
         A, R = snap[0], snap[1]
@@ -452,7 +501,7 @@ class AsyncLDLTPreconditioner:
 
     def _install(self, res):
         if isinstance(res["factor"], RemoteFactor):  # that process now serves the solves
-            self._procs.installed = res["factor"].worker
+            self._workers.installed = res["factor"].worker
         self.factor, self.R_tu, self.factor_step = res["factor"], res["R"], res["step"]
         self.factor_data = res.get("device")
         self.lower = res.get("lower")
@@ -465,23 +514,15 @@ class AsyncLDLTPreconditioner:
             self.correction.set_factor(self.factor_solve, self.R_tu, meta.get("uids"), meta.get("version", -1))
 
     def _sync_refresh(self, step):
-        req = self._snapshot(step)
-        if self._procs is not None:
-            self._install(self._procs.run_now(req))
-            self.last_request_step = step
-            return
-        factor = _factorize(self._s, req["A"])
-        self._install({"factor": factor, "R": req["R"], "step": step, "ms": _ms_since(req["t0"]), "meta": req["meta"],
-                       "device": _device_values(self._s, factor), "lower": _lower(self._s, factor)})
+        self._install(self._workers.run_now(self._snapshot(step)))
         self.last_request_step = step
 
     # ---------------------------------------------------------------- API
     def begin_step(self, step: int, node_rotations: np.ndarray) -> None:
-        if self._procs is not None:
-            if self._procs.revive():  # the installed factor died with its process: factorize anew
-                self.invalidate()
-            elif self.pending and not self._procs.free().sent:  # the factorizing one died
-                self.pending = False
+        if self._workers.revive():  # the installed factor died with its process: factorize anew
+            self.invalidate()
+        elif self.pending and self._workers.lost_request():  # the factorizing one died
+            self.pending = False
         self.step = int(step)
         self.precond_ms = 0.0
         if self.factor is None:
@@ -490,24 +531,13 @@ class AsyncLDLTPreconditioner:
             if self.step - self.last_request_step >= self.refresh_every:
                 self._sync_refresh(self.step)
         else:
-            if self._procs is not None:
-                res = self._procs.poll()
-            else:
-                with self._s["cv"]:
-                    res, self._s["result"] = self._s["result"], None
+            res = self._workers.poll()
             if res is not None:
                 self.pending = False
                 if not res.get("failed") and res.get("gen") == self._gen:
                     self._install(res)
             if not self.pending and self.step - self.last_request_step >= self.refresh_every:
-                req = self._snapshot(self.step)
-                if self._procs is not None:
-                    self._procs.request(req)
-                else:
-                    self._ensure_thread()
-                    with self._s["cv"]:
-                        self._s["request"] = req
-                        self._s["cv"].notify_all()
+                self._workers.request(self._snapshot(self.step))
                 self.pending = True
                 self.last_request_step = self.step
         R = np.asarray(node_rotations, dtype=np.float64)
@@ -569,9 +599,7 @@ class AsyncLDLTPreconditioner:
         if self.correction is not None:
             self.correction.clear()
         self._gen += 1  # results of requests made before this are ignored
-        with self._s["cv"]:
-            self._s["request"] = None
-            self._s["result"] = None
+        self._workers.cancel()
         self._reset_counters()
 
     def stats(self) -> dict:
@@ -583,10 +611,10 @@ class AsyncLDLTPreconditioner:
             "refresh_interval": float(np.mean(np.diff(sw))) if len(sw) > 1 else 0.0,
             "precond_ms": self.precond_ms,
             "worker": self.worker,
-            "worker_error": self._s["error"] if self._procs is None else self._procs.error,
-            "worker_restarts": 0 if self._procs is None else self._procs.restarts,
+            "worker_error": self._workers.error,
+            "worker_restarts": self._workers.restarts,
             "factor_count": self.factor_count,
-            "analyses": self._s["analyses"] if self._procs is None else self._procs.analyses,
+            "analyses": self._workers.analyses,
             "columns_on": "host" if self.columns_device is None else str(self.columns_device),
             "device_column_solves": self.device_column_solves,
             "device_columns": self.device_columns,

@@ -158,7 +158,7 @@ def test_process_workers_give_the_thread_workers_trajectory():
 
 def test_process_workers_refresh_in_the_background_swap_roles_and_stop():
     with load_scene(beam(refresh_every=2, worker="process")) as sim:
-        procs = sim.preconditioner.inner._procs
+        procs = sim.preconditioner.inner._workers
         served = set()
         for _ in range(40):
             s = sim.step()
@@ -176,7 +176,7 @@ def test_a_killed_factorization_process_is_restarted_and_the_step_goes_on():
     with load_scene(beam(refresh_every=2, worker="process")) as sim:
         for _ in range(4):
             sim.step()
-        procs = sim.preconditioner.inner._procs
+        procs = sim.preconditioner.inner._workers
         victim = procs.installed
         victim.proc.kill()
         victim.proc.wait(timeout=10)

@@ -188,12 +188,14 @@ def spare_tumour_bite(sim, center, radius: float):
 
 
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
-        columns_on="auto", scheme=None, worker=None):
+        columns_on="auto", scheme=None, worker=None, synchronous=False):
     cfg = read_scene(scene)[0]
     solver = dict(cfg.get("solver") or {})
     solver["ldlt"] = {**(solver.get("ldlt") or {}), "columns_on": columns_on}
     if worker is not None:
         solver["ldlt"]["worker"] = worker
+    if synchronous:  # the factor made in the step that requests it (no background worker)
+        solver["ldlt"]["deterministic"] = True
     overrides = {"solver": solver}
     if scheme is not None:
         overrides["cutting"] = {"scheme": scheme}
@@ -328,6 +330,8 @@ def main(argv=None) -> int:
                     help="cutting scheme (default: the scene's)")
     ap.add_argument("--worker", default=None, choices=["thread", "process"],
                     help="where the async factorization runs (default: the scene's)")
+    ap.add_argument("--synchronous", action="store_true",
+                    help="factorize in the step that requests the factor (ldlt.deterministic), not in the background")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
@@ -336,7 +340,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     rows, mods, freed, finite, n_end, t_end, info = run(device, args.scene, args.turns, args.step_len,
                                                         args.max_cleanup, args.cleanup_radius, args.columns_on,
-                                                        args.scheme, args.worker)
+                                                        args.scheme, args.worker, args.synchronous)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
     summary = {
@@ -367,6 +371,7 @@ def main(argv=None) -> int:
     summary["columns_on"] = args.columns_on
     summary["ldlt_worker"] = args.worker or str(((read_scene(args.scene)[0].get("solver") or {}).get("ldlt") or {})
                                                 .get("worker", "thread"))
+    summary["ldlt_synchronous"] = bool(args.synchronous)
     summary["cutting_scheme"] = args.scheme or str((read_scene(args.scene)[0].get("cutting") or {}).get("scheme", "split"))
     result = {"summary": summary, "modifications": mods, "cleanup_bites": info["bites"], "steps_detail": rows}
     path = write_result("brain", device, result, args.out)

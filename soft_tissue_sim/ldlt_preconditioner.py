@@ -1,6 +1,6 @@
 """Asynchronous, rotated LDL^T preconditioner (paper section 2.2, eq. 2).
 
-A background worker factorizes A(t_u) with CHOLMOD (scikit-sparse) while the simulation
+A background worker factorizes A(t_u) with CHOLMOD while the simulation
 goes on with the last factor; the factor is applied rotated by the per-node rotations
 between now and t_u:  P^-1 r = dR (LDL^T)^-1 dR^T r,  dR_n = R_n(t) R_n(t_u)^T.
 
@@ -10,10 +10,12 @@ sparsity pattern is unchanged.
 
 Two workers (``worker``):
 
-* ``thread`` (the default): a background thread. scikit-sparse 0.4 holds the GIL while it
-  factorizes, so on CPython the thread overlaps with the simulation only where the main
-  thread is in GIL-free code (Warp kernels, BLAS): measured on the brain on a 2-core CPU,
-  the step is no faster than with the factorization made synchronously.
+* ``thread`` (the default): a background thread. The simplicial factorization goes through
+  :mod:`soft_tissue_sim.cholmod_nogil` (CHOLMOD's C API by ctypes), which frees the GIL
+  while CHOLMOD works, so the thread runs beside the step on another core. scikit-sparse
+  0.4 holds the GIL while it factorizes (``release_gil=False``, the supernodal mode, or a
+  CHOLMOD other than 3.x): then the thread overlaps only where the main thread is in
+  GIL-free code, and on the brain the step was no faster than a synchronous factorization.
 * ``process``: two worker processes that swap roles. Each holds its own CHOLMOD factor
   (a scikit-sparse Factor cannot cross processes): one serves the solves with the installed
   factor (the vector goes through a pipe, about 0.2 ms there and back), the other
@@ -41,6 +43,8 @@ from multiprocessing.connection import Connection
 import numpy as np
 import scipy.sparse as sps
 from sksparse.cholmod import analyze
+
+from . import cholmod_nogil
 
 
 SUPERNODAL_ABOVE = 60_000  # degrees of freedom
@@ -111,10 +115,18 @@ def _factorize(state, A):
         if mode == "auto":  # simplicial LDL^T as in the paper; supernodal LL^T (BLAS) for large bodies
             mode = "simplicial" if A.shape[0] < SUPERNODAL_ABOVE else "supernodal"
         ordering = state.get("ordering") or "default"
-        state["symbolic"] = analyze(A, mode=mode, ordering_method=ordering)
+        # Simplicial LDL^T through ctypes where it can be (cholmod_nogil: the GIL is free while
+        # CHOLMOD works, so a background thread really runs beside the step); else scikit-sparse.
+        gil_free = (state.get("release_gil", True) and mode == "simplicial"
+                    and ordering in cholmod_nogil.ORDERINGS and cholmod_nogil.available())
+        state["symbolic"] = (cholmod_nogil.analyze(A, ordering) if gil_free
+                             else analyze(A, mode=mode, ordering_method=ordering))
+        state["gil_free"] = gil_free
         state["mode_used"] = mode
         state["pattern"] = key
         state["analyses"] += 1
+    if state["gil_free"]:
+        return state["symbolic"].factorized(A)
     f = state["symbolic"].copy()
     f.cholesky_inplace(A)
     return f
@@ -399,7 +411,7 @@ class AsyncLDLTPreconditioner:
 
     def __init__(self, snapshot_fn, *, rotate=True, refresh_every=1, deterministic=False, mode="auto",
                  ordering="default", device_layout=False, columns_device=None, min_device_columns=4,
-                 columns_options=None, lower_factor=False, worker="thread"):
+                 columns_options=None, lower_factor=False, worker="thread", release_gil=True):
         """``ordering``: CHOLMOD's fill-reducing ordering (default: its AMD-based choice; metis or
         nesdis give a shallower elimination tree, i.e. fewer levels for the device solve).
         ``device_layout``: also convert every factor to the device layout in the worker
@@ -410,7 +422,9 @@ class AsyncLDLTPreconditioner:
         the host. Implies ``device_layout``. ``columns_options``: DeviceLDLT's options.
         ``lower_factor``: also keep every factor's L and D for :meth:`delassus` (contact's W by
         forward solves alone, :mod:`soft_tissue_sim.delassus`); ignored with ``columns_device``.
-        ``worker``: ``thread`` or ``process`` (see the module's docstring; host solves only)."""
+        ``worker``: ``thread`` or ``process`` (see the module's docstring; host solves only).
+        ``release_gil``: factorize (simplicial) through :mod:`soft_tissue_sim.cholmod_nogil`,
+        which frees the GIL while CHOLMOD works, where it is available; False: scikit-sparse."""
         from .ldlt_device import ORDERINGS, StructureCache
 
         if ordering not in ORDERINGS:
@@ -429,6 +443,7 @@ class AsyncLDLTPreconditioner:
         self._s = {"cv": threading.Condition(), "request": None, "result": None, "stop": False, "error": None,
                    "pattern": None, "symbolic": None, "analyses": 0, "thread": None, "mode": mode,
                    "ordering": ordering, "lower_factor": bool(lower_factor) and columns_device is None,
+                   "release_gil": bool(release_gil), "gil_free": None,
                    "device_cache": StructureCache() if (device_layout or columns_device is not None) else None}
         self.columns_device = columns_device
         self.min_device_columns = max(1, int(min_device_columns))
@@ -611,6 +626,7 @@ class AsyncLDLTPreconditioner:
             "refresh_interval": float(np.mean(np.diff(sw))) if len(sw) > 1 else 0.0,
             "precond_ms": self.precond_ms,
             "worker": self.worker,
+            "factorization_gil_free": self._s["gil_free"],  # None: not known here (worker processes)
             "worker_error": self._workers.error,
             "worker_restarts": self._workers.restarts,
             "factor_count": self.factor_count,

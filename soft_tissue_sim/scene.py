@@ -27,8 +27,11 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
                                                   #   else host: see bench columns) | host | device
                     ordering: auto,               # auto (metis for a device apply, else CHOLMOD's
                                                   #   default) | amd | metis | nesdis | best | ...
-                    worker: thread},              # thread | process: two factorization processes
+                    worker: thread,               # thread | process: two factorization processes
                                                   #   (no GIL shared; host solves only)
+                    release_gil: true},           # simplicial factorization through CHOLMOD's C API
+                                                  #   (ctypes: the GIL is free meanwhile) where
+                                                  #   available; false: scikit-sparse
              graph: auto}                         # auto (on CUDA with a device LDL^T) | true | false
 
 ``apply_on: device`` applies the LDL^T factor with Warp kernels (soft_tissue_sim.ldlt_device)
@@ -228,7 +231,8 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu", con
         # Contact on the host: keep each factor's L and D too, for W by forward solves (delassus.py)
         cols = dict(columns_device=device if columns_on == "device" else None, columns_options=col_opts,
                     min_device_columns=int(options.get("min_device_columns", 6)),
-                    lower_factor=contact and columns_on == "host", worker=str(options.get("worker", "thread")))
+                    lower_factor=contact and columns_on == "host", worker=str(options.get("worker", "thread")),
+                    release_gil=bool(options.get("release_gil", True)))
         layout = apply_on == "device"
         try:
             if kind == "direct":  # a fresh exact factor every step: the reference solution

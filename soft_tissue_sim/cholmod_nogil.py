@@ -76,16 +76,21 @@ def _load():
     with _load_lock:
         if _lib is not None or _why is not None:
             return _lib
-        name = ctypes.util.find_library("cholmod")
-        if name is None:
-            _why = "libcholmod not found"
-            return None
-        try:
-            lib = ctypes.CDLL(name)  # CDLL (not PyDLL): the GIL is released during every call
-            v = (ctypes.c_int * 3)()
-            lib.cholmod_version(v)
-        except (OSError, AttributeError) as exc:
-            _why = f"libcholmod unusable: {exc}"
+        lib, errors = None, []
+        # the name ldconfig knows, then SuiteSparse 5's soname (what scikit-sparse links here)
+        for name in (ctypes.util.find_library("cholmod"), "libcholmod.so.3", "libcholmod.so"):
+            if not name:
+                continue
+            try:
+                lib = ctypes.CDLL(name)  # CDLL (not PyDLL): the GIL is released during every call
+                v = (ctypes.c_int * 3)()
+                lib.cholmod_version(v)
+                break
+            except (OSError, AttributeError) as exc:
+                lib = None
+                errors.append(f"{name}: {exc}")
+        if lib is None:
+            _why = "libcholmod not found or unusable" + (f" ({'; '.join(errors)})" if errors else "")
             return None
         if v[0] != 3:
             _why = f"CHOLMOD {v[0]}.{v[1]}.{v[2]}: the bound layouts are CHOLMOD 3.0's"

@@ -101,8 +101,9 @@ def _load():
         # Only the long calls (analyze, factorize: tens to hundreds of ms) let go of the GIL.
         # The short ones (a solve: 0.5 ms) keep it, through PyDLL on the same library: a thread
         # that gives the GIL up for a short call waits up to the switch interval (5 ms) to get
-        # it back whenever the other thread runs Python meanwhile (measured: 2.9 ms a solve in
-        # the brain resection against 0.5 ms).
+        # it back whenever the other thread runs Python meanwhile (profiled in the brain
+        # resection: 2.9 ms a released solve against 0.5 ms; end to end, two runs each, the
+        # difference was within the run-to-run noise).
         held = ctypes.PyDLL(lib._name)
         P, I = ctypes.c_void_p, ctypes.c_int
         bound = types.SimpleNamespace()

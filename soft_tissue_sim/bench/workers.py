@@ -1,10 +1,13 @@
 """Where the asynchronous factorization runs: ``python -m soft_tissue_sim.bench workers``.
 
-The async LDL^T preconditioner factorizes in the background with CHOLMOD through
-scikit-sparse, which holds the GIL while it factorizes. With ``ldlt.worker: thread`` the
-simulation thread therefore waits through every factorization; with ``worker: process`` two
-factorization processes swap roles (one solves with the installed factor, the other
-factorizes the next snapshot) and nothing is shared but a socket.
+The async LDL^T preconditioner factorizes in the background with CHOLMOD. Workers:
+
+* ``thread``: a thread, CHOLMOD called through :mod:`soft_tissue_sim.cholmod_nogil`, which
+  frees the GIL while it factorizes: the factorization runs beside the step;
+* ``thread-gil``: the same thread through scikit-sparse, which holds the GIL while it
+  factorizes (``ldlt.release_gil: false``): the step waits through every factorization;
+* ``process``: two factorization processes swap roles (one solves with the installed
+  factor, the other factorizes the next snapshot) and nothing is shared but a socket.
 
 Per scene and worker, over ``--steps`` steps after ``--warmup``: the step time
 (``Simulation.step``: median, mean, p99, max), PCG iterations, the factors installed and the
@@ -12,7 +15,7 @@ last factorization time. Scenes (CPU by default), all without instruments, conta
 cutting so that the step is the solver and the refresh only:
 
 * ``brain``: config/scenes/brain_resection.yaml settling under gravity (1,734 nodes, a
-  factor requested every 3 steps);
+  factor requested every 3 steps here, whatever the scene says);
 * ``beam_2000``: config/scenes/beam_2000.yaml swinging under gravity (refresh every 4).
 
 The full resection with either worker: ``python -m soft_tissue_sim.bench brain --worker ...``.
@@ -32,7 +35,8 @@ from ..scene import load_scene, read_scene, resolve_device
 from . import RESULTS_DIR, write_result
 
 SCENES = {"brain": "brain_resection.yaml", "beam_2000": "beam_2000.yaml"}
-WORKERS = ("thread", "process")
+WORKERS = ("thread", "thread-gil", "process")
+REFRESH = {"brain": 3}  # fixed here, so that results stay comparable when a scene's setting changes
 
 
 def scene_config(name: str) -> dict:
@@ -47,7 +51,10 @@ def scene_config(name: str) -> dict:
 def run(name: str, worker: str, device: str, steps: int, warmup: int) -> dict:
     cfg = scene_config(name)
     solver = dict(cfg.get("solver") or {})
-    solver["ldlt"] = {**(solver.get("ldlt") or {}), "worker": worker, "deterministic": False}
+    solver["ldlt"] = {**(solver.get("ldlt") or {}), "worker": worker.split("-")[0], "deterministic": False,
+                      "release_gil": worker != "thread-gil"}
+    if name in REFRESH:
+        solver["ldlt"]["refresh_every"] = REFRESH[name]
     cfg["solver"] = solver
     with load_scene(cfg, device=device) as sim:
         for _ in range(warmup):
@@ -116,9 +123,9 @@ def main(argv=None) -> int:
     path = write_result("workers", device, result, args.out)
     result["device"] = json.load(open(path))["device"]
     plot(result, str(path.with_suffix("")))
-    print(f"{'scene':>10} {'worker':>8} {'median':>8} {'mean':>8} {'p99':>8} {'iter':>6} {'factors':>8}")
+    print(f"{'scene':>10} {'worker':>10} {'median':>8} {'mean':>8} {'p99':>8} {'iter':>6} {'factors':>8}")
     for r in rows:
-        print(f"{r['scene']:>10} {r['worker']:>8} {r['step_ms_median']:8.1f} {r['step_ms_mean']:8.1f} "
+        print(f"{r['scene']:>10} {r['worker']:>10} {r['step_ms_median']:8.1f} {r['step_ms_mean']:8.1f} "
               f"{r['step_ms_p99']:8.1f} {r['iterations_mean']:6.2f} {r['factors_installed']:8d}")
     print(f"wrote {path} and {path.with_suffix('.png')}")
     return 0

@@ -15,8 +15,9 @@ Only what the preconditioner uses is bound: :func:`analyze` (symbolic, once per 
 A x = b), ``f.P()`` (the fill-reducing permutation) and ``f.LD()`` (L and D as scipy CSC,
 each column's diagonal D first, the rest L's strictly lower part), with scikit-sparse's
 meanings. The struct layouts are those of CHOLMOD 3.0 (SuiteSparse 5.x, Debian 12's 5.12,
-the version the install pins); :func:`available` refuses any other major version, and the
-caller then uses scikit-sparse.
+the version the install pins); :func:`available` refuses any other major version, and a
+library whose cholmod_common does not show CHOLMOD's defaults and status where they are
+expected (checked once, at load); the caller then uses scikit-sparse.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ ORDERINGS = ("default", *_ORDERINGS)  # what analyze() takes (scikit-sparse's "b
 _SIMPLICIAL = 0  # CHOLMOD_SIMPLICIAL
 _CHOLMOD_A = 0  # solve A x = b
 _REAL, _DOUBLE, _INT = 1, 0, 0  # CHOLMOD_REAL, CHOLMOD_DOUBLE, CHOLMOD_INT
-_OK, _NOT_POSDEF = 0, 1
+_OK, _NOT_POSDEF, _INVALID = 0, 1, -4
 
 
 class _Sparse(ctypes.Structure):
@@ -115,7 +116,29 @@ def _load():
             f.restype, f.argtypes = res, args
             setattr(bound, fn, f)
         _lib = bound
-        return bound
+        why = _layout_check()
+        if why is not None:
+            _lib, _why = None, why
+        return _lib
+
+
+def _layout_check() -> str | None:
+    """Check the bound offsets on a fresh common: cholmod_start's defaults where we write
+    (supernodal = CHOLMOD_AUTO, print = 3, nmethods = 0), and the status field, read after a
+    call CHOLMOD must refuse (an analysis of nothing: CHOLMOD_INVALID). None when all hold."""
+    buf = ctypes.create_string_buffer(_COMMON_BYTES)
+    ptr = ctypes.cast(buf, ctypes.c_void_p)
+    _lib.cholmod_start(ptr)
+    try:
+        get = lambda off: ctypes.c_int.from_buffer(buf, off).value
+        if (get(_C_SUPERNODAL), get(_C_PRINT), get(_C_NMETHODS), get(_C_STATUS)) != (1, 3, 0, _OK):
+            return "cholmod_common's layout is not the one bound (defaults differ)"
+        ctypes.c_int.from_buffer(buf, _C_PRINT).value = 0
+        if _lib.cholmod_analyze(None, ptr) or get(_C_STATUS) != _INVALID:
+            return "cholmod_common's layout is not the one bound (status not found)"
+    finally:
+        _lib.cholmod_finish(ptr)
+    return None
 
 
 def available() -> bool:

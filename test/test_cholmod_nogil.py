@@ -130,3 +130,17 @@ def test_the_preconditioner_factorizes_without_the_gil_unless_told_not_to():
     with load_scene(beam(mode="supernodal")) as sim:  # supernodal: scikit-sparse (not bound here)
         sim.step()
         assert sim.preconditioner.stats()["factorization_gil_free"] is False
+
+
+def test_a_layout_that_does_not_match_is_refused(monkeypatch):
+    """The offsets are checked against CHOLMOD itself when the library is loaded; a wrong one
+    (here the status field moved by 8 bytes) makes the module refuse, and the preconditioner
+    then uses scikit-sparse."""
+    assert cn.available()
+    monkeypatch.setattr(cn, "_lib", None)
+    monkeypatch.setattr(cn, "_why", None)
+    monkeypatch.setattr(cn, "_C_STATUS", cn._C_STATUS + 8)
+    assert not cn.available()
+    assert "layout" in cn.unavailable_reason()
+    with pytest.raises(cn.CholmodError, match="not available"):
+        cn.analyze(laplacian(3))

@@ -68,7 +68,8 @@ class CutResult:
     tets_changed: int = 0  # removed + re-added (cut) or removed (ablation)
     nodes_added: int = 0
     nodes_removed: int = 0
-    affected_nodes: int = 0  # nodes of the perturbation N
+    affected_nodes: int = 0  # nodes this modification changes (its own term's G)
+    perturbation_nodes: int = 0  # nodes of N against the factor in use after it (paper's measure)
     faces_cut: int = 0
     debris_tets: int = 0  # tets of fragments below `min_fragment` removed after the change
     ms: float = 0.0  # whole modification, correction included
@@ -633,6 +634,7 @@ class Cutter:
             res.debris_tets = int(debris.sum())
             res.nodes_removed += r.nodes_removed
             res.affected_nodes += r.affected_nodes
+            res.perturbation_nodes = r.perturbation_nodes
             res.smf_u_ms += r.smf_u_ms
             res.smf_q_ms += r.smf_q_ms
             res.message += f"; {res.debris_tets} debris tets of fragments under {self.min_fragment} tets removed"
@@ -712,10 +714,12 @@ class Cutter:
         mod = modification_from_blocks(sim.mesh_version, old_blocks, new_blocks, old_uids, uids_new, R_of, free_of,
                                        created=created, removed=removed)
         u_ms = q_ms = 0.0
+        pert = 0  # no correction, no perturbation to carry
         if self.correction is not None:
             self.correction.u_ms = self.correction.q_ms = 0.0
             self.correction.add(mod, uids_new)
             u_ms, q_ms = self.correction.u_ms, self.correction.q_ms
+            pert = self.correction.perturbation_nodes()
         else:  # Jacobi / plain CG rebuild from the mesh every step
             sim.preconditioner.invalidate()
         what = "cut" if new_tets is not None else "removal"
@@ -723,6 +727,7 @@ class Cutter:
                         f"{len(removed)} removed, {len(mod.uids)} affected",
                         tets_changed=int(len(removed_ids)), nodes_added=int(len(created)),
                         nodes_removed=int(len(removed)), affected_nodes=int(len(mod.uids)),
+                        perturbation_nodes=pert,
                         smf_u_ms=u_ms, smf_q_ms=q_ms)
         self.history.append(res)
         return res

@@ -306,7 +306,17 @@ class ShermanMorrisonCorrection:
             W -= V.T @ (Q @ V)
         return 0.5 * (W + W.T)
 
+    def perturbation_nodes(self) -> int:
+        """Nodes of the perturbation N = G^T (P~ - P) G against the factor in use (eq. 5): every
+        node changed by a modification the factor does not contain yet ("the nodes affected
+        since the last two updates", sec. 3.2). This is the paper's "affected nodes" (table of
+        fig. 3, 24 in the brain resection); our chained terms each carry only their own
+        modification's nodes, a subset of these."""
+        if not self.mods:
+            return 0
+        return int(len(np.unique(np.concatenate([m.uids for m in self.mods]))))
+
     def stats(self) -> dict:
         s = {"smf_terms": len(self.terms), "smf_columns": int(sum(u.shape[1] for u, _, _ in self.terms)),
-             "pending_modifications": len(self.mods)}
+             "pending_modifications": len(self.mods), "perturbation_nodes": self.perturbation_nodes()}
         return s

@@ -466,3 +466,43 @@ def test_rotated_correction_is_exact_on_a_rigidly_rotated_body(scheme):
         res = lengthwise(sim, 0.0337, 0.0837, y=0.0013, frame="rest")
         assert res.changed
         assert corrected_vs_fresh(sim, rng) < 1e-9
+
+
+def _uid_matrix(A, uids, size):
+    """A (3n x 3n) moved to node-uid numbering (3 size x 3 size)."""
+    idx = (3 * np.repeat(uids, 3) + np.tile(np.arange(3), len(uids))).astype(np.int64)
+    C = A.tocoo()
+    import scipy.sparse as sps
+
+    return sps.csr_matrix((C.data, (idx[C.row], idx[C.col])), shape=(3 * size, 3 * size))
+
+
+def test_perturbation_nodes_are_the_nodes_where_the_matrix_left_the_factor():
+    """The paper's "affected nodes" (eq. 5: N = G^T (P~ - P) G): every node whose rows of A
+    differ from the factor's matrix, accumulated over the cuts since that factor, and back to
+    one cut's nodes once a factor contains the earlier ones."""
+    with load_scene(beam_scene(n_long=10, deterministic=True, refresh_every=1000, rotate=False)) as sim:
+        sim.step()
+        integ = sim.integrator
+        pre = sim.preconditioner.inner
+        sim.fem.update_rotations(integ.x)
+        A0, uids0 = sim.fem.assemble_scipy(integ.m_coef, integ.k_coef), sim.node_uids.copy()
+        r1 = lengthwise(sim, 0.005, 0.04)
+        r2 = lengthwise(sim, 0.06, 0.095)
+        assert r1.changed and r2.changed
+        assert r1.perturbation_nodes == r1.affected_nodes  # the first change on this factor
+        sim.fem.update_rotations(integ.x)
+        A2, uids2 = sim.fem.assemble_scipy(integ.m_coef, integ.k_coef), sim.node_uids.copy()
+        size = int(max(uids0.max(), uids2.max())) + 1
+        D = (_uid_matrix(A2, uids2, size) - _uid_matrix(A0, uids0, size)).tocsr()
+        D.data[np.abs(D.data) < 1e-9 * np.abs(A0.data).max()] = 0.0
+        D.eliminate_zeros()
+        changed = set((np.unique(D.indices) // 3).tolist()) | set(np.setdiff1d(uids2, uids0).tolist())
+        pert = set(np.unique(np.concatenate([m.uids for m in pre.correction.mods])).tolist())
+        assert changed <= pert  # N covers every change since the factor
+        assert r2.perturbation_nodes == len(pert) > max(r1.affected_nodes, r2.affected_nodes)
+        assert len(pert) >= 0.9 * len(changed)  # and little else (nodes whose blocks cancelled)
+        pre._sync_refresh(sim.step_count)  # a factor containing both cuts
+        assert pre.correction.perturbation_nodes() == 0
+        r3 = crosswise(sim, 0.075)
+        assert r3.changed and r3.perturbation_nodes == r3.affected_nodes

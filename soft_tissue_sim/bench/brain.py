@@ -188,12 +188,14 @@ def spare_tumour_bite(sim, center, radius: float):
 
 
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
-        columns_on="auto", scheme=None, worker=None, synchronous=False):
+        columns_on="auto", scheme=None, worker=None, synchronous=False, refresh_every=None):
     cfg = read_scene(scene)[0]
     solver = dict(cfg.get("solver") or {})
     solver["ldlt"] = {**(solver.get("ldlt") or {}), "columns_on": columns_on}
     if worker is not None:
         solver["ldlt"]["worker"] = worker
+    if refresh_every is not None:
+        solver["ldlt"]["refresh_every"] = int(refresh_every)
     if synchronous:  # the factor made in the step that requests it (no background worker)
         solver["ldlt"]["deterministic"] = True
     overrides = {"solver": solver}
@@ -218,7 +220,7 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                 r, _ = spare_tumour_bite(sim, *a["remove"])
                 extra_ms = r.ms
                 if r.changed:
-                    mods.append({"kind": "removal", "affected_nodes": r.affected_nodes, "ms": r.ms,
+                    mods.append({"kind": "removal", "affected_nodes": r.affected_nodes, "perturbation_nodes": r.perturbation_nodes, "ms": r.ms,
                                  "u_ms": r.smf_u_ms, "q_ms": r.smf_q_ms, "step": sim.step_count,
                                  "cleanup": kind == "cleanup"})
             elif "extract" in a:  # lift the freed specimen out (en bloc resection)
@@ -226,7 +228,7 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                 extra_ms = r.ms
                 extracted.append(int(r.tets_changed) if r.changed else 0)
                 if r.changed:
-                    mods.append({"kind": "extraction", "affected_nodes": r.affected_nodes, "ms": r.ms,
+                    mods.append({"kind": "extraction", "affected_nodes": r.affected_nodes, "perturbation_nodes": r.perturbation_nodes, "ms": r.ms,
                                  "u_ms": r.smf_u_ms, "q_ms": r.smf_q_ms, "step": sim.step_count})
             elif "cleanup_tet" in a:
                 c = sim.positions()[sim.mesh.tets[a["cleanup_tet"]]].mean(axis=0)  # that tet's centroid
@@ -235,14 +237,14 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                 bites.append({"step": sim.step_count, "center": c.tolist(), "radius": rad,
                               "tets": r.tets_changed, "changed": bool(r.changed)})
                 if r.changed:
-                    mods.append({"kind": "removal", "affected_nodes": r.affected_nodes, "ms": r.ms,
+                    mods.append({"kind": "removal", "affected_nodes": r.affected_nodes, "perturbation_nodes": r.perturbation_nodes, "ms": r.ms,
                                  "u_ms": r.smf_u_ms, "q_ms": r.smf_q_ms, "step": sim.step_count, "cleanup": True})
             n_before = len(sim.cutting.history)
             s = sim.step()
             wall = 1000.0 * (time.perf_counter() - t0)
             for r in sim.cutting.history[n_before:]:
                 if r.changed and r.message.startswith("cut"):
-                    mods.append({"kind": "cut", "affected_nodes": r.affected_nodes, "ms": r.ms, "u_ms": r.smf_u_ms,
+                    mods.append({"kind": "cut", "affected_nodes": r.affected_nodes, "perturbation_nodes": r.perturbation_nodes, "ms": r.ms, "u_ms": r.smf_u_ms,
                                  "q_ms": r.smf_q_ms, "step": sim.step_count})
             d = s.as_dict()
             rows.append({"step": sim.step_count, "wall_ms": wall, "total_ms": d["total_ms"] + d.get("cut_ms", 0.0)
@@ -330,6 +332,8 @@ def main(argv=None) -> int:
                     help="cutting scheme (default: the scene's)")
     ap.add_argument("--worker", default=None, choices=["thread", "process"],
                     help="where the async factorization runs (default: the scene's)")
+    ap.add_argument("--refresh-every", type=int, default=None,
+                    help="request a factor every this many steps (default: the scene's)")
     ap.add_argument("--synchronous", action="store_true",
                     help="factorize in the step that requests the factor (ldlt.deterministic), not in the background")
     ap.add_argument("--device", default=None)
@@ -340,7 +344,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     rows, mods, freed, finite, n_end, t_end, info = run(device, args.scene, args.turns, args.step_len,
                                                         args.max_cleanup, args.cleanup_radius, args.columns_on,
-                                                        args.scheme, args.worker, args.synchronous)
+                                                        args.scheme, args.worker, args.synchronous,
+                                                        args.refresh_every)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
     summary = {
@@ -350,6 +355,9 @@ def main(argv=None) -> int:
         "affected_nodes_mean": float(np.mean([m["affected_nodes"] for m in mods])) if mods else 0.0,
         **{f"affected_nodes_{k}s_mean": float(np.mean([m["affected_nodes"] for m in mods if m["kind"] == k]))
            for k in ("cut", "removal") if any(m["kind"] == k for m in mods)},
+        # the paper's "affecting 24 nodes": the nodes of N against the factor in use (eq. 5)
+        "perturbation_nodes_mean": float(np.mean([m["perturbation_nodes"] for m in mods])) if mods else 0.0,
+        "perturbation_nodes_median": float(np.median([m["perturbation_nodes"] for m in mods])) if mods else 0.0,
         "modification_every_steps": len(rows) / max(1, len(mods)),
         "iterations_mean": float(its.mean()), "iterations_max": int(its.max()),
         "converged_fraction": float(np.mean([r["converged"] for r in rows])),
@@ -372,6 +380,9 @@ def main(argv=None) -> int:
     summary["ldlt_worker"] = args.worker or str(((read_scene(args.scene)[0].get("solver") or {}).get("ldlt") or {})
                                                 .get("worker", "thread"))
     summary["ldlt_synchronous"] = bool(args.synchronous)
+    summary["refresh_every"] = args.refresh_every or int(((read_scene(args.scene)[0].get("solver") or {}).get("ldlt")
+                                                           or {}).get("refresh_every", 0))
+    summary["step_len_m"] = args.step_len
     summary["cutting_scheme"] = args.scheme or str((read_scene(args.scene)[0].get("cutting") or {}).get("scheme", "split"))
     result = {"summary": summary, "modifications": mods, "cleanup_bites": info["bites"], "steps_detail": rows}
     path = write_result("brain", device, result, args.out)

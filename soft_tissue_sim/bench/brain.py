@@ -210,6 +210,11 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
         n_tum = int((sim.mesh.material_ids == 1).sum())
         park = {k: v for k, v in acts[-1].items() if k != "phase"}  # instruments parked, pedal up
 
+        def record(kind, r, **extra):
+            """One modification's statistics (its own nodes and the nodes of N, the paper's measure)."""
+            return {"kind": kind, "affected_nodes": r.affected_nodes, "perturbation_nodes": r.perturbation_nodes,
+                    "ms": r.ms, "u_ms": r.smf_u_ms, "q_ms": r.smf_q_ms, "step": sim.step_count, **extra}
+
         def do(a, kind="removal"):
             sim.set_instrument_pose("probe", a["probe"], IDENTITY)
             sim.set_instrument_pose("scalpel", a["scalpel"], IDENTITY)
@@ -220,16 +225,13 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                 r, _ = spare_tumour_bite(sim, *a["remove"])
                 extra_ms = r.ms
                 if r.changed:
-                    mods.append({"kind": "removal", "affected_nodes": r.affected_nodes, "perturbation_nodes": r.perturbation_nodes, "ms": r.ms,
-                                 "u_ms": r.smf_u_ms, "q_ms": r.smf_q_ms, "step": sim.step_count,
-                                 "cleanup": kind == "cleanup"})
+                    mods.append(record("removal", r, cleanup=kind == "cleanup"))
             elif "extract" in a:  # lift the freed specimen out (en bloc resection)
                 r = sim.remove_tets(specimen_tets(sim))
                 extra_ms = r.ms
                 extracted.append(int(r.tets_changed) if r.changed else 0)
                 if r.changed:
-                    mods.append({"kind": "extraction", "affected_nodes": r.affected_nodes, "perturbation_nodes": r.perturbation_nodes, "ms": r.ms,
-                                 "u_ms": r.smf_u_ms, "q_ms": r.smf_q_ms, "step": sim.step_count})
+                    mods.append(record("extraction", r))
             elif "cleanup_tet" in a:
                 c = sim.positions()[sim.mesh.tets[a["cleanup_tet"]]].mean(axis=0)  # that tet's centroid
                 r, rad = spare_tumour_bite(sim, c, cleanup_radius)
@@ -237,15 +239,13 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                 bites.append({"step": sim.step_count, "center": c.tolist(), "radius": rad,
                               "tets": r.tets_changed, "changed": bool(r.changed)})
                 if r.changed:
-                    mods.append({"kind": "removal", "affected_nodes": r.affected_nodes, "perturbation_nodes": r.perturbation_nodes, "ms": r.ms,
-                                 "u_ms": r.smf_u_ms, "q_ms": r.smf_q_ms, "step": sim.step_count, "cleanup": True})
+                    mods.append(record("removal", r, cleanup=True))
             n_before = len(sim.cutting.history)
             s = sim.step()
             wall = 1000.0 * (time.perf_counter() - t0)
             for r in sim.cutting.history[n_before:]:
                 if r.changed and r.message.startswith("cut"):
-                    mods.append({"kind": "cut", "affected_nodes": r.affected_nodes, "perturbation_nodes": r.perturbation_nodes, "ms": r.ms, "u_ms": r.smf_u_ms,
-                                 "q_ms": r.smf_q_ms, "step": sim.step_count})
+                    mods.append(record("cut", r))
             d = s.as_dict()
             rows.append({"step": sim.step_count, "wall_ms": wall, "total_ms": d["total_ms"] + d.get("cut_ms", 0.0)
                          + d.get("contact_ms", 0.0) + extra_ms, "iterations": d["iterations"],

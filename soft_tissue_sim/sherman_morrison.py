@@ -318,5 +318,5 @@ class ShermanMorrisonCorrection:
 
     def stats(self) -> dict:
         s = {"smf_terms": len(self.terms), "smf_columns": int(sum(u.shape[1] for u, _, _ in self.terms)),
-             "pending_modifications": len(self.mods), "perturbation_nodes": self.perturbation_nodes()}
+             "pending_modifications": len(self.mods)}
         return s

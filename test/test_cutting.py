@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import scipy.sparse as sps
 import scipy.sparse.linalg as spla
 
 from soft_tissue_sim import load_scene
@@ -148,7 +149,6 @@ def test_cut_separates_the_two_sides_and_conserves_mass():
         assert abs(sim.fem.total_mass - m0) < 1e-12 * m0
         # the crosswise cut splits the body in two connected components
         from scipy.sparse.csgraph import connected_components
-        import scipy.sparse as sps
 
         T = sim.mesh.tets
         rows = np.repeat(T, 4, axis=1).ravel()
@@ -472,8 +472,6 @@ def _uid_matrix(A, uids, size):
     """A (3n x 3n) moved to node-uid numbering (3 size x 3 size)."""
     idx = (3 * np.repeat(uids, 3) + np.tile(np.arange(3), len(uids))).astype(np.int64)
     C = A.tocoo()
-    import scipy.sparse as sps
-
     return sps.csr_matrix((C.data, (idx[C.row], idx[C.col])), shape=(3 * size, 3 * size))
 
 

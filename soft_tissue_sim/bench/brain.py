@@ -376,14 +376,14 @@ def main(argv=None) -> int:
     }
     prog.update(1, f"{summary['modifications']} modifications, {summary['iterations_mean']:.2f} it, "
                    f"{summary['fps_mean']:.1f} FPS")
+    cfg = read_scene(args.scene)[0]
+    ldlt = (cfg.get("solver") or {}).get("ldlt") or {}
     summary["columns_on"] = args.columns_on
-    summary["ldlt_worker"] = args.worker or str(((read_scene(args.scene)[0].get("solver") or {}).get("ldlt") or {})
-                                                .get("worker", "thread"))
+    summary["ldlt_worker"] = args.worker or str(ldlt.get("worker", "thread"))
     summary["ldlt_synchronous"] = bool(args.synchronous)
-    summary["refresh_every"] = args.refresh_every or int(((read_scene(args.scene)[0].get("solver") or {}).get("ldlt")
-                                                           or {}).get("refresh_every", 0))
+    summary["refresh_every"] = args.refresh_every or int(ldlt.get("refresh_every", 0))
     summary["step_len_m"] = args.step_len
-    summary["cutting_scheme"] = args.scheme or str((read_scene(args.scene)[0].get("cutting") or {}).get("scheme", "split"))
+    summary["cutting_scheme"] = args.scheme or str((cfg.get("cutting") or {}).get("scheme", "split"))
     result = {"summary": summary, "modifications": mods, "cleanup_bites": info["bites"], "steps_detail": rows}
     path = write_result("brain", device, result, args.out)
     result["device"] = json.load(open(path))["device"]

@@ -240,13 +240,15 @@ def _path_planes(tris):
 def edge_crossings(P, edges, tris, tol):
     """For edges (e, 2) of points P: the parameter t in (0, 1) where each crosses one of the
     blade triangles strictly (its end points on opposite sides of the triangle's plane, the
-    crossing point inside the triangle up to ``tol``), NaN where it crosses none."""
+    crossing point inside the triangle up to ``tol``), NaN where it crosses none; and the index
+    of that triangle among the non-degenerate ones (-1 where none)."""
     t_out = np.full(len(edges), np.nan)
+    which = np.full(len(edges), -1, np.int64)
     if not len(edges):
-        return t_out
+        return t_out, which
     tris, nrm = _path_planes(tris)
     X0, X1 = P[edges[:, 0]], P[edges[:, 1]]
-    for (a, b, c), n in zip(tris, nrm):
+    for k, ((a, b, c), n) in enumerate(zip(tris, nrm)):
         d0, d1 = (X0 - a) @ n, (X1 - a) @ n
         cross = (d0 * d1 < 0.0) & np.isnan(t_out)
         if not cross.any():
@@ -256,10 +258,12 @@ def edge_crossings(P, edges, tris, tol):
         q = X0[idx] + t[:, None] * (X1[idx] - X0[idx])
         inside = _points_in_triangle(q, a, b, c, tol)
         t_out[idx[inside]] = t[inside]
-    return t_out
+        which[idx[inside]] = k
+    return t_out, which
 
 
-def subdivide_for_cut(P, tets, tris, snap: float, tol: float):
+def subdivide_for_cut(P, tets, tris, snap: float, tol: float, on_cut=None, normals=None, tri_normals=None,
+                      offsets=None):
     """Refine the tets the blade crosses so that its triangles cut no edge of the mesh any more
     (progressive cutting by subdivision, after Mor & Kanade; paper section 3.1).
 
@@ -268,38 +272,126 @@ def subdivide_for_cut(P, tets, tris, snap: float, tol: float):
     around an edge keeps the mesh conforming, a bisected tet keeps its orientation, and no new
     edge crosses the blade (each has an end on it). A crossing closer than ``snap`` (a
     fraction of the edge) to an end point is not split: that end point is taken as on the cut
-    (no sliver is created).
+    (no sliver is created), and no other edge at a node snapped in this sweep is split.
 
-    Returns (tets, parent, fresh, edge_a, edge_b, edge_t): the new nodes are numbered from n
-    on, new node k at (1 - t) P[a_k] + t P[b_k]; ``parent`` (m',) is the old tet each tet comes
-    from, ``fresh`` (m',) whether it is a new (bisected) one.
+    ``on_cut`` (n,) marks the nodes already on this cut (earlier sweeps of the same stroke) and
+    ``normals`` (n, 3) their cut's normal there and ``offsets`` (n,) their signed distance to
+    it (0 for a crossing, the distance to the blade for a node a crossing snapped to): an edge
+    with both ends on the cut lies on it and is not split again. ``tri_normals`` (T, 3): the
+    oriented normals of the (non-degenerate) blade triangles (default: their own), given to the
+    nodes they put on the cut.
+
+    Returns (tets, parent, fresh, edge_a, edge_b, edge_t, on, normals, offsets, edge_normals):
+    the new nodes are numbered from n on, new node k at (1 - t) P[a_k] + t P[b_k]; ``parent``
+    (m',) is the old tet each tet comes from, ``fresh`` (m',) whether it is a new (bisected)
+    one; ``on``, ``normals`` and ``offsets`` the old nodes' cut state after this sweep,
+    ``edge_normals`` the new nodes' normals (their offsets are 0).
     """
     tets = np.asarray(tets, dtype=np.int64)
     parent = np.arange(len(tets))
     fresh = np.zeros(len(tets), bool)
     tris = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
     none = np.zeros(0, np.int64)
+    on = np.zeros(len(P), bool) if on_cut is None else np.asarray(on_cut, bool).copy()
+    normals = np.zeros((len(P), 3)) if normals is None else np.asarray(normals, np.float64).copy()
+    offsets = np.zeros(len(P)) if offsets is None else np.asarray(offsets, np.float64).copy()
     if not len(tris):
-        return tets, parent, fresh, none, none, np.zeros(0)
+        return tets, parent, fresh, none, none, np.zeros(0), on, normals, offsets, np.zeros((0, 3))
+    if tri_normals is None:
+        tri_normals = _path_planes(tris)[1]
     lo, hi = tris.min(axis=(0, 1)) - tol, tris.max(axis=(0, 1)) + tol
     X = P[tets]
     near = np.all((X.max(axis=1) >= lo) & (X.min(axis=1) <= hi), axis=1)
     E = unique_rows(np.sort(tets[near][:, _TET_EDGES].reshape(-1, 2), axis=1))
-    t = edge_crossings(P, E, tris, tol)
+    # nodes lying on a blade triangle are on the cut (a blade through mesh nodes crosses no edge)
+    V = np.unique(tets[near])
+    for k, ((a, b, c), nk) in enumerate(zip(tris, tri_normals)):
+        d = (P[V] - a) @ nk
+        lie = np.abs(d) <= tol
+        if lie.any():
+            w = V[lie][_points_in_triangle(P[V[lie]], a, b, c, tol) & ~on[V[lie]]]
+            on[w], normals[w], offsets[w] = True, nk, 0.0
+    E = E[~(on[E[:, 0]] & on[E[:, 1]])]  # edges lying on the cut already
+    t, which = edge_crossings(P, E, tris, tol)
     crossed = np.isfinite(t)
-    E, t = E[crossed], t[crossed]
-    on = np.zeros(len(P), bool)  # snapping: a crossing near an end point puts that end point on the cut
-    on[E[t < snap, 0]] = True
-    on[E[t > 1.0 - snap, 1]] = True
-    split = ~on[E[:, 0]] & ~on[E[:, 1]]
-    E, t = E[split], t[split]
+    E, t, which = E[crossed], t[crossed], which[crossed]
+    # snapping: a crossing near an end point puts that end point on the cut
+    snapped = np.zeros(len(P), bool)
+    for end, near_end in ((0, t < snap), (1, t > 1.0 - snap)):
+        v = E[near_end, end]
+        new = ~on[v]
+        snapped[v[new]] = True
+        k = which[near_end][new]
+        normals[v[new]] = tri_normals[k]
+        offsets[v[new]] = np.einsum("kd,kd->k", P[v[new]] - tris[k, 0], tri_normals[k])
+    on |= snapped
+    split = (t >= snap) & (t <= 1.0 - snap) & ~snapped[E[:, 0]] & ~snapped[E[:, 1]]
+    E, t, which = E[split], t[split], which[split]
     for (i, j), p in zip(E, len(P) + np.arange(len(E))):
         has = np.any(tets == i, axis=1) & np.any(tets == j, axis=1)
         T = tets[has]
         tets = np.concatenate([tets[~has], np.where(T == j, p, T), np.where(T == i, p, T)])
         parent = np.concatenate([parent[~has], parent[has], parent[has]])
         fresh = np.concatenate([fresh[~has], np.ones(2 * len(T), bool)])
-    return tets, parent, fresh, E[:, 0], E[:, 1], t
+    return tets, parent, fresh, E[:, 0], E[:, 1], t, on, normals, offsets, tri_normals[which]
+
+
+def tet_sides(P, tets, on, normals, offsets, pairs, fnodes):
+    """Side (+1 / -1) of each tet with respect to the cut through its nodes on it (``on``,
+    with their cut's ``normals``, consistently oriented along a stroke, and ``offsets``).
+
+    A tet with one node off the cut: the sign of that node's offset from the mean of the others
+    along their mean normal. A tet with all four nodes on the cut (nodes snapped to it, or
+    crossings of sweeps made while the tissue moved): it joins the side it shares the most face
+    area with (``pairs``, ``fnodes``: the interior faces' tets and nodes; propagated through
+    clusters of such tets),
+    else the sign of its nodes' offsets, else +. So it is never shaved off alone. A tet with
+    fewer than three nodes on the cut gets 0 (it holds no face of the cut)."""
+    on_t = on[tets]
+    k = on_t.sum(axis=1)
+    side = np.zeros(len(tets))
+    three = np.flatnonzero(k == 3)
+    if len(three):
+        T, o = tets[three], on_t[three]
+        X = P[T]
+        m_on = np.einsum("kj,kjd->kd", o, X) / 3.0
+        x_off = X[~o].reshape(-1, 3)
+        n = np.einsum("kj,kjd->kd", o, normals[T])
+        side[three] = np.sign(np.einsum("kd,kd->k", x_off - m_on, n))
+    undecided = k == 4
+    if undecided.any():
+        sel = undecided[pairs[:, 0]] | undecided[pairs[:, 1]]
+        pa, pb = pairs[sel, 0], pairs[sel, 1]
+        F = P[fnodes[sel]]
+        area = 0.5 * np.linalg.norm(np.cross(F[:, 1] - F[:, 0], F[:, 2] - F[:, 0]), axis=1)
+        for _ in range(64):
+            vote = np.zeros(len(tets))
+            np.add.at(vote, pa, area * side[pb] * undecided[pa])
+            np.add.at(vote, pb, area * side[pa] * undecided[pb])
+            now = undecided & (vote != 0.0)
+            if not now.any():
+                break
+            side[now] = np.sign(vote[now])
+            undecided &= ~now
+        rest = np.flatnonzero(undecided)
+        side[rest] = np.where(offsets[tets[rest]].sum(axis=1) < 0.0, -1.0, 1.0)
+    return side
+
+
+def faces_on_cut(P, tets, on, normals, offsets):
+    """The interior faces a progressive (subdivision) cut separates: faces whose three nodes are
+    all on the cut (the crossings of this stroke and the nodes they snapped to) between tets on
+    opposite sides of it (:func:`tet_sides`). Topological and over the whole stroke, so a face
+    the blade passed over several sweeps is separated once its last node reaches the cut, and
+    the crack stops inside the elements the blade is still crossing (their faces have a node off
+    the cut). Returns (pairs, face nodes, mask)."""
+    pairs, fnodes = interior_faces(tets)
+    cut = np.all(on[fnodes], axis=1)
+    if cut.any():
+        k = np.flatnonzero(cut)
+        side = tet_sides(P, tets, on, normals, offsets, pairs, fnodes)
+        cut[k] = side[pairs[k, 0]] * side[pairs[k, 1]] < 0.0
+    return pairs, fnodes, cut
 
 
 def faces_cut_by_triangles(P, tets, tris, tol, on_plane: float | None = None):
@@ -355,6 +447,8 @@ class Cutter:
                                            # subdivide: split the crossed edges first (Mor-Kanade)
           snap: 0.2                        # subdivide: a crossing closer than this fraction of
                                            # its edge to an end snaps to that end (no slivers)
+          lead: 0.001                      # subdivide: a sweep cuts this far ahead of the blade's
+                                           # axis [m] (default: twice the instrument's radius)
           script:                          # planned cuts: a plane patch that advances every few steps
             {frame: rest, start_step: 1, every: 3, count: 40,
              origin: [x, y, z], edge: [ex, ey, ez], direction: [dx, dy, dz], advance: 0.01}
@@ -363,7 +457,7 @@ class Cutter:
     def __init__(self, sim, cfg):
         cfg = dict(cfg) if isinstance(cfg, dict) else {}
         unknown = set(cfg) - {"instrument", "correction", "min_quality", "tolerance", "script", "enabled",
-                            "min_fragment", "scheme", "snap"}
+                            "min_fragment", "scheme", "snap", "lead"}
         if unknown:
             raise ParameterError(f"unknown cutting keys: {sorted(unknown)}")
         self.instrument = cfg.get("instrument")
@@ -386,6 +480,10 @@ class Cutter:
         self.snap = float(cfg.get("snap", 0.2))
         if not 0.0 < self.snap < 0.5:
             raise ParameterError(f"cutting snap must be in (0, 0.5), got {self.snap}")
+        lead = cfg.get("lead")
+        if lead is not None and not (isinstance(lead, (int, float)) and np.isfinite(lead) and lead >= 0.0):
+            raise ParameterError(f"cutting lead must be a distance >= 0 [m], got {lead!r}")
+        self.lead = None if lead is None else float(lead)
         self.script = self._parse_script(cfg.get("script"))
         self.active = False
         self.correction = None
@@ -397,6 +495,7 @@ class Cutter:
         self._reset_counters()
 
     def _reset_counters(self):
+        self._strokes: dict[str, np.ndarray] = {}  # subdivide: uids of the nodes on each stroke's cut
         self.modifications = 0
         self.history: list[CutResult] = []
         self._blade_at_last_cut = None
@@ -449,6 +548,31 @@ class Cutter:
         if self.correction is not None:
             self.correction.clear()
 
+    def _lead(self, sim) -> float:
+        """How far ahead of its axis a sweep of the blade cuts (subdivide): the blade's capsule
+        pushes the tissue it meets, so an edge ahead of a slow blade slides along in front of it
+        and is never crossed (a beam swept at 0.3-0.6 mm a step stayed whole). Default: twice
+        the capsule's radius (its radius alone was not enough there; 2.5 radii put the new
+        nodes millimetres off the blade as the crack opened ahead of it)."""
+        if self.lead is not None:
+            return self.lead
+        if self.scheme != "subdivide":
+            return 0.0
+        return 2.0 * float(getattr(self._instrument(sim), "radius", 0.0))
+
+    def _instrument(self, sim):
+        if sim.contact is None:
+            return None
+        insts = getattr(sim.contact, "instruments", None)
+        if insts is None:
+            return None
+        items = insts.values() if isinstance(insts, dict) else insts
+        for inst in items:
+            if (self.instrument is None or getattr(inst, "name", None) == self.instrument) and \
+                    getattr(inst, "blade_world", None) is not None:
+                return inst
+        return None
+
     def _blade(self, sim):
         """(p0, p1) world endpoints of the cutting instrument's blade, or None."""
         if sim.contact is None:
@@ -474,8 +598,14 @@ class Cutter:
         prev = self._blade_at_last_cut
         self._blade_at_last_cut = blade
         if prev is None:
+            self._strokes.pop("blade", None)  # a new stroke of the blade
             return CutResult(False, "blade position recorded; the next cut follows its path from here")
-        return self.cut_triangles(sim, sweep_triangles(prev[0], prev[1], blade[0], blade[1]), frame="world")
+        q0, q1 = blade
+        d = 0.5 * ((q0 - prev[0]) + (q1 - prev[1]))
+        lead, dn = self._lead(sim), float(np.linalg.norm(d))
+        if lead > 0.0 and dn > 0.0:  # cut what the blade's capsule reaches ahead of its axis
+            q0, q1 = q0 + lead * d / dn, q1 + lead * d / dn
+        return self.cut_triangles(sim, sweep_triangles(prev[0], prev[1], q0, q1), frame="world", stroke="blade")
 
     def step(self, sim) -> dict:
         """Per step: scripted cuts due now, and the blade's sweep while cutting is active."""
@@ -484,7 +614,8 @@ class Cutter:
         if s is not None and self._script_done < s["count"]:
             k = sim.step_count - s["start_step"]
             if k >= 0 and k % s["every"] == 0:
-                results.append(self.cut_triangles(sim, self.scripted_triangles(self._script_done), frame=s["frame"]))
+                results.append(self.cut_triangles(sim, self.scripted_triangles(self._script_done), frame=s["frame"],
+                                                  stroke="script"))
                 self._script_done += 1
         if self.active:
             results.append(self.cut(sim))
@@ -501,14 +632,17 @@ class Cutter:
         }
 
     # ------------------------------------------------------------- cutting
-    def cut_triangles(self, sim, triangles, frame: str = "world") -> CutResult:
+    def cut_triangles(self, sim, triangles, frame: str = "world", stroke: str | None = None) -> CutResult:
         """Cut along blade triangles (k, 3, 3), given in the current (world) or rest frame.
 
         ``subdivide``: first the crossed edges are split and their tets bisected
-        (:func:`subdivide_for_cut`); then, on that mesh, the faces the blade separates are split
-        as in the ``split`` scheme (:func:`faces_cut_by_triangles`, :func:`split_along_faces`).
-        Where the blade is still inside an element the refinement alone is the modification: the
-        crack opens once the blade has passed a whole face."""
+        (:func:`subdivide_for_cut`); then, on that mesh, the faces whose nodes are all on the
+        cut are split as in the ``split`` scheme (:func:`faces_on_cut`,
+        :func:`split_along_faces`). Where the blade is still inside an element the refinement
+        alone is the modification: the crack opens once the blade has passed a whole face.
+        ``stroke`` names a cut made of successive sweeps (the blade while the pedal is down, a
+        script): the nodes on its cut are remembered between sweeps (the per-element cut state
+        of progressive cutting); None: this call alone."""
         t0 = time.perf_counter()
         tris = np.asarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
         if not np.all(np.isfinite(tris)):
@@ -527,13 +661,35 @@ class Cutter:
         tets = mesh.tets.astype(np.int64)
         tol = self.tolerance + 1e-9 * float(np.ptp(mesh.points, axis=0).max())
         if self.scheme == "subdivide":
-            work, parent, fresh, ea, eb, et = subdivide_for_cut(pts, tets, tris, self.snap, tol)
+            st = self._strokes.get(stroke) if stroke is not None else None
+            tris_ok, tri_n = _path_planes(tris)
+            ref = None if st is None else st["last"]
+            if ref is not None:  # orient the blade's normals along the stroke (the motion may reverse)
+                tri_n = tri_n * np.where(tri_n @ ref < 0.0, -1.0, 1.0)[:, None]
+            elif len(tri_n) > 1:
+                tri_n = tri_n * np.where(tri_n @ tri_n[0] < 0.0, -1.0, 1.0)[:, None]
+            on0, nrm0, off0 = np.zeros(n, bool), np.zeros((n, 3)), np.zeros(n)
+            if st is not None and len(st["uids"]):
+                order = np.argsort(st["uids"])
+                k = np.minimum(np.searchsorted(st["uids"], sim.node_uids, sorter=order), len(order) - 1)
+                on0 = st["uids"][order[k]] == sim.node_uids
+                nrm0[on0] = st["normals"][order[k[on0]]]
+                off0[on0] = st["offsets"][order[k[on0]]]
+            work, parent, fresh, ea, eb, et, on, nrm, off, e_nrm = subdivide_for_cut(
+                pts, tets, tris_ok, self.snap, tol, on0, nrm0, tri_n, off0)
+            P = np.concatenate([pts, (1.0 - et)[:, None] * pts[ea] + et[:, None] * pts[eb]])
+            on_w, nrm_w = np.concatenate([on, np.ones(len(ea), bool)]), np.concatenate([nrm, e_nrm])
+            off_w = np.concatenate([off, np.zeros(len(ea))])
+            pairs, fnodes, cut = faces_on_cut(P, work, on_w, nrm_w, off_w)
+            if stroke is not None:  # the old nodes on the cut, whatever happens below (new ones added on commit)
+                m = tri_n.sum(axis=0)
+                self._strokes[stroke] = {"uids": sim.node_uids[on], "normals": nrm[on], "offsets": off[on],
+                                         "last": m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else ref}
         else:
             work, parent, fresh = tets, np.arange(len(tets)), np.zeros(len(tets), bool)
             ea, eb, et = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-        P = np.concatenate([pts, (1.0 - et)[:, None] * pts[ea] + et[:, None] * pts[eb]])
-        pairs, fnodes, cut = faces_cut_by_triangles(P, work, tris, tol,
-                                                    on_plane=self.snap if self.scheme == "subdivide" else None)
+            P = pts
+            pairs, fnodes, cut = faces_cut_by_triangles(P, work, tris, tol)
         new_tets, dup = work, np.zeros(0, np.int64)
         if cut.any():
             new_tets, dup = split_along_faces(work, pairs[cut], fnodes[cut], pairs, fnodes, len(P))
@@ -553,6 +709,14 @@ class Cutter:
         res = self._commit(sim, new_tets, (a, b, t), removed_ids, np.flatnonzero(~same), keep=np.arange(n),
                            mats=mesh.material_ids[parent])
         res.faces_cut = int(cut.sum())
+        if res.changed and stroke is not None and self.scheme == "subdivide":
+            # every new node is on the cut: the crossings and the copies of nodes of cut faces
+            st = self._strokes[stroke]
+            new_uids = sim.node_uids[n:]  # the edge nodes, then the copies (debris goes below)
+            st["uids"] = np.concatenate([st["uids"], new_uids])
+            src = np.concatenate([np.arange(n, n + len(ea)), dup])
+            st["normals"] = np.concatenate([st["normals"], nrm_w[src]])
+            st["offsets"] = np.concatenate([st["offsets"], off_w[src]])
         if res.changed and len(ea):
             res.message = res.message.replace("cut:", "cut (subdivision):", 1)
             if not len(dup):

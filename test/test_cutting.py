@@ -507,10 +507,7 @@ def test_perturbation_nodes_are_the_nodes_where_the_matrix_left_the_factor():
 
 
 @pytest.mark.parametrize("scheme, step", [
-    ("split", 0.0006), ("split", 0.0012), ("subdivide", 0.0012),
-    pytest.param("subdivide", 0.0006, marks=pytest.mark.xfail(
-        strict=True, reason="known limit (README): the subdivide scheme forgets faces a slow blade "
-                            "passes in pieces over several sweeps, so the beam is not parted")),
+    ("split", 0.0006), ("split", 0.0012), ("subdivide", 0.0012), ("subdivide", 0.0006), ("subdivide", 0.0003),
 ])
 def test_a_blade_swept_across_the_beam_parts_it(scheme, step):
     """A vertical blade swept across the whole width of the beam (pedal down) parts it in two:

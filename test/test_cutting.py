@@ -418,8 +418,43 @@ def test_a_blade_swept_in_small_steps_cuts_along_its_path(scheme):
             assert dy > 0.2 * 0.01  # on faces of the mesh, off the blade
 
 
+def test_a_closed_ring_cut_parts_a_column_out_of_a_block():
+    """Subdivision with the stroke's cut state: a vertical blade taller than a 5 cm block goes
+    once around a 15 mm circle (0.6 mm a step, the path closing on itself). The block parts in
+    exactly two pieces, no loose fragment, and the inner one is the cylinder of the circle: its
+    rest volume within 15 % of pi R^2 h, its nodes within one element of the circle."""
+    cfg = beam_scene(n_long=6, n_cross=6, scheme="subdivide", gravity=(0.0, 0.0, 0.0))
+    cfg["cutting"].update({"instrument": "scalpel", "min_fragment": 0})  # nothing hidden as debris
+    cfg["instruments"] = [{"name": "scalpel", "shape": "capsule", "radius": 0.0005, "length": 0.2,
+                           "blade": [[0, 0, 0], [0, 0, 0.1]],
+                           "pose": {"position": [0.0, 0.0, 0.3], "orientation": [0, 0, 0, 1]}}]
+    with load_scene(cfg) as sim:
+        P = sim.mesh.points
+        c, R, h = 0.5 * (P.min(axis=0) + P.max(axis=0)), 0.015, np.ptp(P[:, 2])
+        zb = P[:, 2].min() - 0.002
+        n = int(np.ceil(2 * np.pi * R / 0.0006))
+        sim.set_cutting(True)
+        for k in range(n + 2):
+            a = 2 * np.pi * k / n
+            sim.set_instrument_pose("scalpel", [c[0] + R * np.cos(a), c[1] + R * np.sin(a), zb], [0, 0, 0, 1])
+            assert sim.step().converged
+        sim.set_cutting(False)
+        mesh = sim.mesh
+        lab = mesh.node_components()
+        sizes = np.bincount(lab)
+        assert len(sizes) == 2, sizes
+        inner = np.argmin(sizes)
+        in_tets = lab[mesh.tets[:, 0]] == inner
+        vol = np.abs(mesh.signed_volumes()[in_tets]).sum()
+        assert abs(vol / (np.pi * R ** 2 * h) - 1.0) < 0.15
+        r = np.linalg.norm(mesh.points[:, :2] - c[:2], axis=1)
+        assert r[lab == inner].max() < R + 0.01 and r[lab != inner].min() > R - 0.01
+        assert tet_quality(mesh.points, mesh.tets).min() >= sim.cutting.min_quality
+
+
 @pytest.mark.parametrize("extra, match", [
     ({"scheme": "mor-kanade"}, "scheme"), ({"snap": 0.5}, "snap"), ({"snap": 0}, "snap"),
+    ({"lead": -0.001}, "lead"), ({"lead": float("nan")}, "lead"), ({"lead": "far"}, "lead"),
 ])
 def test_bad_cutting_options_are_refused(extra, match):
     from soft_tissue_sim import ParameterError

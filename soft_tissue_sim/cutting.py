@@ -24,13 +24,18 @@ node at the crossing (its rest and current position and its velocity interpolate
 edge, so the displacement field is unchanged), and every tet holding that edge is bisected
 there: the edge bisection of all the tets around an edge keeps the mesh conforming, and
 once the crossed edges are split no edge crosses the blade, so the blade inside the body
-lies on faces. Then the split rule above runs on the refined mesh and separates the faces
-the blade has passed. While the blade is inside an element (it has crossed some of its edges,
-no whole face yet) the refinement alone is the step's modification; the crack opens as the
-blade moves on. A crossing closer than ``snap`` (a fraction of its edge) to an end point is
-not split (that end point is taken as on the cut), which avoids slivers; ``min_quality``
-refuses any change that would still go below the floor. More nodes per modification (the
-new ones), a modification at nearly every step of a moving blade, and the mesh grows.
+lies on faces. A crossing closer than ``snap`` (a fraction of its edge) to an end point is
+not split: that end point is taken as on the cut, which avoids slivers; ``min_quality``
+refuses any change that would still go below the floor. A stroke (the blade while the pedal
+is down, a script) keeps its cut state between sweeps: the nodes on its cut, with the
+blade's normal there (oriented along the stroke) and their offset from it. A face is
+separated, by the node splitting above, once its three nodes are on the cut and its two tets
+lie on opposite sides (:func:`faces_on_cut`): a face the blade passed over several sweeps is
+separated when its last node reaches the cut, and while the blade is inside an element (some
+of its faces keep a node off the cut) the refinement alone is the step's modification: the
+crack tip's partial state. A sweep cuts ``lead`` ahead of the blade (its capsule pushes the
+tissue ahead of it). More nodes per modification (the new ones), a modification at nearly
+every step of a moving blade, and the mesh grows.
 
 Element removal (ablation, aspiration) deletes the tets whose centroid lies in a sphere;
 nodes left without a tet are deleted and the rest renumbered (uids keep their identity for
@@ -394,18 +399,13 @@ def faces_on_cut(P, tets, on, normals, offsets):
     return pairs, fnodes, cut
 
 
-def faces_cut_by_triangles(P, tets, tris, tol, on_plane: float | None = None):
-    """The interior faces a blade separates: for each blade triangle, the faces between tets
-    on opposite sides of its plane (the sign of their centroid's distance) of which at least
-    one is intersected (its section overlaps the triangle). With ``on_plane``, only the faces
-    lying on that plane (each node within ``on_plane`` times the face's longest edge of it):
-    after a subdivision, the faces of the blade, not the staircase of faces around the tets
-    the blade has not crossed yet. Returns (pairs, face nodes, mask)."""
+def faces_cut_by_triangles(P, tets, tris, tol):
+    """The interior faces a blade separates (``split``): for each blade triangle, the faces
+    between tets on opposite sides of its plane (the sign of their centroid's distance) of which
+    at least one is intersected (its section overlaps the triangle). Returns (pairs, face
+    nodes, mask)."""
     pairs, fnodes = interior_faces(tets)
     cut = np.zeros(len(pairs), bool)
-    if on_plane is not None:
-        F = P[fnodes]
-        reach = on_plane * np.max(np.linalg.norm(F - F[:, [1, 2, 0]], axis=2), axis=1)
     for tri in tris:
         hit, side = tets_cut_by_triangle(P, tets, tri, tol)
         if side is None or not len(hit):
@@ -413,14 +413,7 @@ def faces_cut_by_triangles(P, tets, tris, tol, on_plane: float | None = None):
         is_hit = np.zeros(len(tets), bool)
         is_hit[hit] = True
         sa, sb = side[pairs[:, 0]] >= 0.0, side[pairs[:, 1]] >= 0.0
-        faces = (sa != sb) & (is_hit[pairs[:, 0]] | is_hit[pairs[:, 1]])
-        if on_plane is not None and faces.any():
-            a, b, c = (np.asarray(v, dtype=np.float64) for v in tri)
-            nrm = np.cross(b - a, c - a)
-            nrm /= np.linalg.norm(nrm)
-            k = np.flatnonzero(faces)
-            faces[k] = np.all(np.abs((F[k] - a) @ nrm) <= reach[k, None], axis=1)
-        cut |= faces
+        cut |= (sa != sb) & (is_hit[pairs[:, 0]] | is_hit[pairs[:, 1]])
     return pairs, fnodes, cut
 
 

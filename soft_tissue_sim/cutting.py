@@ -349,9 +349,8 @@ def tet_sides(P, tets, on, normals, offsets, pairs, fnodes):
     along their mean normal. A tet with all four nodes on the cut (nodes snapped to it, or
     crossings of sweeps made while the tissue moved): it joins the side it shares the most face
     area with (``pairs``, ``fnodes``: the interior faces' tets and nodes; propagated through
-    clusters of such tets),
-    else the sign of its nodes' offsets, else +. So it is never shaved off alone. A tet with
-    fewer than three nodes on the cut gets 0 (it holds no face of the cut)."""
+    clusters of such tets), else the sign of its nodes' offsets, else +. So it is never shaved
+    off alone. A tet with fewer than three nodes on the cut gets 0 (it holds no face of it)."""
     on_t = on[tets]
     k = on_t.sum(axis=1)
     side = np.zeros(len(tets))
@@ -554,20 +553,7 @@ class Cutter:
         return 2.0 * float(getattr(self._instrument(sim), "radius", 0.0))
 
     def _instrument(self, sim):
-        if sim.contact is None:
-            return None
-        insts = getattr(sim.contact, "instruments", None)
-        if insts is None:
-            return None
-        items = insts.values() if isinstance(insts, dict) else insts
-        for inst in items:
-            if (self.instrument is None or getattr(inst, "name", None) == self.instrument) and \
-                    getattr(inst, "blade_world", None) is not None:
-                return inst
-        return None
-
-    def _blade(self, sim):
-        """(p0, p1) world endpoints of the cutting instrument's blade, or None."""
+        """The cutting instrument: the scene's (named) instrument that has a blade, or None."""
         if sim.contact is None:
             return None
         insts = getattr(sim.contact, "instruments", None)
@@ -577,11 +563,17 @@ class Cutter:
         for inst in items:
             if self.instrument is None or getattr(inst, "name", None) == self.instrument:
                 fn = getattr(inst, "blade_world", None)
-                if fn is not None:
-                    b = fn()
-                    if b is not None:
-                        return np.asarray(b[0], dtype=np.float64), np.asarray(b[1], dtype=np.float64)
+                if fn is not None and fn() is not None:
+                    return inst
         return None
+
+    def _blade(self, sim):
+        """(p0, p1) world endpoints of the cutting instrument's blade, or None."""
+        inst = self._instrument(sim)
+        if inst is None:
+            return None
+        b = inst.blade_world()
+        return np.asarray(b[0], dtype=np.float64), np.asarray(b[1], dtype=np.float64)
 
     def cut(self, sim) -> CutResult:
         """Cut along the blade's path since the last cut (or since the blade was first seen)."""

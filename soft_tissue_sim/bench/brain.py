@@ -188,7 +188,7 @@ def spare_tumour_bite(sim, center, radius: float):
 
 
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
-        columns_on="auto", scheme=None, worker=None, synchronous=False, refresh_every=None):
+        columns_on="auto", scheme=None, worker=None, synchronous=False, refresh_every=None, snap=None):
     cfg = read_scene(scene)[0]
     solver = dict(cfg.get("solver") or {})
     solver["ldlt"] = {**(solver.get("ldlt") or {}), "columns_on": columns_on}
@@ -201,6 +201,8 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
     overrides = {"solver": solver}
     if scheme is not None:
         overrides["cutting"] = {"scheme": scheme}
+    if snap is not None:
+        overrides.setdefault("cutting", {})["snap"] = float(snap)
     sim = load_scene(scene, device=device, overrides=overrides)
     rows, mods, bites, extracted = [], [], [], []
     try:
@@ -330,6 +332,8 @@ def main(argv=None) -> int:
                     help="where blocks of columns (contact's W, U after a cut) are solved")
     ap.add_argument("--scheme", default=None, choices=["split", "subdivide"],
                     help="cutting scheme (default: the scene's)")
+    ap.add_argument("--snap", type=float, default=None,
+                    help="subdivide: snap a crossing to an edge's end within this fraction (default: the scene's)")
     ap.add_argument("--worker", default=None, choices=["thread", "process"],
                     help="where the async factorization runs (default: the scene's)")
     ap.add_argument("--refresh-every", type=int, default=None,
@@ -345,7 +349,7 @@ def main(argv=None) -> int:
     rows, mods, freed, finite, n_end, t_end, info = run(device, args.scene, args.turns, args.step_len,
                                                         args.max_cleanup, args.cleanup_radius, args.columns_on,
                                                         args.scheme, args.worker, args.synchronous,
-                                                        args.refresh_every)
+                                                        args.refresh_every, args.snap)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
     summary = {
@@ -384,6 +388,7 @@ def main(argv=None) -> int:
     summary["refresh_every"] = args.refresh_every or int(ldlt.get("refresh_every", 0))
     summary["step_len_m"] = args.step_len
     summary["cutting_scheme"] = args.scheme or str((cfg.get("cutting") or {}).get("scheme", "split"))
+    summary["snap"] = args.snap if args.snap is not None else float((cfg.get("cutting") or {}).get("snap", 0.2))
     result = {"summary": summary, "modifications": mods, "cleanup_bites": info["bites"], "steps_detail": rows}
     path = write_result("brain", device, result, args.out)
     result["device"] = json.load(open(path))["device"]

@@ -62,6 +62,9 @@ from .sherman_morrison import ShermanMorrisonCorrection, modification_from_block
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 CORRECTIONS = ("sherman_morrison", "none")
 SCHEMES = ("split", "subdivide")
+# subdivide: a crossing within this fraction of its edge snaps to the end. At 0.2 the brain took
+# 6.2-10.9 PCG iterations and twice the contacts, against 4.3-4.7 at 0.35 (README).
+DEFAULT_SNAP = 0.35
 
 
 @dataclass
@@ -437,7 +440,7 @@ class Cutter:
                                            # removed as debris (0: keep every fragment)
           scheme: split                    # split: separate along existing faces (node splitting);
                                            # subdivide: split the crossed edges first (Mor-Kanade)
-          snap: 0.2                        # subdivide: a crossing closer than this fraction of
+          snap: 0.35                       # subdivide: a crossing closer than this fraction of
                                            # its edge to an end snaps to that end (no slivers)
           lead: 0.001                      # subdivide: a sweep cuts this far ahead of the blade's
                                            # axis [m] (default: twice the instrument's radius)
@@ -469,7 +472,7 @@ class Cutter:
         self.scheme = str(cfg.get("scheme", "split"))
         if self.scheme not in SCHEMES:
             raise ParameterError(f"cutting scheme must be one of {SCHEMES}, got {self.scheme!r}")
-        self.snap = float(cfg.get("snap", 0.2))
+        self.snap = float(cfg.get("snap", DEFAULT_SNAP))
         if not 0.0 < self.snap < 0.5:
             raise ParameterError(f"cutting snap must be in (0, 0.5), got {self.snap}")
         lead = cfg.get("lead")

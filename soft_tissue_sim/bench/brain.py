@@ -49,6 +49,7 @@ import numpy as np
 import scipy.sparse as sps
 from scipy.sparse.csgraph import breadth_first_order, maximum_flow
 
+from ..cutting import DEFAULT_SNAP
 from ..report import Progress
 from ..scene import load_scene, read_scene, resolve_device
 from . import RESULTS_DIR, write_result
@@ -388,7 +389,7 @@ def main(argv=None) -> int:
     summary["refresh_every"] = args.refresh_every or int(ldlt.get("refresh_every", 0))
     summary["step_len_m"] = args.step_len
     summary["cutting_scheme"] = args.scheme or str((cfg.get("cutting") or {}).get("scheme", "split"))
-    summary["snap"] = args.snap if args.snap is not None else float((cfg.get("cutting") or {}).get("snap", 0.2))
+    summary["snap"] = args.snap if args.snap is not None else float((cfg.get("cutting") or {}).get("snap", DEFAULT_SNAP))
     result = {"summary": summary, "modifications": mods, "cleanup_bites": info["bites"], "steps_detail": rows}
     path = write_result("brain", device, result, args.out)
     result["device"] = json.load(open(path))["device"]

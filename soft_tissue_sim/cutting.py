@@ -85,6 +85,34 @@ class CutResult:
     smf_q_ms: float = 0.0  # Q = (I + N S)^-1 N
 
 
+@dataclass
+class CutState:
+    """Nodes on a progressive cut (``subdivide``), per node: whether it is on the cut (``on``),
+    the blade's normal there, oriented along the stroke (``normals``), and its signed distance
+    to the blade (``offsets``: 0 for a crossing, the distance for a node a crossing snapped to)."""
+
+    on: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int) -> "CutState":
+        return cls(np.zeros(n, bool), np.zeros((n, 3)), np.zeros(n))
+
+    def take(self, idx) -> "CutState":
+        return CutState(self.on[idx], self.normals[idx], self.offsets[idx])
+
+
+@dataclass
+class _Stroke:
+    """What a stroke (successive sweeps) remembers: the uids of the nodes on its cut with their
+    state, and the last sweep's mean normal (to orient the next one)."""
+
+    uids: np.ndarray
+    state: CutState
+    last: np.ndarray | None
+
+
 # ---------------------------------------------------------------- geometry
 def _points_in_triangle(p, a, b, c, tol):
     """(k,) whether points p (k,3), already on the plane of (a,b,c), lie in the triangle (+tol)."""
@@ -270,8 +298,8 @@ def edge_crossings(P, edges, tris, tol):
     return t_out, which
 
 
-def subdivide_for_cut(P, tets, tris, snap: float, tol: float, on_cut=None, normals=None, tri_normals=None,
-                      offsets=None):
+def subdivide_for_cut(P, tets, tris, snap: float, tol: float, state: CutState | None = None,
+                      tri_normals=None):
     """Refine the tets the blade crosses so that its triangles cut no edge of the mesh any more
     (progressive cutting by subdivision, after Mor & Kanade; paper section 3.1).
 
@@ -282,40 +310,34 @@ def subdivide_for_cut(P, tets, tris, snap: float, tol: float, on_cut=None, norma
     fraction of the edge) to an end point is not split: that end point is taken as on the cut
     (no sliver is created), and no other edge at a node snapped in this sweep is split.
 
-    ``on_cut`` (n,) marks the nodes already on this cut (earlier sweeps of the same stroke) and
-    ``normals`` (n, 3) their cut's normal there and ``offsets`` (n,) their signed distance to
-    it (0 for a crossing, the distance to the blade for a node a crossing snapped to): an edge
-    with both ends on the cut lies on it and is not split again. ``tri_normals`` (T, 3): the
-    oriented normals of the (non-degenerate) blade triangles (default: their own), given to the
-    nodes they put on the cut.
+    ``state`` (n nodes): the nodes already on this cut (earlier sweeps of the same stroke); an
+    edge with both ends on the cut lies on it and is not split again. ``tri_normals`` (T, 3):
+    the oriented normals of the (non-degenerate) blade triangles (default: their own), given to
+    the nodes they put on the cut.
 
-    Returns (tets, parent, fresh, edge_a, edge_b, edge_t, on, normals, offsets, edge_normals):
-    the new nodes are numbered from n on, new node k at (1 - t) P[a_k] + t P[b_k]; ``parent``
-    (m',) is the old tet each tet comes from, ``fresh`` (m',) whether it is a new (bisected)
-    one; ``on``, ``normals`` and ``offsets`` the old nodes' cut state after this sweep,
-    ``edge_normals`` the new nodes' normals (their offsets are 0).
+    Returns (tets, parent, fresh, edge_a, edge_b, edge_t, state): the new nodes are numbered
+    from n on, new node k at (1 - t) P[a_k] + t P[b_k]; ``parent`` (m',) is the old tet each tet
+    comes from, ``fresh`` (m',) whether it is a new (bisected) one; ``state`` the cut state of
+    all n + k nodes after this sweep (every new node is on the cut, at offset 0).
     """
     tets = np.asarray(tets, dtype=np.int64)
     parent = np.arange(len(tets))
     fresh = np.zeros(len(tets), bool)
-    tris = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
+    tris, own_normals = _path_planes(tris)
+    tri_normals = own_normals if tri_normals is None else np.asarray(tri_normals, np.float64)
+    st = CutState.empty(len(P)) if state is None else state
+    on, normals, offsets = st.on.copy(), st.normals.copy(), st.offsets.copy()
     none = np.zeros(0, np.int64)
-    on = np.zeros(len(P), bool) if on_cut is None else np.asarray(on_cut, bool).copy()
-    normals = np.zeros((len(P), 3)) if normals is None else np.asarray(normals, np.float64).copy()
-    offsets = np.zeros(len(P)) if offsets is None else np.asarray(offsets, np.float64).copy()
     if not len(tris):
-        return tets, parent, fresh, none, none, np.zeros(0), on, normals, offsets, np.zeros((0, 3))
-    if tri_normals is None:
-        tri_normals = _path_planes(tris)[1]
+        return tets, parent, fresh, none, none, np.zeros(0), CutState(on, normals, offsets)
     lo, hi = tris.min(axis=(0, 1)) - tol, tris.max(axis=(0, 1)) + tol
     X = P[tets]
     near = np.all((X.max(axis=1) >= lo) & (X.min(axis=1) <= hi), axis=1)
     E = unique_rows(np.sort(tets[near][:, _TET_EDGES].reshape(-1, 2), axis=1))
     # nodes lying on a blade triangle are on the cut (a blade through mesh nodes crosses no edge)
     V = np.unique(tets[near])
-    for k, ((a, b, c), nk) in enumerate(zip(tris, tri_normals)):
-        d = (P[V] - a) @ nk
-        lie = np.abs(d) <= tol
+    for (a, b, c), nk in zip(tris, tri_normals):
+        lie = np.abs((P[V] - a) @ nk) <= tol
         if lie.any():
             w = V[lie][_points_in_triangle(P[V[lie]], a, b, c, tol) & ~on[V[lie]]]
             on[w], normals[w], offsets[w] = True, nk, 0.0
@@ -341,12 +363,14 @@ def subdivide_for_cut(P, tets, tris, snap: float, tol: float, on_cut=None, norma
         tets = np.concatenate([tets[~has], np.where(T == j, p, T), np.where(T == i, p, T)])
         parent = np.concatenate([parent[~has], parent[has], parent[has]])
         fresh = np.concatenate([fresh[~has], np.ones(2 * len(T), bool)])
-    return tets, parent, fresh, E[:, 0], E[:, 1], t, on, normals, offsets, tri_normals[which]
+    state = CutState(np.concatenate([on, np.ones(len(E), bool)]), np.concatenate([normals, tri_normals[which]]),
+                     np.concatenate([offsets, np.zeros(len(E))]))
+    return tets, parent, fresh, E[:, 0], E[:, 1], t, state
 
 
-def tet_sides(P, tets, on, normals, offsets, pairs, fnodes):
-    """Side (+1 / -1) of each tet with respect to the cut through its nodes on it (``on``,
-    with their cut's ``normals``, consistently oriented along a stroke, and ``offsets``).
+def tet_sides(P, tets, state: CutState, pairs, fnodes):
+    """Side (+1 / -1) of each tet with respect to the cut through its nodes on it (``state``:
+    which nodes, the cut's normals there, consistently oriented along a stroke, and offsets).
 
     A tet with one node off the cut: the sign of that node's offset from the mean of the others
     along their mean normal. A tet with all four nodes on the cut (nodes snapped to it, or
@@ -354,7 +378,7 @@ def tet_sides(P, tets, on, normals, offsets, pairs, fnodes):
     area with (``pairs``, ``fnodes``: the interior faces' tets and nodes; propagated through
     clusters of such tets), else the sign of its nodes' offsets, else +. So it is never shaved
     off alone. A tet with fewer than three nodes on the cut gets 0 (it holds no face of it)."""
-    on_t = on[tets]
+    on_t = state.on[tets]
     k = on_t.sum(axis=1)
     side = np.zeros(len(tets))
     three = np.flatnonzero(k == 3)
@@ -363,7 +387,7 @@ def tet_sides(P, tets, on, normals, offsets, pairs, fnodes):
         X = P[T]
         m_on = np.einsum("kj,kjd->kd", o, X) / 3.0
         x_off = X[~o].reshape(-1, 3)
-        n = np.einsum("kj,kjd->kd", o, normals[T])
+        n = np.einsum("kj,kjd->kd", o, state.normals[T])
         side[three] = np.sign(np.einsum("kd,kd->k", x_off - m_on, n))
     undecided = k == 4
     if undecided.any():
@@ -381,11 +405,11 @@ def tet_sides(P, tets, on, normals, offsets, pairs, fnodes):
             side[now] = np.sign(vote[now])
             undecided &= ~now
         rest = np.flatnonzero(undecided)
-        side[rest] = np.where(offsets[tets[rest]].sum(axis=1) < 0.0, -1.0, 1.0)
+        side[rest] = np.where(state.offsets[tets[rest]].sum(axis=1) < 0.0, -1.0, 1.0)
     return side
 
 
-def faces_on_cut(P, tets, on, normals, offsets):
+def faces_on_cut(P, tets, state: CutState):
     """The interior faces a progressive (subdivision) cut separates: faces whose three nodes are
     all on the cut (the crossings of this stroke and the nodes they snapped to) between tets on
     opposite sides of it (:func:`tet_sides`). Topological and over the whole stroke, so a face
@@ -393,10 +417,10 @@ def faces_on_cut(P, tets, on, normals, offsets):
     the crack stops inside the elements the blade is still crossing (their faces have a node off
     the cut). Returns (pairs, face nodes, mask)."""
     pairs, fnodes = interior_faces(tets)
-    cut = np.all(on[fnodes], axis=1)
+    cut = np.all(state.on[fnodes], axis=1)
     if cut.any():
         k = np.flatnonzero(cut)
-        side = tet_sides(P, tets, on, normals, offsets, pairs, fnodes)
+        side = tet_sides(P, tets, state, pairs, fnodes)
         cut[k] = side[pairs[k, 0]] * side[pairs[k, 1]] < 0.0
     return pairs, fnodes, cut
 
@@ -490,7 +514,7 @@ class Cutter:
         self._reset_counters()
 
     def _reset_counters(self):
-        self._strokes: dict[str, np.ndarray] = {}  # subdivide: uids of the nodes on each stroke's cut
+        self._strokes: dict[str, _Stroke] = {}  # subdivide: each stroke's cut state
         self.modifications = 0
         self.history: list[CutResult] = []
         self._blade_at_last_cut = None
@@ -543,7 +567,19 @@ class Cutter:
         if self.correction is not None:
             self.correction.clear()
 
-    def _lead(self, sim) -> float:
+    @staticmethod
+    def _state_of(st: _Stroke | None, node_uids) -> CutState:
+        """A stroke's cut state over the current nodes (by uid; nodes it never met are off it)."""
+        state = CutState.empty(len(node_uids))
+        if st is not None and len(st.uids):
+            order = np.argsort(st.uids)
+            k = np.minimum(np.searchsorted(st.uids, node_uids, sorter=order), len(order) - 1)
+            hit = st.uids[order[k]] == node_uids
+            src = order[k[hit]]
+            state.on[hit], state.normals[hit], state.offsets[hit] = True, st.state.normals[src], st.state.offsets[src]
+        return state
+
+    def _lead(self, inst) -> float:
         """How far ahead of its axis a sweep of the blade cuts (subdivide): the blade's capsule
         pushes the tissue it meets, so an edge ahead of a slow blade slides along in front of it
         and is never crossed (a beam swept at 0.3-0.6 mm a step stayed whole). Default: twice
@@ -553,7 +589,7 @@ class Cutter:
             return self.lead
         if self.scheme != "subdivide":
             return 0.0
-        return 2.0 * float(getattr(self._instrument(sim), "radius", 0.0))
+        return 2.0 * float(getattr(inst, "radius", 0.0))
 
     def _instrument(self, sim):
         """The cutting instrument: the scene's (named) instrument that has a blade, or None."""
@@ -570,19 +606,12 @@ class Cutter:
                     return inst
         return None
 
-    def _blade(self, sim):
-        """(p0, p1) world endpoints of the cutting instrument's blade, or None."""
-        inst = self._instrument(sim)
-        if inst is None:
-            return None
-        b = inst.blade_world()
-        return np.asarray(b[0], dtype=np.float64), np.asarray(b[1], dtype=np.float64)
-
     def cut(self, sim) -> CutResult:
         """Cut along the blade's path since the last cut (or since the blade was first seen)."""
-        blade = self._blade(sim)
-        if blade is None:
+        inst = self._instrument(sim)
+        if inst is None:
             return CutResult(False, "no instrument with a blade in this scene: nothing to cut with")
+        blade = tuple(np.asarray(p, dtype=np.float64) for p in inst.blade_world())
         prev = self._blade_at_last_cut
         self._blade_at_last_cut = blade
         if prev is None:
@@ -590,7 +619,7 @@ class Cutter:
             return CutResult(False, "blade position recorded; the next cut follows its path from here")
         q0, q1 = blade
         d = 0.5 * ((q0 - prev[0]) + (q1 - prev[1]))
-        lead, dn = self._lead(sim), float(np.linalg.norm(d))
+        lead, dn = self._lead(inst), float(np.linalg.norm(d))
         if lead > 0.0 and dn > 0.0:  # cut what the blade's capsule reaches ahead of its axis
             q0, q1 = q0 + lead * d / dn, q1 + lead * d / dn
         return self.cut_triangles(sim, sweep_triangles(prev[0], prev[1], q0, q1), frame="world", stroke="blade")
@@ -641,7 +670,8 @@ class Cutter:
         def ms():
             return 1000.0 * (time.perf_counter() - t0)
 
-        if not len(_path_planes(tris)[0]):
+        tris, tri_n = _path_planes(tris)  # the non-degenerate triangles and their normals
+        if not len(tris):
             return CutResult(False, "the blade swept no area: no cut", ms=ms())
         mesh = sim.mesh
         n = mesh.n_nodes
@@ -650,29 +680,18 @@ class Cutter:
         tol = self.tolerance + 1e-9 * float(np.ptp(mesh.points, axis=0).max())
         if self.scheme == "subdivide":
             st = self._strokes.get(stroke) if stroke is not None else None
-            tris_ok, tri_n = _path_planes(tris)
-            ref = None if st is None else st["last"]
+            ref = st.last if st is not None else (tri_n[0] if len(tri_n) else None)
             if ref is not None:  # orient the blade's normals along the stroke (the motion may reverse)
                 tri_n = tri_n * np.where(tri_n @ ref < 0.0, -1.0, 1.0)[:, None]
-            elif len(tri_n) > 1:
-                tri_n = tri_n * np.where(tri_n @ tri_n[0] < 0.0, -1.0, 1.0)[:, None]
-            on0, nrm0, off0 = np.zeros(n, bool), np.zeros((n, 3)), np.zeros(n)
-            if st is not None and len(st["uids"]):
-                order = np.argsort(st["uids"])
-                k = np.minimum(np.searchsorted(st["uids"], sim.node_uids, sorter=order), len(order) - 1)
-                on0 = st["uids"][order[k]] == sim.node_uids
-                nrm0[on0] = st["normals"][order[k[on0]]]
-                off0[on0] = st["offsets"][order[k[on0]]]
-            work, parent, fresh, ea, eb, et, on, nrm, off, e_nrm = subdivide_for_cut(
-                pts, tets, tris_ok, self.snap, tol, on0, nrm0, tri_n, off0)
+            work, parent, fresh, ea, eb, et, state = subdivide_for_cut(
+                pts, tets, tris, self.snap, tol, self._state_of(st, sim.node_uids), tri_n)
             P = np.concatenate([pts, (1.0 - et)[:, None] * pts[ea] + et[:, None] * pts[eb]])
-            on_w, nrm_w = np.concatenate([on, np.ones(len(ea), bool)]), np.concatenate([nrm, e_nrm])
-            off_w = np.concatenate([off, np.zeros(len(ea))])
-            pairs, fnodes, cut = faces_on_cut(P, work, on_w, nrm_w, off_w)
+            pairs, fnodes, cut = faces_on_cut(P, work, state)
             if stroke is not None:  # the old nodes on the cut, whatever happens below (new ones added on commit)
                 m = tri_n.sum(axis=0)
-                self._strokes[stroke] = {"uids": sim.node_uids[on], "normals": nrm[on], "offsets": off[on],
-                                         "last": m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else ref}
+                on_old = state.on[:n]
+                self._strokes[stroke] = _Stroke(sim.node_uids[on_old], state.take(np.flatnonzero(on_old)),
+                                                m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else ref)
         else:
             work, parent, fresh = tets, np.arange(len(tets)), np.zeros(len(tets), bool)
             ea, eb, et = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
@@ -700,11 +719,11 @@ class Cutter:
         if res.changed and stroke is not None and self.scheme == "subdivide":
             # every new node is on the cut: the crossings and the copies of nodes of cut faces
             st = self._strokes[stroke]
-            new_uids = sim.node_uids[n:]  # the edge nodes, then the copies (debris goes below)
-            st["uids"] = np.concatenate([st["uids"], new_uids])
-            src = np.concatenate([np.arange(n, n + len(ea)), dup])
-            st["normals"] = np.concatenate([st["normals"], nrm_w[src]])
-            st["offsets"] = np.concatenate([st["offsets"], off_w[src]])
+            added = state.take(np.concatenate([np.arange(n, n + len(ea)), dup]))  # edge nodes, then copies
+            st.uids = np.concatenate([st.uids, sim.node_uids[n:]])  # (debris is removed below)
+            st.state = CutState(*(np.concatenate([x, y]) for x, y in
+                                  ((st.state.on, added.on), (st.state.normals, added.normals),
+                                   (st.state.offsets, added.offsets))))
         if res.changed and len(ea):
             res.message = res.message.replace("cut:", "cut (subdivision):", 1)
             if not len(dup):

@@ -57,3 +57,58 @@ def test_the_specimen_is_lifted_out_once_free():
         r = s.remove_tets(spec)
         assert r.changed and r.tets_changed == spec.sum()
         assert not (s.mesh.material_ids == 1).any() and len(s.fem.fixed_nodes) == n_fixed
+
+
+def _pedal_down_runs(acts):
+    """The scalpel's paths while the pedal is down, each with the act before it."""
+    runs, cur = [], None
+    for k, a in enumerate(acts):
+        if a["cutting"]:
+            if cur is None:
+                cur = {"before": acts[k - 1], "path": []}
+                runs.append(cur)
+            cur["path"].append(np.asarray(a["scalpel"], float))
+        else:
+            cur = None
+    return runs
+
+
+def test_the_long_session_adds_an_outer_cut_and_radial_wedges(sim):
+    """The long session's script: an outer spiral ``margin`` outside the inner one, then
+    ``radial`` radial cuts between the two, each one stroke that enters from above along the
+    outer cut and passes back and forth between the cuts at levels at most 10 mm apart (the
+    blade is 12 mm, so the passes overlap), its vertical moves only along a cut. Each stroke
+    starts with the pedal up and the blade out of the tissue, so no blade is swept from its
+    home into the brain."""
+    from soft_tissue_sim.bench.brain import plan, tumour_geometry
+
+    m = sim.mesh
+    c, r, _, _ = tumour_geometry(m)
+    R, margin, radial = r + 0.006, 0.010, 8
+    short = _pedal_down_runs(plan(m))
+    assert len(short) == 1  # the standard session: one spiral
+    runs = _pedal_down_runs(plan(m, margin=margin, radial=radial))
+    top = m.points[:, 2].max()
+    for run in runs:
+        assert not run["before"]["cutting"] and run["before"]["scalpel"][2] > top  # blade out, pedal up
+    outer, inner, *wedges = runs
+    rad = lambda p: np.linalg.norm(np.asarray(p)[..., :2] - c[:2], axis=-1)  # noqa: E731
+    assert np.allclose(rad(np.array(outer["path"])), R + margin)
+    assert np.allclose(np.array(inner["path"]), np.array(short[0]["path"]))
+    assert len(wedges) == radial
+    angles = set()
+    for w in wedges:
+        p = np.array(w["path"])
+        d = rad(p)
+        assert np.all((d > R - 1e-9) & (d < R + margin + 1e-9))
+        assert p[0, 2] > top and np.isclose(d[0], R + margin)  # the blade (12 mm up from p) starts out, over the outer cut
+        step = np.diff(p, axis=0)
+        vertical = np.abs(step[:, 2]) > 1e-12
+        assert np.all(np.linalg.norm(step[vertical, :2], axis=1) < 1e-12)  # a move is vertical or level
+        ends = d[1:][vertical]
+        assert np.all(np.isclose(ends, R) | np.isclose(ends, R + margin))  # vertical only along a cut
+        zs = np.unique(np.round(p[1:][~vertical, 2], 9))
+        assert np.max(np.diff(zs)) <= 0.010 + 1e-9
+        assert np.isclose(zs.min(), inner["path"][-1][2])  # down to the inner spiral's floor
+        angles.add(round(float(np.arctan2(p[-1, 1] - c[1], p[-1, 0] - c[0])), 6))
+    assert len(angles) == radial

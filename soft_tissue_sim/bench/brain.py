@@ -28,6 +28,13 @@ Scene ``config/scenes/brain_resection.yaml``, driven by a scripted surgeon:
    then crushes the thin tissue left between it and the plane, which inverts (about 100
    inverted tets), so it is not used.
 
+The long session (``--margin 0.01 --radial 12``) is the same resection with a margin: before
+the spiral above, an outer spiral 10 mm outside it; after it, radial cuts that part the ring
+between the two into wedges (each one stroke: in from above along the outer cut, then back
+and forth between the cuts, each pass at most 10 mm lower, so the blade enters the tissue only
+through a cut). It is about three times longer (about 2,100 steps against about 700, the
+paper's interactive session about 3,000), and makes the paper's count of modifications.
+
 Reported: modifications (cuts and removals) with their affected nodes, PCG iterations
 (mean and max), step time (mean, median, p99) and frame rate, contacts, LCP residual, max
 penetration, rollbacks, whether the tumour ended in a part no longer attached to the fixed
@@ -43,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 
 import numpy as np
@@ -64,14 +72,23 @@ def tumour_geometry(mesh):
     return c, r, float(cen[:, 2].min()), float(cen[:, 2].max())
 
 
-def plan(mesh, turns=4, step_len=0.0012, layers=3, bite=0.0045):
-    """The scripted surgeon: a list of per-step actions."""
+def plan(mesh, turns=4, step_len=0.0012, layers=3, bite=0.0045, margin=0.0, radial=0):
+    """The scripted surgeon: a list of per-step actions.
+
+    ``margin`` > 0 adds a margin (the long session): an outer spiral cut ``margin`` outside the
+    inner one before it, and after it ``radial`` radial cuts that part the ring between the
+    two into wedges. Each radial cut is one stroke in its vertical plane: the blade comes in
+    from above along the outer cut, then goes back and forth between the two cuts, each pass
+    at most 10 mm lower (the blade is 12 mm). The blade only ever enters the tissue through a
+    cut, so it is never thrust into intact tissue (a scripted pose may jump; a blade does not).
+    """
     c, r, zlo, zhi = tumour_geometry(mesh)
     top = float(mesh.points[:, 2].max())
     R = r + 0.006  # cut 6 mm outside the tumour centroids
     acts = []
     probe_home = np.array([c[0] + R + 0.012, c[1], top + 0.04])
     scal_home = np.array([c[0] + R, c[1], top + 0.04])
+    probe_park = probe_home + [0.03, 0, 0]
     # 1. push
     for k in range(60):
         depth = 0.006 * min(1.0, k / 20.0) if k < 40 else 0.006 * max(0.0, 1.0 - (k - 40) / 15.0)
@@ -79,12 +96,35 @@ def plan(mesh, turns=4, step_len=0.0012, layers=3, bite=0.0045):
         acts.append({"probe": p if k < 58 else probe_home, "scalpel": scal_home, "cutting": False})
     # 2. spiral cut: blade from z to z + 12 mm, z from top - 10 mm down to below the tumour
     z0, z1 = top - 0.010, max(0.003, zlo - 0.014)
-    n = int(np.ceil(turns * 2 * np.pi * R / step_len))
-    for k in range(n + 1):
-        s = k / n
-        a = 2 * np.pi * turns * s
-        p = np.array([c[0] + R * np.cos(a), c[1] + R * np.sin(a), z0 + (z1 - z0) * s])
-        acts.append({"probe": probe_home + [0.03, 0, 0], "scalpel": p, "cutting": True})
+
+    def spiral(radius, out):
+        n = int(np.ceil(turns * 2 * np.pi * radius / step_len))
+        for k in range(n + 1):
+            s = k / n
+            a = 2 * np.pi * turns * s
+            p = np.array([c[0] + radius * np.cos(a), c[1] + radius * np.sin(a), z0 + (z1 - z0) * s])
+            acts.append({"probe": probe_park, "scalpel": p, "cutting": True})
+        if out:  # pedal up, blade out (in the standard session the aspiration does it)
+            acts.append({"probe": probe_park, "scalpel": scal_home, "cutting": False})
+
+    if margin > 0:
+        spiral(R + margin, True)  # the outer cut first
+    spiral(R, margin > 0)
+    if margin > 0:  # the long session: the margin parted into wedges
+        R2 = R + margin
+        levels = np.linspace(z0, z1, int(np.ceil((z0 - z1) / 0.010)) + 1)
+        for j in range(int(radial)):
+            u = np.array([np.cos(2 * np.pi * (j + 0.5) / radial), np.sin(2 * np.pi * (j + 0.5) / radial), 0.0])
+            at = lambda rad, z: np.array([c[0], c[1], z]) + rad * u  # noqa: E731
+            # in from above along the outer cut, then back and forth between the two cuts, one
+            # level lower each time (the vertical moves lie in a cut already made)
+            corners = [at(R2, z0 + 0.012)]
+            for i, z in enumerate(levels):
+                a, b = (R2, R) if i % 2 == 0 else (R, R2)
+                corners += [at(a, z), at(b, z)]
+            for p in polyline(corners, step_len):
+                acts.append({"probe": probe_park, "scalpel": p, "cutting": True})
+            acts.append({"probe": probe_park, "scalpel": scal_home, "cutting": False})
     # 3. aspiration under the tumour: bites on a disc, ring by ring, in layers from the cut's
     #    floor up (the elements are about 1 cm: one layer of bites does not part them)
     bites = [(0.0, 0.0)]
@@ -93,12 +133,21 @@ def plan(mesh, turns=4, step_len=0.0012, layers=3, bite=0.0045):
         bites += [(ring * np.cos(2 * np.pi * j / m), ring * np.sin(2 * np.pi * j / m)) for j in range(m)]
     for zb in z1 + 0.003 + 0.0045 * np.arange(layers):
         for bx, by in bites:
-            acts.append({"probe": probe_home + [0.03, 0, 0], "scalpel": scal_home, "cutting": False,
+            acts.append({"probe": probe_park, "scalpel": scal_home, "cutting": False,
                          "remove": (np.array([c[0] + bx, c[1] + by, zb]), bite)})
     # 4. settle
     for _ in range(40):
-        acts.append({"probe": probe_home + [0.03, 0, 0], "scalpel": scal_home, "cutting": False, "phase": "settle"})
+        acts.append({"probe": probe_park, "scalpel": scal_home, "cutting": False, "phase": "settle"})
     return acts
+
+
+def polyline(corners, step: float) -> list:
+    """Points along a polyline, at most ``step`` apart, the corners included (not the first)."""
+    out = []
+    for a, b in zip(corners[:-1], corners[1:]):
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / step)))
+        out += [a + (b - a) * (k / n) for k in range(1, n + 1)]
+    return out
 
 
 def tumour_freed(sim) -> bool:
@@ -189,7 +238,8 @@ def spare_tumour_bite(sim, center, radius: float):
 
 
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
-        columns_on="auto", scheme=None, worker=None, synchronous=False, refresh_every=None, snap=None):
+        columns_on="auto", scheme=None, worker=None, synchronous=False, refresh_every=None, snap=None,
+        margin=0.0, radial=0, progress=False):
     cfg = read_scene(scene)[0]
     solver = dict(cfg.get("solver") or {})
     solver["ldlt"] = {**(solver.get("ldlt") or {}), "columns_on": columns_on}
@@ -209,7 +259,8 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
     try:
         sim.step()  # warm-up: compile, first factorization
         sim.reset()
-        acts = plan(sim.mesh, turns, step_len)
+        acts = plan(sim.mesh, turns, step_len, margin=margin, radial=radial)
+        prog = Progress(len(acts)) if progress else None  # the closed loop's bites come on top
         n_tum = int((sim.mesh.material_ids == 1).sum())
         park = {k: v for k, v in acts[-1].items() if k != "phase"}  # instruments parked, pedal up
 
@@ -257,6 +308,10 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                          "factor_age": d["factor_age"], "refresh_interval": d["refresh_interval"],
                          "rolled_back": bool(d.get("rolled_back", False)),
                          "wrench_probe_N": float(np.linalg.norm(sim.instrument_wrench("probe")[0]))})
+            if prog is not None:
+                prog.update(min(len(rows), prog.total - 1),
+                            f"step {sim.step_count}: {len(mods)} modifications, "
+                            f"{np.mean([q['iterations'] for q in rows]):.2f} it")
 
         for a in acts:
             if a.get("phase") == "settle":
@@ -327,6 +382,10 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", default="brain_resection.yaml")
     ap.add_argument("--turns", type=float, default=4)
     ap.add_argument("--step-len", type=float, default=0.0012, help="scalpel advance per step [m]")
+    ap.add_argument("--margin", type=float, default=0.0,
+                    help="the long session: an outer spiral cut this far outside the inner one [m] (0: none)")
+    ap.add_argument("--radial", type=int, default=0,
+                    help="the long session: radial cuts dividing the margin into wedges")
     ap.add_argument("--max-cleanup", type=int, default=60, help="most extra (closed-loop) bites")
     ap.add_argument("--cleanup-radius", type=float, default=0.005, help="radius of a closed-loop bite [m]")
     ap.add_argument("--columns-on", default="auto", choices=["auto", "host", "device"],
@@ -345,12 +404,12 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
     device = resolve_device(args.device)
-    prog = Progress(1)
     t0 = time.perf_counter()
     rows, mods, freed, finite, n_end, t_end, info = run(device, args.scene, args.turns, args.step_len,
                                                         args.max_cleanup, args.cleanup_radius, args.columns_on,
                                                         args.scheme, args.worker, args.synchronous,
-                                                        args.refresh_every, args.snap)
+                                                        args.refresh_every, args.snap, args.margin, args.radial,
+                                                        progress=True)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
     summary = {
@@ -379,8 +438,8 @@ def main(argv=None) -> int:
         "finite": finite, "nodes_end": n_end, "tets_end": t_end,
         "wall_s": time.perf_counter() - t0,
     }
-    prog.update(1, f"{summary['modifications']} modifications, {summary['iterations_mean']:.2f} it, "
-                   f"{summary['fps_mean']:.1f} FPS")
+    print(f"done: {summary['modifications']} modifications, {summary['iterations_mean']:.2f} it, "
+          f"{summary['fps_mean']:.1f} FPS", file=sys.stderr)
     cfg = read_scene(args.scene)[0]
     ldlt = (cfg.get("solver") or {}).get("ldlt") or {}
     summary["columns_on"] = args.columns_on
@@ -388,6 +447,8 @@ def main(argv=None) -> int:
     summary["ldlt_synchronous"] = bool(args.synchronous)
     summary["refresh_every"] = args.refresh_every or int(ldlt.get("refresh_every", 0))
     summary["step_len_m"] = args.step_len
+    summary["margin_m"] = args.margin
+    summary["radial_cuts"] = args.radial
     summary["cutting_scheme"] = args.scheme or str((cfg.get("cutting") or {}).get("scheme", "split"))
     summary["snap"] = args.snap if args.snap is not None else float((cfg.get("cutting") or {}).get("snap", DEFAULT_SNAP))
     result = {"summary": summary, "modifications": mods, "cleanup_bites": info["bites"], "steps_detail": rows}

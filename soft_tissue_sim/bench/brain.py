@@ -28,11 +28,11 @@ Scene ``config/scenes/brain_resection.yaml``, driven by a scripted surgeon:
    then crushes the thin tissue left between it and the plane, which inverts (about 100
    inverted tets), so it is not used.
 
-The long session (``--margin 0.01 --radial 12``) is the same resection with a margin: before
+The long session (``--margin 0.01 --radial 16``) is the same resection with a margin: before
 the spiral above, an outer spiral 10 mm outside it; after it, radial cuts that part the ring
 between the two into wedges (each one stroke: in from above along the outer cut, then back
 and forth between the cuts, each pass at most 10 mm lower, so the blade enters the tissue only
-through a cut). It is about three times longer (about 2,100 steps against about 700, the
+through a cut). It is about four times longer (about 2,700 steps against about 700, the
 paper's interactive session about 3,000), and makes the paper's count of modifications.
 
 Reported: modifications (cuts and removals) with their affected nodes, PCG iterations

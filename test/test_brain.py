@@ -112,3 +112,15 @@ def test_the_long_session_adds_an_outer_cut_and_radial_wedges(sim):
         assert np.isclose(zs.min(), inner["path"][-1][2])  # down to the inner spiral's floor
         angles.add(round(float(np.arctan2(p[-1, 1] - c[1], p[-1, 0] - c[0])), 6))
     assert len(angles) == radial
+
+
+@pytest.mark.parametrize("args", [["--radial", "4"], ["--margin", "0.01"], ["--margin", "-0.01", "--radial", "2"]])
+def test_the_long_session_needs_both_a_margin_and_radial_cuts(args, tmp_path):
+    """A margin without radial cuts (or the reverse, or a negative margin) is refused before
+    anything is built, with argparse's usage error."""
+    from soft_tissue_sim.bench import brain
+
+    with pytest.raises(SystemExit) as e:
+        brain.main(args + ["--out", str(tmp_path)])
+    assert e.value.code == 2
+    assert not any(tmp_path.iterdir())

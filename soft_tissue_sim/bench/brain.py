@@ -263,6 +263,7 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
         prog = Progress(len(acts)) if progress else None  # the closed loop's bites come on top
         n_tum = int((sim.mesh.material_ids == 1).sum())
         park = {k: v for k, v in acts[-1].items() if k != "phase"}  # instruments parked, pedal up
+        its_sum = [0]  # iterations so far, for the progress line
 
         def record(kind, r, **extra):
             """One modification's statistics (its own nodes and the nodes of N, the paper's measure)."""
@@ -308,10 +309,10 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                          "factor_age": d["factor_age"], "refresh_interval": d["refresh_interval"],
                          "rolled_back": bool(d.get("rolled_back", False)),
                          "wrench_probe_N": float(np.linalg.norm(sim.instrument_wrench("probe")[0]))})
+            its_sum[0] += d["iterations"]
             if prog is not None:
                 prog.update(min(len(rows), prog.total - 1),
-                            f"step {sim.step_count}: {len(mods)} modifications, "
-                            f"{np.mean([q['iterations'] for q in rows]):.2f} it")
+                            f"step {sim.step_count}: {len(mods)} modifications, {its_sum[0] / len(rows):.2f} it")
 
         for a in acts:
             if a.get("phase") == "settle":
@@ -403,6 +404,8 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
+    if args.margin < 0 or (args.radial > 0) != (args.margin > 0) or args.radial < 0:
+        ap.error("--margin and --radial come together (a margin > 0 and at least one radial cut), or neither")
     device = resolve_device(args.device)
     t0 = time.perf_counter()
     rows, mods, freed, finite, n_end, t_end, info = run(device, args.scene, args.turns, args.step_len,

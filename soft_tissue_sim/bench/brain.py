@@ -63,6 +63,8 @@ from ..scene import load_scene, read_scene, resolve_device
 from . import RESULTS_DIR, write_result
 
 IDENTITY = [0.0, 0.0, 0.0, 1.0]
+BLADE = 0.012  # the scalpel's blade length in brain_resection.yaml [m]
+PASS = 0.010  # the most a radial cut's pass goes below the last (less than the blade: passes overlap) [m]
 
 
 def tumour_geometry(mesh):
@@ -107,18 +109,19 @@ def plan(mesh, turns=4, step_len=0.0012, layers=3, bite=0.0045, margin=0.0, radi
         if out:  # pedal up, blade out (in the standard session the aspiration does it)
             acts.append({"probe": probe_park, "scalpel": scal_home, "cutting": False})
 
-    if margin > 0:
-        spiral(R + margin, True)  # the outer cut first
-    spiral(R, margin > 0)
-    if margin > 0:  # the long session: the margin parted into wedges
+    if margin <= 0:
+        spiral(R, False)
+    else:  # the long session: an outer cut first, the inner one, then the margin parted into wedges
         R2 = R + margin
-        levels = np.linspace(z0, z1, int(np.ceil((z0 - z1) / 0.010)) + 1)
+        spiral(R2, True)
+        spiral(R, True)
+        levels = np.linspace(z0, z1, int(np.ceil((z0 - z1) / PASS)) + 1)
         for j in range(int(radial)):
             u = np.array([np.cos(2 * np.pi * (j + 0.5) / radial), np.sin(2 * np.pi * (j + 0.5) / radial), 0.0])
             at = lambda rad, z: np.array([c[0], c[1], z]) + rad * u  # noqa: E731
             # in from above along the outer cut, then back and forth between the two cuts, one
             # level lower each time (the vertical moves lie in a cut already made)
-            corners = [at(R2, z0 + 0.012)]
+            corners = [at(R2, z0 + BLADE)]
             for i, z in enumerate(levels):
                 a, b = (R2, R) if i % 2 == 0 else (R, R2)
                 corners += [at(a, z), at(b, z)]

@@ -409,10 +409,15 @@ class _Processes:
 class AsyncLDLTPreconditioner:
     name = "async_ldlt"
 
-    def __init__(self, snapshot_fn, *, rotate=True, refresh_every=1, deterministic=False, mode="auto",
+    def __init__(self, snapshot_fn, *, rotate=True, refresh_every=1, deterministic=False, lag=0, mode="auto",
                  ordering="default", device_layout=False, columns_device=None, min_device_columns=4,
                  columns_options=None, lower_factor=False, worker="thread", release_gil=True):
-        """``ordering``: CHOLMOD's fill-reducing ordering (default: its AMD-based choice; metis or
+        """``deterministic``: the factor is made in the step that requests it (no background
+        timing), installed at once, or ``lag`` steps later: the schedule of a background
+        factorization that takes ``lag`` steps (the paper's took about 5.6), made reproducible.
+        With ``lag`` one factor is in flight at a time: requested, installed ``lag`` steps later,
+        the next requested ``refresh_every`` steps after the last request at the earliest.
+        ``ordering``: CHOLMOD's fill-reducing ordering (default: its AMD-based choice; metis or
         nesdis give a shallower elimination tree, i.e. fewer levels for the device solve).
         ``device_layout``: also convert every factor to the device layout in the worker
         (``factor_data``, for :class:`soft_tissue_sim.cg.DeviceLDLTPreconditioner`).
@@ -439,6 +444,11 @@ class AsyncLDLTPreconditioner:
         self.rotate = bool(rotate)
         self.refresh_every = max(1, int(refresh_every))
         self.deterministic = bool(deterministic)
+        if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
+            raise ValueError(f"lag must be a whole number of steps >= 0, got {lag!r}")
+        if lag and not self.deterministic:
+            raise ValueError("lag needs deterministic: true (a background factor arrives when it is ready)")
+        self.lag = int(lag)
         self.ordering = ordering
         self._s = {"cv": threading.Condition(), "request": None, "result": None, "stop": False, "error": None,
                    "pattern": None, "symbolic": None, "analyses": 0, "thread": None, "mode": mode,
@@ -476,6 +486,7 @@ class AsyncLDLTPreconditioner:
         self.step = 0
         self.last_request_step = -10**9
         self.pending = False
+        self._held = None  # deterministic with a lag: (the step it is installed at, the factor)
         self.swaps = []
         self.factorization_ms = 0.0
         self.precond_ms = 0.0
@@ -542,6 +553,13 @@ class AsyncLDLTPreconditioner:
         self.precond_ms = 0.0
         if self.factor is None:
             self._sync_refresh(self.step)  # the only wait
+        elif self.deterministic and self.lag:
+            if self._held is not None and self.step >= self._held[0]:
+                self._install(self._held[1])
+                self._held = None
+            if self._held is None and self.step - self.last_request_step >= self.refresh_every:
+                self._held = (self.step + self.lag, self._workers.run_now(self._snapshot(self.step)))
+                self.last_request_step = self.step
         elif self.deterministic:
             if self.step - self.last_request_step >= self.refresh_every:
                 self._sync_refresh(self.step)

@@ -20,6 +20,9 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
     solver: {tolerance: 1.0e-7, max_iterations: 1000,
              preconditioner: async_ldlt,          # none | jacobi | async_ldlt | direct
              ldlt: {rotate: true, refresh_every: 1, deterministic: false,
+                    lag: 0,                       # with deterministic: install each factor this many
+                                                  #   steps after its request (a background
+                                                  #   factorization's delay, reproducibly)
                     mode: auto,                   # CHOLMOD: auto | simplicial | supernodal
                     apply_on: auto,               # auto (= host: see bench haptic) | host | device
                     columns_on: auto,             # blocks of columns (U after a cut, contact's W):
@@ -245,6 +248,7 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu", con
                     rotate=bool(options.get("rotate", True)),
                     refresh_every=int(options.get("refresh_every", 1)),
                     deterministic=bool(options.get("deterministic", False)),
+                    lag=options.get("lag", 0),
                     mode=str(options.get("mode", "auto")),
                     ordering=ordering,
                     device_layout=layout,

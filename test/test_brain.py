@@ -124,3 +124,13 @@ def test_the_long_session_needs_both_a_margin_and_radial_cuts(args, tmp_path):
         brain.main(args + ["--out", str(tmp_path)])
     assert e.value.code == 2
     assert not any(tmp_path.iterdir())
+
+
+def test_a_negative_lag_is_refused(tmp_path):
+    """``--lag`` (the paper's factorization delay, reproducibly) is a number of steps >= 0."""
+    from soft_tissue_sim.bench import brain
+
+    with pytest.raises(SystemExit) as e:
+        brain.main(["--lag", "-1", "--out", str(tmp_path)])
+    assert e.value.code == 2
+    assert not any(tmp_path.iterdir())

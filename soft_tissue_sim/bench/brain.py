@@ -242,7 +242,7 @@ def spare_tumour_bite(sim, center, radius: float):
 
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
         columns_on="auto", scheme=None, worker=None, synchronous=False, refresh_every=None, snap=None,
-        margin=0.0, radial=0, progress=False):
+        margin=0.0, radial=0, progress=False, lag=0):
     cfg = read_scene(scene)[0]
     solver = dict(cfg.get("solver") or {})
     solver["ldlt"] = {**(solver.get("ldlt") or {}), "columns_on": columns_on}
@@ -250,8 +250,10 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
         solver["ldlt"]["worker"] = worker
     if refresh_every is not None:
         solver["ldlt"]["refresh_every"] = int(refresh_every)
-    if synchronous:  # the factor made in the step that requests it (no background worker)
+    if synchronous or lag:  # the factor made in the step that requests it (no background worker)
         solver["ldlt"]["deterministic"] = True
+    if lag:  # ... and installed lag steps later (the paper's background factorization took about 5.6)
+        solver["ldlt"]["lag"] = int(lag)
     overrides = {"solver": solver}
     if scheme is not None:
         overrides["cutting"] = {"scheme": scheme}
@@ -404,9 +406,15 @@ def main(argv=None) -> int:
                     help="request a factor every this many steps (default: the scene's)")
     ap.add_argument("--synchronous", action="store_true",
                     help="factorize in the step that requests the factor (ldlt.deterministic), not in the background")
+    ap.add_argument("--lag", type=int, default=0,
+                    help="factorize in the step that requests the factor and install it this many steps later: "
+                         "the schedule of a background factorization that takes that long (the paper's: about 5.6 "
+                         "steps), reproducibly")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
+    if args.lag < 0:
+        ap.error("--lag is a number of steps >= 0")
     if args.margin < 0 or (args.radial > 0) != (args.margin > 0) or args.radial < 0:
         ap.error("--margin and --radial come together (a margin > 0 and at least one radial cut), or neither")
     device = resolve_device(args.device)
@@ -415,7 +423,7 @@ def main(argv=None) -> int:
                                                         args.max_cleanup, args.cleanup_radius, args.columns_on,
                                                         args.scheme, args.worker, args.synchronous,
                                                         args.refresh_every, args.snap, args.margin, args.radial,
-                                                        progress=True)
+                                                        progress=True, lag=args.lag)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
     summary = {
@@ -450,7 +458,8 @@ def main(argv=None) -> int:
     ldlt = (cfg.get("solver") or {}).get("ldlt") or {}
     summary["columns_on"] = args.columns_on
     summary["ldlt_worker"] = args.worker or str(ldlt.get("worker", "thread"))
-    summary["ldlt_synchronous"] = bool(args.synchronous)
+    summary["ldlt_synchronous"] = bool(args.synchronous or args.lag)
+    summary["ldlt_lag"] = args.lag
     summary["refresh_every"] = args.refresh_every or int(ldlt.get("refresh_every", 0))
     summary["step_len_m"] = args.step_len
     summary["margin_m"] = args.margin

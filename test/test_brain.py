@@ -134,3 +134,31 @@ def test_a_negative_lag_is_refused(tmp_path):
         brain.main(["--lag", "-1", "--out", str(tmp_path)])
     assert e.value.code == 2
     assert not any(tmp_path.iterdir())
+
+
+def test_the_aspiration_keeps_the_floor_under_the_specimen(sim):
+    """The planned bites part the tissue under the tumour but leave the floor of the cut: at
+    rest, every fixed node under the disc they cover keeps a tet (the base is not opened, so
+    the specimen has something to rest on as it comes free; the earlier plan, a layer lower,
+    left 10 of these 19 nodes bare), and the bites take tissue between the floor and the
+    tumour over the whole disc inside the cut."""
+    from soft_tissue_sim.bench.brain import plan, tumour_geometry
+
+    m = sim.mesh
+    cen = m.centroids()
+    c, r, zlo, _ = tumour_geometry(m)
+    fixed = np.zeros(m.n_nodes, bool)
+    fixed[sim.fem.fixed_nodes] = True
+    under = fixed & (np.linalg.norm(m.points[:, :2] - c[:2], axis=1) < r + 0.006)
+    bites = [a["remove"] for a in plan(m) if "remove" in a]
+    taken = np.zeros(m.n_tets, bool)
+    for centre, radius in bites:
+        taken |= np.linalg.norm(cen - centre, axis=1) < radius
+    kept = np.zeros(m.n_nodes, bool)
+    kept[m.tets[~taken]] = True
+    assert under.sum() >= 10 and kept[under].all()
+    assert (taken & (m.material_ids == 0)).sum() > 100  # the tissue under the tumour goes
+    zs = np.array([b[0][2] for b in bites])
+    assert zs.max() < zlo  # under the tumour
+    xy = np.array([b[0][:2] for b in bites]) - c[:2]
+    assert np.linalg.norm(xy, axis=1).max() > r  # out to the cut (6 mm outside the tumour)

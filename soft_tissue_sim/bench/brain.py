@@ -7,12 +7,14 @@ Scene ``config/scenes/brain_resection.yaml``, driven by a scripted surgeon:
    with the pedal down (4 turns, to 14 mm under the tumour), one small cut per step
    (continuous cutting);
 3. aspiration: the tissue under the tumour is removed in small bites (element removal,
-   ``remove_elements``: the tets whose current centroid lies in a 4.5 mm sphere) in three
-   layers (the elements are about 1 cm). Every bite spares the tumour: its sphere is shrunk
-   so that no tumour tet's centroid lies inside (without this, the top layer, aimed where the
-   tumour was before it sank, aspirated 42 of its 116 tets). Replayed in the rest frame the
-   plan freed the tumour; in the simulation it does not: the tumour sinks as its support
-   goes, and the bites, aimed where the tissue was, miss strands near the base;
+   ``remove_elements``: the tets whose current centroid lies in a 4.5 mm sphere) in two
+   layers (the elements are about 1 cm) above the floor of the cut, which stays: the
+   specimen rests on it as it comes free (aspirating the floor as well, as an earlier plan
+   did, let it hang 6-10 cm below the brain, with no skull under it, and cost iterations).
+   Every bite spares the tumour: its sphere is shrunk so that no tumour tet's centroid lies
+   inside (without this, an earlier plan's top layer, aimed where the tumour was before it
+   sank, aspirated 42 of its 116 tets). The bites alone do not free the tumour: it sinks
+   as its support goes, and the bites, aimed where the tissue was, miss strands;
 4. closed loop (what a surgeon does next): while the tumour is still attached to the fixed
    base (connectivity of the tets), find what holds it: a minimum cut between the tumour's
    nodes and the fixed nodes (max-flow on the graph of nodes and tets, each healthy tet
@@ -74,7 +76,7 @@ def tumour_geometry(mesh):
     return c, r, float(cen[:, 2].min()), float(cen[:, 2].max())
 
 
-def plan(mesh, turns=4, step_len=0.0012, layers=3, bite=0.0045, margin=0.0, radial=0):
+def plan(mesh, turns=4, step_len=0.0012, layers=2, bite=0.0045, margin=0.0, radial=0):
     """The scripted surgeon: a list of per-step actions.
 
     ``margin`` > 0 adds a margin (the long session): an outer spiral cut ``margin`` outside the
@@ -128,13 +130,17 @@ def plan(mesh, turns=4, step_len=0.0012, layers=3, bite=0.0045, margin=0.0, radi
             for p in polyline(corners, step_len):
                 acts.append({"probe": probe_park, "scalpel": p, "cutting": True})
             acts.append({"probe": probe_park, "scalpel": scal_home, "cutting": False})
-    # 3. aspiration under the tumour: bites on a disc, ring by ring, in layers from the cut's
-    #    floor up (the elements are about 1 cm: one layer of bites does not part them)
+    # 3. aspiration under the tumour: bites on a disc, ring by ring, in layers (the elements are
+    #    about 1 cm: one layer of bites does not part them), the lowest one layer above the
+    #    cut's floor: the floor stays, and the specimen rests on it (self-contact) as it comes
+    #    free. Aspirating the floor too opened a hole through the base, and with no skull under
+    #    it the specimen hung 6-10 cm below the brain on strands while the last bites went in:
+    #    12-22 PCG iterations a step there with the paper's factor delay (bench --lag 6)
     bites = [(0.0, 0.0)]
     for ring in np.arange(0.004, R + 1e-9, 0.004):
         m = max(6, int(2 * np.pi * ring / 0.004))
         bites += [(ring * np.cos(2 * np.pi * j / m), ring * np.sin(2 * np.pi * j / m)) for j in range(m)]
-    for zb in z1 + 0.003 + 0.0045 * np.arange(layers):
+    for zb in z1 + 0.003 + 0.0045 * np.arange(1, layers + 1):
         for bx, by in bites:
             acts.append({"probe": probe_park, "scalpel": scal_home, "cutting": False,
                          "remove": (np.array([c[0] + bx, c[1] + by, zb]), bite)})

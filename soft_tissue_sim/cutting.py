@@ -102,6 +102,11 @@ class CutState:
     def take(self, idx) -> "CutState":
         return CutState(self.on[idx], self.normals[idx], self.offsets[idx])
 
+    def extended(self, more: "CutState") -> "CutState":
+        """This state followed by ``more`` (nodes appended)."""
+        return CutState(np.concatenate([self.on, more.on]), np.concatenate([self.normals, more.normals]),
+                        np.concatenate([self.offsets, more.offsets]))
+
 
 @dataclass
 class _Stroke:
@@ -363,8 +368,8 @@ def subdivide_for_cut(P, tets, tris, snap: float, tol: float, state: CutState | 
         tets = np.concatenate([tets[~has], np.where(T == j, p, T), np.where(T == i, p, T)])
         parent = np.concatenate([parent[~has], parent[has], parent[has]])
         fresh = np.concatenate([fresh[~has], np.ones(2 * len(T), bool)])
-    state = CutState(np.concatenate([on, np.ones(len(E), bool)]), np.concatenate([normals, tri_normals[which]]),
-                     np.concatenate([offsets, np.zeros(len(E))]))
+    state = CutState(on, normals, offsets).extended(CutState(np.ones(len(E), bool), tri_normals[which],
+                                                             np.zeros(len(E))))
     return tets, parent, fresh, E[:, 0], E[:, 1], t, state
 
 
@@ -592,7 +597,8 @@ class Cutter:
         return 2.0 * float(getattr(inst, "radius", 0.0))
 
     def _instrument(self, sim):
-        """The cutting instrument: the scene's (named) instrument that has a blade, or None."""
+        """The cutting instrument and its blade's world end points: the scene's (named)
+        instrument that has a blade, as (instrument, (p0, p1)), or None."""
         if sim.contact is None:
             return None
         insts = getattr(sim.contact, "instruments", None)
@@ -602,16 +608,17 @@ class Cutter:
         for inst in items:
             if self.instrument is None or getattr(inst, "name", None) == self.instrument:
                 fn = getattr(inst, "blade_world", None)
-                if fn is not None and fn() is not None:
-                    return inst
+                blade = fn() if fn is not None else None
+                if blade is not None:
+                    return inst, tuple(np.asarray(p, dtype=np.float64) for p in blade)
         return None
 
     def cut(self, sim) -> CutResult:
         """Cut along the blade's path since the last cut (or since the blade was first seen)."""
-        inst = self._instrument(sim)
-        if inst is None:
+        found = self._instrument(sim)
+        if found is None:
             return CutResult(False, "no instrument with a blade in this scene: nothing to cut with")
-        blade = tuple(np.asarray(p, dtype=np.float64) for p in inst.blade_world())
+        inst, blade = found
         prev = self._blade_at_last_cut
         self._blade_at_last_cut = blade
         if prev is None:
@@ -721,9 +728,7 @@ class Cutter:
             st = self._strokes[stroke]
             added = state.take(np.concatenate([np.arange(n, n + len(ea)), dup]))  # edge nodes, then copies
             st.uids = np.concatenate([st.uids, sim.node_uids[n:]])  # (debris is removed below)
-            st.state = CutState(*(np.concatenate([x, y]) for x, y in
-                                  ((st.state.on, added.on), (st.state.normals, added.normals),
-                                   (st.state.offsets, added.offsets))))
+            st.state = st.state.extended(added)
         if res.changed and len(ea):
             res.message = res.message.replace("cut:", "cut (subdivision):", 1)
             if not len(dup):

@@ -15,8 +15,8 @@ residual, the iteration count and the "go on" flag) in device arrays, computed b
 and the loop a ``wp.capture_while`` on that flag: no host synchronisation until the end of
 the solve. On CUDA it is captured once as a graph (per vector size, operator, preconditioner
 pattern and coefficients) and replayed each step. It needs a preconditioner whose ``apply``
-only launches (``device_capable()``): none, jacobi, or :class:`DeviceLDLTPreconditioner`
-while it can apply on the device; otherwise it runs the host-scalar :meth:`PCG.solve`.
+only launches (``device_capable()``): none, jacobi, or a device factor
+(:mod:`soft_tissue_sim.device_preconditioner`); otherwise it runs the host-scalar :meth:`PCG.solve`.
 """
 
 from __future__ import annotations
@@ -132,140 +132,6 @@ class BlockJacobiPreconditioner:
 
     def graph_key(self) -> tuple:
         return (self._Dinv.ptr, self._Dinv.shape[0])
-
-
-class HostPreconditioner:
-    """Adapter for a host (numpy) preconditioner such as the CHOLMOD LDL^T one.
-
-    On the CPU device the Warp arrays are viewed in place; on CUDA they are copied
-    to the host and back (the device-side triangular solves are issue #8's work).
-    """
-
-    def __init__(self, inner):
-        self.inner = inner
-        self.name = inner.name
-        self._host_r = None
-
-    def begin_step(self, system) -> None:
-        self.inner.begin_step(system.step_index, system.fem.node_rotations())
-
-    def apply(self, r: wp.array, z: wp.array) -> None:
-        if r.device.is_cpu:
-            self.inner.apply(r.numpy().reshape(-1), z.numpy().reshape(-1))
-        else:
-            out = np.empty(3 * r.shape[0])
-            self.inner.apply(r.numpy().reshape(-1), out)
-            z.assign(out.reshape(-1, 3))
-
-    def stats(self) -> dict:
-        return self.inner.stats()
-
-    def invalidate(self) -> None:
-        self.inner.invalidate()
-
-    def close(self) -> None:
-        self.inner.close()
-
-    def device_capable(self) -> bool:
-        return False
-
-
-class DeviceLDLTPreconditioner(HostPreconditioner):
-    """The asynchronous rotated LDL^T preconditioner, applied on the device.
-
-    The inner :class:`~soft_tissue_sim.ldlt_preconditioner.AsyncLDLTPreconditioner` keeps
-    its worker (factorization, then the conversion to the device layout, both off the
-    simulation thread), its host rotations (contact's compliance uses ``inner.apply``) and
-    the Sherman-Morrison correction. Here each new factor is copied to the device (in place
-    when its pattern is unchanged), dR = R(t) R(t_u)^T is computed by a kernel, and
-    ``apply`` launches the level-scheduled triangular solves of :mod:`soft_tissue_sim.ldlt_device`.
-
-    Host fallback (the :class:`HostPreconditioner` path, for as long as it holds): while a
-    Sherman-Morrison correction is active (after a cut, until a factor of the new mesh is
-    installed), and while the factor does not match the current mesh size. Supernodal
-    factors (above 60k DOFs) are converted to simplicial LDL^T by CHOLMOD in the worker and
-    applied on the device. ``stats()["apply_on"]`` says which path the step took.
-    """
-
-    def __init__(self, inner, device, **device_options):
-        super().__init__(inner)
-        from .ldlt_device import DeviceLDLT
-
-        self.device = wp.get_device(device)
-        self.dev = DeviceLDLT(self.device, **device_options)
-        self._installed = None
-        self._R_tu = None
-        self._dR = None
-        self._ready = False
-        self.fallback_reason = "no factor yet"
-        self.device_steps = 0
-        self.host_steps = 0
-
-    def begin_step(self, system) -> None:
-        from .ldlt_device import identity_kernel, relative_rotation_kernel
-
-        fem = system.fem
-        R = fem.node_rotations()
-        self.inner.begin_step(system.step_index, R)
-        inner, n = self.inner, fem.n_nodes
-        data = inner.factor_data
-        corr = inner.correction
-        self._ready = False
-        if corr is not None and corr.active:
-            self.fallback_reason = "Sherman-Morrison correction active"
-        elif data is None:
-            self.fallback_reason = "factor without device layout"
-        elif data.structure.n != 3 * n or inner.R_tu is None or len(inner.R_tu) != n:
-            self.fallback_reason = "factor size differs from the mesh"
-        else:
-            if self._dR is None or self._dR.shape[0] != n:
-                self._dR = wp.zeros(n, dtype=wp.mat33d, device=self.device)
-                self._R_tu = wp.zeros(n, dtype=wp.mat33d, device=self.device)
-            if data is not self._installed:
-                self.dev.set_factor(data)
-                self._installed = data
-                host = wp.array(np.ascontiguousarray(inner.R_tu, dtype=np.float64), dtype=wp.mat33d, device="cpu")
-                wp.copy(self._R_tu, host)
-            R_dev = getattr(fem, "_node_rot", None)
-            if inner.dR is None:
-                wp.launch(identity_kernel, n, [self._dR], device=self.device)
-            elif R_dev is not None and R_dev.shape[0] == n:
-                wp.launch(relative_rotation_kernel, n, [R_dev, self._R_tu, self._dR], device=self.device)
-            else:
-                self._dR.assign(inner.dR)
-            self._ready = True
-            self.fallback_reason = None
-        if self._ready:
-            self.device_steps += 1
-        else:
-            self.host_steps += 1
-
-    def apply(self, r: wp.array, z: wp.array) -> None:
-        if self._ready and r.device == self.device:
-            self.dev.apply(r, z, self._dR)
-        else:
-            super().apply(r, z)
-
-    def device_capable(self) -> bool:
-        return self._ready
-
-    def graph_key(self) -> tuple:
-        return self.dev.graph_key() + (self._dR.ptr, self._dR.shape[0])
-
-    def stats(self) -> dict:
-        s = self.dev.structure
-        return self.inner.stats() | {
-            "apply_on": "device" if self._ready else "host",
-            "device_fallback": self.fallback_reason,
-            "device_levels": (s.fwd_levels + s.bwd_levels) if s is not None else 0,
-            "device_launches": self.dev.launches_per_apply(),
-            "device_patterns": self.dev.pattern_version,
-        }
-
-    def invalidate(self) -> None:
-        super().invalidate()
-        self._installed = None
-        self._ready = False
 
 
 class PCG:
@@ -565,7 +431,10 @@ class DevicePCG(PCG):
         pk = getattr(preconditioner, "graph_key", None)
         if mk is None or pk is None:
             return None
-        return (self.n, b.ptr, x.ptr, self.r.ptr, mk(), pk(), self.tolerance, self.max_iterations)
+        pkey = pk()
+        if pkey is None:  # an apply that cannot be captured (cuDSS's solve allocates)
+            return None
+        return (self.n, b.ptr, x.ptr, self.r.ptr, mk(), pkey, self.tolerance, self.max_iterations)
 
     def solve(self, matvec, b: wp.array, x: wp.array, preconditioner) -> CGResult:
         capable = getattr(preconditioner, "device_capable", None)

@@ -493,11 +493,10 @@ class CorotationalFEM:
         )
 
     # ------------------------------------------------------------- assembly
-    def assemble(self, m_coef: float, k_coef: float) -> wps.BsrMatrix:
-        """Assemble the filtered A = m_coef M + k_coef K as a Warp BSR matrix (3x3 blocks).
-
-        The sparsity pattern is built once per topology (a Warp triplet map) and reused.
-        """
+    def assemble_triplets(self, m_coef: float, k_coef: float):
+        """The filtered A = m_coef M + k_coef K as COO triplets of 3x3 blocks on the device:
+        (rows, cols, values), 16 blocks per element (zero where they touch a fixed node) and one
+        per node (the identity on fixed nodes, zero elsewhere). Duplicates add up."""
         wp.launch(
             element_blocks_kernel,
             self.n_tets,
@@ -509,6 +508,14 @@ class CorotationalFEM:
             fixed_identity_kernel, self.n_nodes, [self.free, 16 * self.n_tets, self._rows, self._cols, self._vals],
             device=self.device,
         )
+        return self._rows, self._cols, self._vals
+
+    def assemble(self, m_coef: float, k_coef: float) -> wps.BsrMatrix:
+        """Assemble the filtered A = m_coef M + k_coef K as a Warp BSR matrix (3x3 blocks).
+
+        The sparsity pattern is built once per topology (a Warp triplet map) and reused.
+        """
+        self.assemble_triplets(m_coef, k_coef)
         if self._triplet_map is None:
             self._triplet_map = wps.bsr_set_from_triplets(
                 self._bsr, self._rows, self._cols, self._vals, prune_numerical_zeros=False, build_mapping=True
@@ -556,11 +563,16 @@ class CorotationalFEM:
         return sps.csc_matrix((vals.reshape(-1)[perm], indices, indptr), shape=(n3, n3))
 
     # ------------------------------------------------------------ rotations
-    def node_rotations(self) -> np.ndarray:
-        """Per-node rotations (n,3,3): volume-weighted average of the element rotations around
-        each node, projected back onto SO(3) (used to rotate the preconditioner, eq. 2)."""
+    def update_node_rotations(self) -> wp.array:
+        """Per-node rotations (n, mat33d, on the device): the volume-weighted average of the
+        element rotations around each node, projected back onto SO(3) (the rotations of eq. 2).
+        Launches only; uses the element rotations of the last :meth:`update_rotations`."""
         self._rot_acc.zero_()
         wp.launch(node_rotation_accumulate_kernel, self.n_tets, [self.tets, self.volume, self.rotations, self._rot_acc],
                   device=self.device)
         wp.launch(orthonormalize_kernel, self.n_nodes, [self._rot_acc, self._node_rot], device=self.device)
-        return self._node_rot.numpy()
+        return self._node_rot
+
+    def node_rotations(self) -> np.ndarray:
+        """:meth:`update_node_rotations` read back to the host, (n, 3, 3)."""
+        return self.update_node_rotations().numpy()

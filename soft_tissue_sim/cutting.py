@@ -57,7 +57,7 @@ from scipy.sparse.csgraph import connected_components
 
 from .material import ParameterError
 from .mesh import _FACES, TetMesh, tet_quality, unique_rows
-from .sherman_morrison import ShermanMorrisonCorrection, modification_from_blocks
+from .sherman_morrison import modification_from_blocks
 
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 CORRECTIONS = ("sherman_morrison", "none")
@@ -512,10 +512,9 @@ class Cutter:
         self.active = False
         self.correction = None
         inner = getattr(sim.preconditioner, "inner", None)
-        if inner is not None and hasattr(inner, "correction"):
-            self.correction = ShermanMorrisonCorrection(enabled=self.correction_mode == "sherman_morrison",
-                                                        rotate=bool(getattr(inner, "rotate", True)))
-            inner.correction = self.correction
+        if inner is not None and hasattr(inner, "make_correction"):
+            self.correction = inner.make_correction(enabled=self.correction_mode == "sherman_morrison",
+                                                    rotate=bool(getattr(inner, "rotate", True)))
         self._reset_counters()
 
     def _reset_counters(self):

@@ -22,7 +22,7 @@ Two workers (``worker``):
   factorizes the next snapshot at the same time, on another core, sharing no GIL; when its
   factor is installed the two swap. The process holding the factor also forms contact's W
   from its own L and D (:mod:`soft_tissue_sim.delassus`), so L never leaves it. Host solves
-  only (no device layout).
+  only.
 
 Both are one interface (``request``, ``poll``, ``run_now``, ``revive``, ``lost_request``,
 ``cancel``, ``close``, ``error``, ``analyses``, ``restarts``): :class:`_Thread`,
@@ -48,6 +48,7 @@ from . import cholmod_nogil
 
 
 SUPERNODAL_ABOVE = 60_000  # degrees of freedom
+ORDERINGS = ("amd", "metis", "nesdis", "colamd", "natural", "default", "best")  # CHOLMOD's fill-reducing orderings
 
 
 def _worker_loop(state):
@@ -74,7 +75,7 @@ def _local_result(state, req):
     """Factorize a snapshot in this process: the result as the preconditioner installs it."""
     factor = _factorize(state, req["A"])
     return {"factor": factor, "R": req["R"], "step": req["step"], "ms": _ms_since(req["t0"]), "gen": req["gen"],
-            "meta": req["meta"], "device": _device_values(state, factor), "lower": _lower(state, factor)}
+            "meta": req["meta"], "lower": _lower(state, factor)}
 
 
 def _ms_since(t0):
@@ -130,16 +131,6 @@ def _factorize(state, A):
     f = state["symbolic"].copy()
     f.cholesky_inplace(A)
     return f
-
-
-def _device_values(state, factor):
-    """The factor in the device layout (ldlt_device.FactorValues), when a device apply asked for it."""
-    cache = state.get("device_cache")
-    if cache is None:
-        return None
-    from .ldlt_device import factor_values
-
-    return factor_values(factor, cache, supernodal=state.get("mode_used") == "supernodal")
 
 
 def _lower(state, factor):
@@ -371,7 +362,7 @@ class _Processes:
         self.analyses = max(self.analyses, analyses)
         factor = RemoteFactor(w)
         return {"factor": factor, "R": req["R"], "step": req["step"], "ms": ms, "gen": req["gen"],
-                "meta": req["meta"], "device": None, "lower": factor if self.want_lower else None}
+                "meta": req["meta"], "lower": factor if self.want_lower else None}
 
     def poll(self):
         """The result of the latest request once it is in (older replies are dropped), else None."""
@@ -410,35 +401,22 @@ class AsyncLDLTPreconditioner:
     name = "async_ldlt"
 
     def __init__(self, snapshot_fn, *, rotate=True, refresh_every=1, deterministic=False, lag=0, mode="auto",
-                 ordering="default", device_layout=False, columns_device=None, min_device_columns=4,
-                 columns_options=None, lower_factor=False, worker="thread", release_gil=True):
+                 ordering="default", lower_factor=False, worker="thread", release_gil=True):
         """``deterministic``: the factor is made in the step that requests it (no background
         timing), installed at once, or ``lag`` steps later: the schedule of a background
         factorization that takes ``lag`` steps (the paper's took about 5.6), made reproducible.
         With ``lag`` one factor is in flight at a time: requested, installed ``lag`` steps later,
         the next requested ``refresh_every`` steps after the last request at the earliest.
-        ``ordering``: CHOLMOD's fill-reducing ordering (default: its AMD-based choice; metis or
-        nesdis give a shallower elimination tree, i.e. fewer levels for the device solve).
-        ``device_layout``: also convert every factor to the device layout in the worker
-        (``factor_data``, for :class:`soft_tissue_sim.cg.DeviceLDLTPreconditioner`).
-        ``columns_device``: a Warp device on which blocks of at least ``min_device_columns``
-        columns are solved with the factor (``DeviceLDLT.solve_columns``: the columns of U after
-        a cut, eq. 6, and of the contact compliance W, eq. 4, in one batch); None: CHOLMOD on
-        the host. Implies ``device_layout``. ``columns_options``: DeviceLDLT's options.
+        ``ordering``: CHOLMOD's fill-reducing ordering (default: its AMD-based choice).
         ``lower_factor``: also keep every factor's L and D for :meth:`delassus` (contact's W by
-        forward solves alone, :mod:`soft_tissue_sim.delassus`); ignored with ``columns_device``.
+        forward solves alone, :mod:`soft_tissue_sim.delassus`).
         ``worker``: ``thread`` or ``process`` (see the module's docstring; host solves only).
         ``release_gil``: factorize (simplicial) through :mod:`soft_tissue_sim.cholmod_nogil`,
         which frees the GIL while CHOLMOD works, where it is available; False: scikit-sparse."""
-        from .ldlt_device import ORDERINGS, StructureCache
-
         if ordering not in ORDERINGS:
             raise ValueError(f"unknown CHOLMOD ordering {ordering!r}: use one of {', '.join(ORDERINGS)}")
         if worker not in WORKERS:
             raise ValueError(f"ldlt worker must be one of {', '.join(WORKERS)}, got {worker!r}")
-        if worker == "process" and (device_layout or columns_device is not None):
-            raise ValueError("ldlt worker 'process' solves on the host: it cannot be combined with a device "
-                             "apply or device columns (use worker: thread there)")
         self.worker = worker
         self.snapshot_fn = snapshot_fn
         self.rotate = bool(rotate)
@@ -452,23 +430,8 @@ class AsyncLDLTPreconditioner:
         self.ordering = ordering
         self._s = {"cv": threading.Condition(), "request": None, "result": None, "stop": False, "error": None,
                    "pattern": None, "symbolic": None, "analyses": 0, "thread": None, "mode": mode,
-                   "ordering": ordering, "lower_factor": bool(lower_factor) and columns_device is None,
-                   "release_gil": bool(release_gil), "gil_free": None,
-                   "device_cache": StructureCache() if (device_layout or columns_device is not None) else None}
-        self.columns_device = columns_device
-        self.min_device_columns = max(1, int(min_device_columns))
-        self._columns_options = dict(columns_options or {})
-        self._cols = None  # the DeviceLDLT of the block solves
-        self._cols_installed = None
-        if columns_device is not None:
-            import warp as wp
-
-            from . import ldlt_device
-            from .ldlt_device import DeviceLDLT
-
-            self._cols = DeviceLDLT(columns_device, **self._columns_options)
-            # compile / load the kernels now, not in the first step that has a block to solve
-            wp.load_module(ldlt_device, device=columns_device)
+                   "ordering": ordering, "lower_factor": bool(lower_factor),
+                   "release_gil": bool(release_gil), "gil_free": None}
         self._workers = (_Processes(mode, ordering, self._s["lower_factor"]) if worker == "process"
                          else _Thread(self._s))
         self._finalizer = weakref.finalize(self, self._workers.close)
@@ -478,7 +441,6 @@ class AsyncLDLTPreconditioner:
 
     def _reset_counters(self):
         self.factor = None
-        self.factor_data = None  # the factor in the device layout (device_layout=True)
         self.lower = None  # the factor's L and D for the Delassus operator (lower_factor=True)
         self.factor_step = -1
         self.R_tu = None
@@ -491,10 +453,7 @@ class AsyncLDLTPreconditioner:
         self.factorization_ms = 0.0
         self.precond_ms = 0.0
         self.factor_count = 0
-        self.factor_solve = None  # B -> A_tu^-1 B with the installed factor (host or device block solve)
-        self.device_column_solves = 0
-        self.device_columns = 0
-        self.device_column_ms = 0.0
+        self.factor_solve = None  # B -> A_tu^-1 B with the installed factor
 
     # -------------------------------------------------------------- worker
     def _snapshot(self, step):
@@ -504,34 +463,12 @@ class AsyncLDLTPreconditioner:
         return {"A": A, "R": np.array(R, dtype=np.float64, copy=True), "step": step, "t0": time.perf_counter(),
                 "gen": self._gen, "meta": meta}
 
-    def _solver_for(self, factor, data):
-        """B -> A^-1 B with one factor: CHOLMOD, or the device block solve (``columns_device``)
-        for blocks of at least ``min_device_columns`` columns."""
-        if self.columns_device is None or data is None:
-            return factor
-
-        def solve(B):
-            if np.ndim(B) != 2 or B.shape[1] < self.min_device_columns or B.shape[0] != data.structure.n:
-                return factor(B)
-            t0 = time.perf_counter()
-            if self._cols_installed is not data:
-                self._cols.set_factor(data)
-                self._cols_installed = data
-            X = self._cols.solve_columns(B)
-            self.device_column_solves += 1
-            self.device_columns += B.shape[1]
-            self.device_column_ms += _ms_since(t0)
-            return X
-
-        return solve
-
     def _install(self, res):
         if isinstance(res["factor"], RemoteFactor):  # that process now serves the solves
             self._workers.installed = res["factor"].worker
         self.factor, self.R_tu, self.factor_step = res["factor"], res["R"], res["step"]
-        self.factor_data = res.get("device")
         self.lower = res.get("lower")
-        self.factor_solve = self._solver_for(self.factor, self.factor_data)
+        self.factor_solve = self.factor
         self.factorization_ms = res["ms"]
         self.factor_count += 1
         self.swaps.append(self.step)
@@ -544,6 +481,17 @@ class AsyncLDLTPreconditioner:
         self.last_request_step = step
 
     # ---------------------------------------------------------------- API
+    def make_correction(self, enabled: bool = True, rotate: bool = True):
+        """The Sherman-Morrison correction a cutter feeds topological changes (eq. 5-12)."""
+        from .sherman_morrison import ShermanMorrisonCorrection
+
+        self.correction = ShermanMorrisonCorrection(enabled=enabled, rotate=rotate)
+        return self.correction
+
+    def refresh(self, step: int) -> None:
+        """Factorize the current state now and install it (waits)."""
+        self._sync_refresh(int(step))
+
     def begin_step(self, step: int, node_rotations: np.ndarray) -> None:
         if self._workers.revive():  # the installed factor died with its process: factorize anew
             self.invalidate()
@@ -649,10 +597,7 @@ class AsyncLDLTPreconditioner:
             "worker_restarts": self._workers.restarts,
             "factor_count": self.factor_count,
             "analyses": self._workers.analyses,
-            "columns_on": "host" if self.columns_device is None else str(self.columns_device),
-            "device_column_solves": self.device_column_solves,
-            "device_columns": self.device_columns,
-            "device_column_ms": self.device_column_ms,
+            "backend": "cholmod",
         }
 
     def close(self) -> None:

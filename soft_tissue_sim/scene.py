@@ -19,30 +19,21 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
     time: {dt: 0.01}
     solver: {tolerance: 1.0e-7, max_iterations: 1000,
              preconditioner: async_ldlt,          # none | jacobi | async_ldlt | direct
-             ldlt: {rotate: true, refresh_every: 1, deterministic: false,
+             ldlt: {backend: auto,                # auto | cholmod | dense | cudss (soft_tissue_sim.preconditioner)
+                    rotate: true, refresh_every: 1, deterministic: false,
                     lag: 0,                       # with deterministic: install each factor this many
                                                   #   steps after its request (a background
                                                   #   factorization's delay, reproducibly)
-                    mode: auto,                   # CHOLMOD: auto | simplicial | supernodal
-                    apply_on: auto,               # auto (= host: see bench haptic) | host | device
-                    columns_on: auto,             # blocks of columns (U after a cut, contact's W):
-                                                  #   auto (= device on CUDA in a scene with contact,
-                                                  #   else host: see bench columns) | host | device
-                    ordering: auto,               # auto (metis for a device apply, else CHOLMOD's
-                                                  #   default) | amd | metis | nesdis | best | ...
-                    worker: thread,               # thread | process: two factorization processes
-                                                  #   (no GIL shared; host solves only)
-                    release_gil: true},           # simplicial factorization through CHOLMOD's C API
-                                                  #   (ctypes: the GIL is free meanwhile) where
-                                                  #   available; false: scikit-sparse
-             graph: auto}                         # auto (on CUDA with a device LDL^T) | true | false
+                    dense_max_dofs: 15000,        # auto on a GPU: the dense inverse up to this size
+                    mode: auto,                   # cholmod: auto | simplicial | supernodal
+                    ordering: default,            # cholmod: default | amd | metis | nesdis | best | ...
+                    worker: thread,               # cholmod: thread | process (two factorization processes)
+                    release_gil: true},           # cholmod: simplicial factorization with the GIL released
+             graph: auto}                         # auto (on CUDA with a device factor) | true | false
 
-``apply_on: device`` applies the LDL^T factor with Warp kernels (soft_tissue_sim.ldlt_device)
-and runs PCG with its scalars on the device (cg.DevicePCG); ``graph`` captures that solve as
-a CUDA graph (Warp's API capture on the CPU) replayed each step. ``graph: true`` with the
-none/jacobi preconditioners gives the device-scalar PCG too. Advanced device options under
-``ldlt``: ``lanes`` (1: a thread per row group, 32: a warp), ``tail_width`` (levels of at
-most that many groups run in one single-block launch; 0: one launch per level), ``tail_block``.
+``graph`` captures the PCG solve as a CUDA graph (Warp's API capture on the CPU) replayed each
+step, with every scalar on the device (cg.DevicePCG); it needs a preconditioner that applies on
+the device (none, jacobi, or a dense factor; cuDSS's solve is not capturable).
 """
 
 from __future__ import annotations
@@ -59,20 +50,14 @@ import warp as wp
 import yaml
 
 from . import mesh as mesh_mod
-from .cg import (
-    BlockJacobiPreconditioner,
-    DeviceLDLTPreconditioner,
-    DevicePCG,
-    HostPreconditioner,
-    IdentityPreconditioner,
-)
+from .cg import DevicePCG
 from .corotational_fem import CorotationalFEM
 from .implicit_integration import BackwardEuler, StepStats
 from .material import Damping, MaterialTable, ParameterError
+from .preconditioner import make_preconditioner
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
 SCENES_DIR = PACKAGE_ROOT / "config" / "scenes"
-PRECONDITIONERS = ("none", "jacobi", "async_ldlt", "direct")
 _KNOWN_KEYS = {
     "name", "description", "device", "mesh", "materials", "mass", "damping", "gravity", "fixed", "time",
     "solver", "instruments", "obstacles", "contact", "cutting", "script", "guard",
@@ -191,80 +176,11 @@ def select_fixed(points: np.ndarray, spec) -> np.ndarray:
     return np.flatnonzero(sel)
 
 
-APPLY_ON = ("auto", "host", "device")
-
-
 def _graph_option(value) -> str:
     v = {True: "true", False: "false"}.get(value, value) if isinstance(value, bool) else str(value).strip().lower()
     if v not in ("auto", "true", "false"):
         raise ParameterError(f"solver graph must be auto, true or false, got {value!r}")
     return v
-
-
-def make_preconditioner(kind: str, options: dict, snapshot_fn, device="cpu", contact: bool = False):
-    if kind == "none":
-        return IdentityPreconditioner()
-    if kind == "jacobi":
-        return BlockJacobiPreconditioner()
-    if kind in ("async_ldlt", "direct"):
-        from .ldlt_device import ORDERINGS
-        from .ldlt_preconditioner import AsyncLDLTPreconditioner
-
-        apply_on = str(options.get("apply_on", "auto"))
-        if apply_on not in APPLY_ON:
-            raise ParameterError(f"ldlt apply_on must be one of {', '.join(APPLY_ON)}, got {apply_on!r}")
-        if apply_on == "auto":  # host: measured on an H100 (bench haptic) the device solve is not faster yet
-            apply_on = "host"
-        columns_on = str(options.get("columns_on", "auto"))
-        if columns_on not in APPLY_ON:
-            raise ParameterError(f"ldlt columns_on must be one of {', '.join(APPLY_ON)}, got {columns_on!r}")
-        if columns_on == "auto":
-            # The device block solve is 5-10x faster than CHOLMOD for blocks of >= 24 columns (bench
-            # columns, H100), but each factor must then be converted to the device layout in the
-            # worker (a new pattern after every cut: ~0.1 s of numpy holding the GIL). Contact needs a
-            # block every step (one column per contact); cutting alone one per cut, which does not
-            # pay for the conversion (bench cut-beam on the H100: SMF 96 ms/step with, 70 without).
-            columns_on = "device" if (contact and wp.get_device(device).is_cuda) else "host"
-        ordering = str(options.get("ordering", "auto"))
-        if ordering == "auto":  # METIS: a far shallower elimination tree (fewer levels) for the device solves
-            ordering = "metis" if "device" in (apply_on, columns_on) else "default"
-        if ordering not in ORDERINGS:
-            raise ParameterError(f"ldlt ordering must be auto or one of {', '.join(ORDERINGS)}, got {ordering!r}")
-        col_opts = {k: int(options[k]) for k in ("cols_lanes", "tail_block") if k in options}
-        # Contact on the host: keep each factor's L and D too, for W by forward solves (delassus.py)
-        cols = dict(columns_device=device if columns_on == "device" else None, columns_options=col_opts,
-                    min_device_columns=int(options.get("min_device_columns", 6)),
-                    lower_factor=contact and columns_on == "host", worker=str(options.get("worker", "thread")),
-                    release_gil=bool(options.get("release_gil", True)))
-        layout = apply_on == "device"
-        try:
-            if kind == "direct":  # a fresh exact factor every step: the reference solution
-                inner = AsyncLDLTPreconditioner(snapshot_fn, rotate=False, refresh_every=1, deterministic=True,
-                                                ordering=ordering, device_layout=layout, **cols)
-                inner.name = "direct"
-            else:
-                inner = AsyncLDLTPreconditioner(
-                    snapshot_fn,
-                    rotate=bool(options.get("rotate", True)),
-                    refresh_every=int(options.get("refresh_every", 1)),
-                    deterministic=bool(options.get("deterministic", False)),
-                    lag=options.get("lag", 0),
-                    mode=str(options.get("mode", "auto")),
-                    ordering=ordering,
-                    device_layout=layout,
-                    **cols,
-                )
-        except ValueError as exc:  # the device block solve's options, the worker
-            raise ParameterError(f"ldlt options: {exc}") from None
-        if apply_on == "device":
-            dev_opts = {k: int(options[k]) for k in ("lanes", "tail_width", "tail_block", "cols_lanes") if k in options}
-            try:
-                return DeviceLDLTPreconditioner(inner, device, **dev_opts)
-            except ValueError as exc:
-                inner.close()
-                raise ParameterError(f"ldlt device options: {exc}") from None
-        return HostPreconditioner(inner)
-    raise ParameterError(f"unknown preconditioner {kind!r}: use one of {', '.join(PRECONDITIONERS)}")
 
 
 def _weak_call(method):
@@ -307,22 +223,23 @@ class Simulation:
             raise ParameterError(f"solver max_iterations must be an integer >= 1, got {max_it!r}")
         dt = (config.get("time") or {}).get("dt", 0.01)
         graph = _graph_option(solver.get("graph", "auto"))
+        # Node identities across topological changes (the preconditioner maps numberings by them).
+        self.node_uids = np.arange(self.mesh.n_nodes, dtype=np.int64)
+        self.mesh_version = 0
         self.preconditioner = make_preconditioner(
             str(solver.get("preconditioner", "async_ldlt")), dict(solver.get("ldlt") or {}),
-            _weak_call(self._snapshot),  # weak: the simulation's finalizer owns the preconditioner
-            device=self.device, contact=self._has_contact(config),
+            _weak_call(self._snapshot), _weak_call(self._topology),  # weak: the finalizer owns the preconditioner
+            device=self.device, n_dofs=3 * self.mesh.n_nodes, contact=self._has_contact(config),
+            cutting=bool(config.get("cutting")),
         )
         self.integrator = BackwardEuler(
             self.fem, dt, self.damping, config.get("gravity", [0.0, 0.0, -9.81]), self.preconditioner,
             tolerance=float(tol), max_iterations=int(max_it),
         )
-        device_ldlt = isinstance(self.preconditioner, DeviceLDLTPreconditioner)
-        use_graph = graph == "true" or (graph == "auto" and device_ldlt and wp.get_device(self.device).is_cuda)
-        if device_ldlt or use_graph:  # PCG with its scalars on the device (captured as a graph if use_graph)
+        device_factor = hasattr(self.preconditioner, "backend")  # a factor that applies on the device
+        use_graph = graph == "true" or (graph == "auto" and device_factor and wp.get_device(self.device).is_cuda)
+        if device_factor or use_graph:  # PCG with its scalars on the device (captured as a graph if use_graph)
             self.integrator.cg = DevicePCG(self.fem.n_nodes, self.device, float(tol), int(max_it), graph=use_graph)
-        # Node identities across topological changes (the preconditioner maps numberings by them).
-        self.node_uids = np.arange(self.mesh.n_nodes, dtype=np.int64)
-        self.mesh_version = 0
         # Optional components: built only when the scene names them.
         self.contact = None
         self.cutting = None
@@ -363,8 +280,11 @@ class Simulation:
     def _snapshot(self):
         """(A at the current state as scipy CSC, per-node rotations, topology) for the LDL^T factorization."""
         integ = self.integrator
-        return (self.fem.assemble_scipy(integ.m_coef, integ.k_coef), self.fem.node_rotations(),
-                {"uids": self.node_uids.copy(), "version": self.mesh_version})
+        return (self.fem.assemble_scipy(integ.m_coef, integ.k_coef), self.fem.node_rotations(), self._topology())
+
+    def _topology(self) -> dict:
+        """The node uids (stable across cuts) and the mesh version: what a factor was made from."""
+        return {"uids": self.node_uids.copy(), "version": self.mesh_version}
 
     # --------------------------------------------------------------- public
     @property

@@ -92,6 +92,36 @@ def modification_from_blocks(version, old_blocks, new_blocks, old_uids, new_uids
                         np.asarray(created, np.int64), np.asarray(removed, np.int64))
 
 
+def perturbation(mod: Modification, R_ref: np.ndarray, new_uids: np.ndarray, rotate: bool = True) -> np.ndarray:
+    """N (3k x 3k, symmetric) of eq. (5) for one modification, in the factor's unrotated frame:
+    N = D^T dA D with D = blockdiag(R_i(t_cut) R_ref_i^T) (identity when not ``rotate``), plus
+    the identity padding of eq. (10): -I on the free nodes ``new_uids`` that the factor's space
+    holds as identity rows (P_ext = blockdiag(P, I), so N = A_new - I there) and +I on removed
+    free nodes (a vanished node becomes a decoupled identity row). ``R_ref`` (k, 3, 3): the
+    reference rotations of ``mod.uids`` (R(t_u) of factor nodes, R at creation of added ones)."""
+    k = len(mod.uids)
+    if rotate:
+        D = np.matmul(mod.R, np.swapaxes(R_ref, 1, 2))  # R(t_cut) R_ref^T
+    else:
+        D = np.tile(np.eye(3), (k, 1, 1))
+    dA = mod.dA.reshape(k, 3, k, 3)
+    blocks = np.swapaxes(D, 1, 2)[:, None] @ dA.transpose(0, 2, 1, 3) @ D[None, :]  # D_a^T dA_ab D_b
+    N = blocks.transpose(0, 2, 1, 3).reshape(3 * k, 3 * k)
+    N = 0.5 * (N + N.T)
+    pad = np.zeros(k)
+    pad[np.isin(mod.uids, new_uids)] -= 1.0
+    pad[np.isin(mod.uids, mod.removed)] += 1.0
+    N += np.kron(np.diag(pad * mod.free), np.eye(3))
+    return N
+
+
+def woodbury_q(N: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """Q = (I + N S)^-1 N (symmetric), the Woodbury form of eq. (7) that needs no N^-1
+    (N is singular in general); S = G^T P^-1 G."""
+    Q = np.linalg.solve(np.eye(len(N)) + N @ S, N)
+    return 0.5 * (Q + Q.T)
+
+
 class ShermanMorrisonCorrection:
     """The state between two factorizations: node map, padding and the U Q U^T terms.
 
@@ -210,18 +240,7 @@ class ShermanMorrisonCorrection:
             self._grow(new, Rn)  # their reference rotation: the one at creation (D = I now)
         idx = self._ext_index(mod.uids)
         k = len(idx)
-        if self.rotate:
-            D = np.matmul(mod.R, np.swapaxes(self.R_ref[idx], 1, 2))  # R(t_cut) R_ref^T
-        else:
-            D = np.tile(np.eye(3), (k, 1, 1))
-        dA = mod.dA.reshape(k, 3, k, 3)
-        blocks = np.swapaxes(D, 1, 2)[:, None] @ dA.transpose(0, 2, 1, 3) @ D[None, :]  # D_a^T dA_ab D_b
-        N = blocks.transpose(0, 2, 1, 3).reshape(3 * k, 3 * k)
-        N = 0.5 * (N + N.T)
-        pad = np.zeros(k)
-        pad[np.isin(mod.uids, new)] -= 1.0  # P_ext has I there: N = A_new - I
-        pad[np.isin(mod.uids, mod.removed)] += 1.0  # a vanished node becomes a decoupled identity row
-        N += np.kron(np.diag(pad * mod.free), np.eye(3))
+        N = perturbation(mod, self.R_ref[idx], new, self.rotate)
         if not self.enabled:
             return
         t0 = time.perf_counter()
@@ -231,9 +250,7 @@ class ShermanMorrisonCorrection:
         G[rows, np.arange(3 * k)] = 1.0
         U = self._solve_ext(G)  # eq. (6): all columns in one batched triangular solve
         t1 = time.perf_counter()
-        S = U[rows]
-        Q = np.linalg.solve(np.eye(3 * k) + N @ S, N)  # Woodbury form of eq. (7), no N^-1
-        Q = 0.5 * (Q + Q.T)
+        Q = woodbury_q(N, U[rows])
         self.terms.append((U, Q, rows))
         self.columns = sum(u.shape[1] for u, _, _ in self.terms)
         self.u_ms += 1000.0 * (t1 - t0)

@@ -66,10 +66,10 @@ def test_scene_without_instruments_or_obstacles_builds_no_contact(monkeypatch):
 FLOOR_Z = -0.011  # the block's bottom is at z = -0.01: it falls 1 mm, lands, settles
 
 
-@pytest.mark.parametrize("kind, columns_on, worker", [("plane", "host", "thread"), ("mesh", "host", "thread"),
-                                                      ("plane", "device", "thread"), ("plane", "host", "process")])
-def test_block_lands_and_rests_on_a_floor(kind, columns_on, worker):
-    """columns_on=device: W's columns by the Warp block solve (here on Warp's CPU backend);
+@pytest.mark.parametrize("kind, backend, worker", [("plane", "cholmod", "thread"), ("mesh", "cholmod", "thread"),
+                                                   ("plane", "dense", None), ("plane", "cholmod", "process")])
+def test_block_lands_and_rests_on_a_floor(kind, backend, worker):
+    """backend=dense: W gathered from the dense inverse (here on Warp's CPU backend);
     worker=process: the factor in a worker process, which also forms W from its L and D."""
     if kind == "plane":
         floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
@@ -78,7 +78,7 @@ def test_block_lands_and_rests_on_a_floor(kind, columns_on, worker):
                  "vertices": [[-1, -1, FLOOR_Z], [1, -1, FLOOR_Z], [1, 1, FLOOR_Z], [-1, 1, FLOOR_Z]]}
     tol = 1e-8
     cfg = scene(obstacles=[floor], contact={"tolerance": tol})
-    cfg["solver"]["ldlt"].update(columns_on=columns_on, worker=worker)
+    cfg["solver"]["ldlt"].update(backend=backend, **({"worker": worker} if worker else {}))
     with load_scene(cfg) as sim:
         dt = sim.dt
         for i in range(150):
@@ -100,7 +100,7 @@ def test_block_lands_and_rests_on_a_floor(kind, columns_on, worker):
         np.testing.assert_allclose(sim.contact.contact_forces().sum(axis=0), -F, atol=1e-12)
         assert len(sim.contact_points()) == 12
         assert np.allclose(sim.contact_points()[:, 2], FLOOR_Z)
-        assert (sim.preconditioner.inner.device_column_solves > 0) == (columns_on == "device")
+        assert sim.preconditioner.stats()["backend"] == backend
 
 
 def test_exact_compliance_with_the_jacobi_preconditioner_gives_the_weight():

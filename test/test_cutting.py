@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import warp as wp
 import scipy.sparse as sps
 import scipy.sparse.linalg as spla
 
@@ -12,7 +13,7 @@ from soft_tissue_sim.mesh import tet_quality, validate_mesh
 
 def beam_scene(n_long=8, n_cross=3, pre="async_ldlt", correction="sherman_morrison", refresh_every=1000,
                deterministic=True, script=None, fixed=True, gravity=(0.0, 0.0, -9.81), young=5e4, rotate=True,
-               columns_on="auto", scheme="split", worker="thread"):
+               backend="cholmod", scheme="split", worker="thread"):
     cut = {"correction": correction, "scheme": scheme}
     if script:
         cut["script"] = script
@@ -26,7 +27,7 @@ def beam_scene(n_long=8, n_cross=3, pre="async_ldlt", correction="sherman_morris
         "time": {"dt": 0.01},
         "solver": {"preconditioner": pre, "tolerance": 1e-8, "max_iterations": 3000,
                    "ldlt": {"deterministic": deterministic, "refresh_every": refresh_every, "rotate": rotate,
-                            "columns_on": columns_on, "worker": worker}},
+                            "backend": backend, **({"worker": worker} if backend == "cholmod" else {})}},
         "cutting": cut,
     }
 
@@ -51,50 +52,57 @@ def corrected_vs_fresh(sim, rng, k=3):
     integ = sim.integrator
     sim.fem.update_rotations(integ.x)
     A = sim.fem.assemble_scipy(integ.m_coef, integ.k_coef)
-    pre = sim.preconditioner.inner
-    pre.begin_step(sim.step_count, sim.fem.node_rotations())
+    pre = sim.preconditioner
+    pre.begin_step(integ)
     lu = spla.splu(A.tocsc())
     err = 0.0
+    n = A.shape[0] // 3
+    z = wp.zeros(n, dtype=wp.vec3d, device=sim.device)
     for _ in range(k):
         b = rng.standard_normal(A.shape[0])
-        out = np.empty_like(b)
-        pre.apply(b, out)
+        pre.apply(wp.array(b.reshape(n, 3), dtype=wp.vec3d, device=sim.device), z)
+        out = z.numpy().reshape(-1)
         ref = lu.solve(b)
         err = max(err, np.linalg.norm(out - ref) / np.linalg.norm(ref))
     return err
 
 
-@pytest.mark.parametrize("columns_on, scheme, worker", [("host", "split", "thread"), ("device", "split", "thread"),
-                                                        ("host", "subdivide", "thread"), ("host", "split", "process")])
-def test_corrected_preconditioner_equals_inverse_of_modified_matrix(columns_on, scheme, worker):
+@pytest.mark.parametrize("backend, scheme, worker", [("cholmod", "split", "thread"), ("dense", "split", None),
+                                                     ("cholmod", "subdivide", "thread"), ("dense", "subdivide", None),
+                                                     ("cholmod", "split", "process")])
+def test_corrected_preconditioner_equals_inverse_of_modified_matrix(backend, scheme, worker):
     # Unrotated: the averaged nodal rotations of eq. (2) change where a cut changes the elements
     # around a node, which is an approximation by design, not part of the correction.
-    # columns_on=device: the columns of U by the Warp block solve (here Warp's CPU backend).
+    # dense: the correction folded into the dense inverse (on Warp's CPU backend here).
     # subdivide: the cut also bisects the crossed tets (new nodes on edges, eq. 10 padding).
     rng = np.random.default_rng(0)
-    with load_scene(beam_scene(rotate=False, columns_on=columns_on, scheme=scheme, worker=worker)) as sim:
+    with load_scene(beam_scene(rotate=False, backend=backend, scheme=scheme, worker=worker)) as sim:
         for _ in range(3):
             sim.step()  # deformed, rotated state; the factor is from step 0 (refresh_every large)
         # make the factor current, so that the only difference is the cut
         sim.fem.update_rotations(sim.integrator.x)
-        sim.preconditioner.inner._sync_refresh(sim.step_count)
+        sim.preconditioner.refresh(sim.integrator)
+        assert corrected_vs_fresh(sim, rng) < 1e-10
         n0 = sim.mesh.n_nodes
         res = lengthwise(sim, 0.035, 0.08)
         assert res.changed and res.nodes_added > 0 and sim.mesh.n_nodes == n0 + res.nodes_added
-        assert sim.preconditioner.inner.correction.active
+        inner = sim.preconditioner.inner
+        if backend == "cholmod":
+            assert inner.correction.active
         assert corrected_vs_fresh(sim, rng) < 1e-8
         # a second cut chains a second correction on top of the first
         res2 = crosswise(sim, 0.055)
         assert res2.changed
-        assert len(sim.preconditioner.inner.correction.terms) == 2
+        if backend == "cholmod":
+            assert len(inner.correction.terms) == 2
+        else:
+            assert inner.correction.folds == 2
         assert corrected_vs_fresh(sim, rng) < 1e-8
         # element removal (nodes vanish, numbering compacts) is corrected as well
         res3 = sim.remove_elements(sim.positions()[-1], 0.012)
         assert res3.changed and res3.nodes_removed > 0
         assert corrected_vs_fresh(sim, rng) < 1e-8
-        inner = sim.preconditioner.inner
-        assert inner.stats()["columns_on"] == ("host" if columns_on == "host" else "cpu")
-        assert (inner.device_column_solves >= 3) == (columns_on == "device")
+        assert inner.stats()["backend"] == backend
 
 
 def test_without_correction_the_padded_factor_is_not_the_inverse():

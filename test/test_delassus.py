@@ -28,7 +28,7 @@ def constraint_columns(rng, n_nodes, m, nodes=None):
 
 
 def beam_matrix():
-    with load_scene(beam_scene(n_long=10, n_cross=3, columns_on="host")) as sim:
+    with load_scene(beam_scene(n_long=10, n_cross=3)) as sim:
         for _ in range(3):
             sim.step()
         A = sps.csc_matrix(sim._snapshot()[0])
@@ -67,7 +67,7 @@ def test_preconditioner_delassus_equals_its_columns_rotated_and_corrected(worker
     eq. (2) and the Sherman-Morrison correction and identity padding after a cut (eq. 11-12);
     with worker=process both are computed in the process holding the factor."""
     rng = np.random.default_rng(2)
-    cfg = beam_scene(n_long=10, n_cross=3, columns_on="host", worker=worker)
+    cfg = beam_scene(n_long=10, n_cross=3, worker=worker)
     cfg["obstacles"] = [{"type": "plane", "point": [0, 0, -1.0], "normal": [0, 0, 1]}]  # contact: far below
     with load_scene(cfg) as sim:
         inner = sim.preconditioner.inner
@@ -97,12 +97,48 @@ def test_preconditioner_delassus_equals_its_columns_rotated_and_corrected(worker
         assert np.isfinite(ref).all()
 
 
-def test_no_lower_factor_without_contact_or_with_device_columns():
-    with load_scene(beam_scene(columns_on="host")) as sim:  # cutting, no contact: not needed
+def test_no_lower_factor_without_contact():
+    with load_scene(beam_scene()) as sim:  # cutting, no contact: not needed
         sim.step()
         assert sim.preconditioner.inner.lower is None and sim.preconditioner.inner.delassus(np.zeros((3, 1))) is None
-    cfg = beam_scene(columns_on="device")
+
+
+def test_dense_delassus_equals_its_columns_rotated_and_corrected():
+    """The dense backend gathers W from its inverse (a kernel per entry): it equals B^T P^-1 B
+    from its applications (the matrix-vector kernel), rotated, and after a cut and a removal
+    folded into the inverse; and it equals CHOLMOD's W for the same state."""
+    rng = np.random.default_rng(5)
+    cfg = beam_scene(n_long=10, n_cross=3, backend="dense")
     cfg["obstacles"] = [{"type": "plane", "point": [0, 0, -1.0], "normal": [0, 0, 1]}]
-    with load_scene(cfg) as sim:  # W's columns by the device block solve instead
-        sim.step()
-        assert sim.preconditioner.inner.lower is None
+    with load_scene(cfg) as sim:
+        pre = sim.preconditioner
+        for _ in range(6):
+            sim.step()
+
+        def check():
+            sim.fem.update_rotations(sim.integrator.x)
+            pre.begin_step(sim.integrator)
+            B = constraint_columns(rng, sim.fem.n_nodes, 17)
+            ref = B.T @ pre.apply_columns(B)
+            W = pre.delassus(sps.csc_matrix(B))
+            assert np.abs(W - ref).max() <= 1e-10 * np.abs(ref).max()
+            return B, W
+
+        B, W = check()
+        assert np.abs(pre.dR.numpy() - np.eye(3)).max() > 1e-4  # really rotated
+        host_cfg = beam_scene(n_long=10, n_cross=3)
+        host_cfg["obstacles"] = cfg["obstacles"]
+        with load_scene(host_cfg) as host:  # same scene, same deterministic schedule: the same factor
+            for _ in range(6):
+                host.step()
+            host.fem.update_rotations(host.integrator.x)
+            host.preconditioner.begin_step(host.integrator)
+            Wh = host.preconditioner.inner.delassus(B)
+        assert np.abs(W - Wh).max() <= 1e-8 * np.abs(Wh).max()
+        assert lengthwise(sim, 0.045, 0.09).changed
+        check()
+        corner = int(np.argmax(sim.mesh.points.sum(axis=1)))
+        assert sim.remove_tets(np.flatnonzero(np.any(sim.mesh.tets == corner, axis=1))).changed
+        check()
+        with pytest.raises(ValueError, match="more than 4 nodes"):
+            pre.delassus(np.ones((3 * sim.fem.n_nodes, 1)))

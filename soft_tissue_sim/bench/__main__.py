@@ -12,7 +12,6 @@ BENCHMARKS = {
     "profile": "profile",  # where the time of one step goes (kernels, copies, host)
     "scaling": "scaling",  # cost against mesh size
     "haptic": "haptic",  # step time distribution: CG vs LDL^T host / device / device + graph
-    "columns": "columns",  # A^-1 B for blocks of columns (U after a cut, contact's W): host vs device
     "workers": "workers",  # the async factorization in a thread or in worker processes
 }
 

@@ -247,11 +247,11 @@ def spare_tumour_bite(sim, center, radius: float):
 
 
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
-        columns_on="auto", scheme=None, worker=None, synchronous=False, refresh_every=None, snap=None,
+        backend="auto", scheme=None, worker=None, synchronous=False, refresh_every=None, snap=None,
         margin=0.0, radial=0, progress=False, lag=0):
     cfg = read_scene(scene)[0]
     solver = dict(cfg.get("solver") or {})
-    solver["ldlt"] = {**(solver.get("ldlt") or {}), "columns_on": columns_on}
+    solver["ldlt"] = {**(solver.get("ldlt") or {}), "backend": backend}
     if worker is not None:
         solver["ldlt"]["worker"] = worker
     if refresh_every is not None:
@@ -400,8 +400,8 @@ def main(argv=None) -> int:
                     help="the long session: radial cuts dividing the margin into wedges")
     ap.add_argument("--max-cleanup", type=int, default=60, help="most extra (closed-loop) bites")
     ap.add_argument("--cleanup-radius", type=float, default=0.005, help="radius of a closed-loop bite [m]")
-    ap.add_argument("--columns-on", default="auto", choices=["auto", "host", "device"],
-                    help="where blocks of columns (contact's W, U after a cut) are solved")
+    ap.add_argument("--backend", default="auto", choices=["auto", "cholmod", "dense"],
+                    help="the factor's backend (solver.ldlt.backend)")
     ap.add_argument("--scheme", default=None, choices=["split", "subdivide"],
                     help="cutting scheme (default: the scene's)")
     ap.add_argument("--snap", type=float, default=None,
@@ -426,7 +426,7 @@ def main(argv=None) -> int:
     device = resolve_device(args.device)
     t0 = time.perf_counter()
     rows, mods, freed, finite, n_end, t_end, info = run(device, args.scene, args.turns, args.step_len,
-                                                        args.max_cleanup, args.cleanup_radius, args.columns_on,
+                                                        args.max_cleanup, args.cleanup_radius, args.backend,
                                                         args.scheme, args.worker, args.synchronous,
                                                         args.refresh_every, args.snap, args.margin, args.radial,
                                                         progress=True, lag=args.lag)
@@ -462,7 +462,7 @@ def main(argv=None) -> int:
           f"{summary['fps_mean']:.1f} FPS", file=sys.stderr)
     cfg = read_scene(args.scene)[0]
     ldlt = (cfg.get("solver") or {}).get("ldlt") or {}
-    summary["columns_on"] = args.columns_on
+    summary["backend"] = args.backend
     summary["ldlt_worker"] = args.worker or str(ldlt.get("worker", "thread"))
     summary["ldlt_synchronous"] = bool(args.synchronous or args.lag)
     summary["ldlt_lag"] = args.lag

@@ -49,12 +49,12 @@ def cut_script(points, cut_every, count, start_step=2):
             "edge": [0.0, 0.0, float(hi[2] - lo[2] + 2 * pad)], "direction": [-1.0, 0.0, 0.0], "advance": layer}
 
 
-def run(scene, method, steps, cut_every, refresh_every, device, tolerance=1e-7, columns_on="auto"):
+def run(scene, method, steps, cut_every, refresh_every, device, tolerance=1e-7, backend="auto"):
     solver, corr = METHODS[method]
     solver = {**solver, "tolerance": tolerance, "max_iterations": 5000}
     if solver["preconditioner"] == "async_ldlt":
         solver["ldlt"] = {"rotate": True, "refresh_every": refresh_every, "deterministic": False,
-                          "columns_on": columns_on}
+                          "backend": backend}
     probe = load_scene(scene, device=device, overrides={"solver": {"preconditioner": "none"}})
     pts = probe.mesh.points.copy()
     probe.close()
@@ -116,12 +116,12 @@ def plot(result, prefix):
     axes[1].set(xlabel="nodes", ylabel="total ms per step", title="step time")
     ov = result["overhead"]
     if ov:
-        host = np.array([o.get("columns_on") != "device" for o in ov])
+        host = np.array([o.get("backend") != "dense" for o in ov])
         a = np.array([o["affected_nodes"] for o in ov])
         u = np.array([o["u_ms"] for o in ov])
         axes[2].scatter(a[host], u[host], s=8, label="U = P^-1 G (CHOLMOD, all columns in one call)")
         if (~host).any():
-            axes[2].scatter(a[~host], u[~host], s=8, label="U = P^-1 G (device block solve)")
+            axes[2].scatter(a[~host], u[~host], s=8, label="U = P^-1 G and the update of the dense inverse")
         axes[2].scatter(a, [o["q_ms"] for o in ov], s=8, label="Q = (I + N S)^-1 N")
     axes[2].set(xlabel="affected nodes", ylabel="ms", title="(fig. 4) overhead of the correction")
     for ax in axes:
@@ -133,12 +133,12 @@ def plot(result, prefix):
     plt.close(fig)
 
 
-def overhead_sweep(scene, device, sizes=(4, 8, 16, 32, 64, 128), columns_on="auto"):
+def overhead_sweep(scene, device, sizes=(4, 8, 16, 32, 64, 128), backend="auto"):
     """U and Q cost against affected nodes (fig. 4): cuts of growing length on a fresh factor."""
     out = []
     sim = load_scene(scene, device=device, overrides={
         "solver": {"preconditioner": "async_ldlt", "ldlt": {"deterministic": True, "refresh_every": 10**6,
-                                                             "columns_on": columns_on}},
+                                                             "backend": backend}},
         "cutting": {"correction": "sherman_morrison"}})
     try:
         pts = sim.mesh.points.copy()
@@ -157,7 +157,7 @@ def overhead_sweep(scene, device, sizes=(4, 8, 16, 32, 64, 128), columns_on="aut
                                                   [x1, ymid, lo[2] - 1e-3], [x1, ymid, hi[2] + 1e-3]), frame="rest")
             if r.changed:
                 out.append({"affected_nodes": r.affected_nodes, "u_ms": r.smf_u_ms, "q_ms": r.smf_q_ms,
-                            "cut_ms": r.ms, "layers": n_layers, "columns_on": columns_on})
+                            "cut_ms": r.ms, "layers": n_layers, "backend": backend})
     finally:
         sim.close()
     return out
@@ -171,8 +171,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=90)
     ap.add_argument("--cut-every", type=int, default=3, help="steps between cuts (paper: 3.4)")
     ap.add_argument("--refresh-every", type=int, default=4, help="steps between factorizations (paper: 4.3)")
-    ap.add_argument("--columns-on", default="auto", choices=["auto", "host", "device"],
-                    help="where the columns of U are solved (auto: the device on CUDA)")
+    ap.add_argument("--backend", default="auto", choices=["auto", "cholmod", "dense"],
+                    help="the factor's backend (solver.ldlt.backend; auto: dense on CUDA)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
@@ -183,20 +183,20 @@ def main(argv=None) -> int:
     for scene in args.scenes:
         for meth in args.methods:
             stats, cuts, n0, n1 = run(scene, meth, args.steps, args.cut_every, args.refresh_every, device,
-                                      columns_on=args.columns_on)
+                                      backend=args.backend)
             rows.append(summarize(stats, cuts, n0, n1, meth))
             iters[f"{n0}/{meth}"] = [s["iterations"] for s in stats]
             if meth == "smf":
                 per_cut += [{**c, "nodes": n0} for c in cuts]
             prog.update(len(rows), f"{scene} {meth}: {rows[-1]['iterations']:.2f} it, {rows[-1]['total_ms']:.1f} ms")
-    if str(device).startswith("cuda"):  # fig. 4 for both paths of U (host CHOLMOD, device block solve)
-        overhead = [o for c in ("host", "device") for o in overhead_sweep(args.scenes[-1], device, columns_on=c)]
+    if str(device).startswith("cuda"):  # fig. 4 for both backends (CHOLMOD's chained terms, the folded dense inverse)
+        overhead = [o for b in ("cholmod", "dense") for o in overhead_sweep(args.scenes[-1], device, backend=b)]
     else:
-        overhead = overhead_sweep(args.scenes[-1], device, columns_on=args.columns_on)
+        overhead = overhead_sweep(args.scenes[-1], device, backend=args.backend)
     prog.update(len(rows) + 1, "overhead sweep")
     result = {"table": rows, "iterations": iters, "overhead": per_cut + [{**o, "sweep": True} for o in overhead],
               "steps": args.steps, "cut_every": args.cut_every, "refresh_every": args.refresh_every,
-              "columns_on": args.columns_on,
+              "backend": args.backend,
               "wall_s": time.perf_counter() - t0}
     speed = {}
     for n in sorted({r["nodes"] for r in rows}):

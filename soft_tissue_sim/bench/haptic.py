@@ -12,27 +12,22 @@ preconditioner cost for
 
 for these solvers (all PCG at the scene's tolerance):
 
-* ``cg``: plain CG, host scalars (today's path; three dot products read per iteration),
+* ``cg``: plain CG, host scalars (three dot products read per iteration),
 * ``cg_graph``: plain CG with device scalars, captured as a graph,
-* ``ldlt_host``: the async rotated LDL^T, applied on the host (CHOLMOD; on CUDA r and z are
-  copied each application), CHOLMOD's default ordering -- today's path,
-* ``ldlt_device``: the same factor (METIS ordering) applied by Warp kernels, device scalars,
-  no graph (every launch from Python),
-* ``ldlt_device_graph``: the same captured as one graph per (size, factor pattern), replayed,
-* on CUDA also ``ldlt_device_graph_thread`` (a thread per row group, one launch per level:
-  no warp reduction, no merged tail) to show what those two bring, and
-  ``ldlt_device_graph_amd`` (CHOLMOD's default ordering on the device: many more levels) and
-  ``ldlt_device_graph_tail256`` (the single-block tail kernel with 256 instead of 512 threads).
+* ``cholmod``: the async rotated LDL^T of CHOLMOD on the host (on CUDA r and z are copied
+  each application),
+* ``dense``: the async rotated dense inverse on the device, PCG with device scalars captured
+  as a graph (:mod:`soft_tissue_sim.dense_inverse`),
+* ``cudss`` (CUDA): cuDSS's factor on the device, PCG with device scalars, no graph.
 
-Also: the level counts of the factor for CHOLMOD's default (AMD) and METIS orderings (row
-groups = a node's consecutive rows; scalar levels for reference), and the time of one
-preconditioner application: CHOLMOD alone (numpy), the host wrapper (with the copies on
-CUDA), the device solve launched from Python, and the device solve replayed as a graph.
-With device scalars the per-step preconditioner time is not measured (that would need a
-synchronisation); ``precond_ms_est`` = iterations x the graph apply time.
+Also the time of one preconditioner application at the end of each run: through the
+preconditioner's ``apply`` (launches from Python, synchronised) and, where it can be
+captured, replayed as a graph. With device scalars the per-step preconditioner time is not
+measured (that would need a synchronisation); ``precond_ms_est`` = iterations x the graph
+apply time.
 
-Targets (measured, never asserted): on the GPU the device+graph LDL^T 10x faster than plain
-CG on the beam (median step), and the brain's median step <= 1 ms.
+Targets (measured, never asserted; ``bench targets`` gathers them): on the GPU the device
+factor 20x faster than plain CG on the beam (median step), and the brain's median step <= 1 ms.
 
 Writes ``haptic_<cpu|gpu>.json`` and ``.png`` (``--out``). ``--commit-note`` is stored as
 ``commit_note`` (the device copy's git HEAD may be stale); ``source_digest`` hashes the
@@ -48,7 +43,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sps
 import warp as wp
 
 from ..scene import load_scene, read_scene, resolve_device, resolve_path
@@ -57,18 +51,12 @@ from . import RESULTS_DIR, write_result
 VARIANTS = {
     "cg": {"preconditioner": "none", "graph": False},
     "cg_graph": {"preconditioner": "none", "graph": True},
-    "ldlt_host": {"preconditioner": "async_ldlt", "graph": False, "ldlt": {"apply_on": "host"}},
-    "ldlt_device": {"preconditioner": "async_ldlt", "graph": False, "ldlt": {"apply_on": "device"}},
-    "ldlt_device_graph": {"preconditioner": "async_ldlt", "graph": True, "ldlt": {"apply_on": "device"}},
-    "ldlt_device_graph_thread": {"preconditioner": "async_ldlt", "graph": True,
-                                 "ldlt": {"apply_on": "device", "lanes": 1, "tail_width": 0}},
-    "ldlt_device_graph_amd": {"preconditioner": "async_ldlt", "graph": True,
-                              "ldlt": {"apply_on": "device", "ordering": "default"}},
-    "ldlt_device_graph_tail256": {"preconditioner": "async_ldlt", "graph": True,
-                                  "ldlt": {"apply_on": "device", "tail_block": 256}},
+    "cholmod": {"preconditioner": "async_ldlt", "graph": False, "ldlt": {"backend": "cholmod"}},
+    "dense": {"preconditioner": "async_ldlt", "graph": "auto", "ldlt": {"backend": "dense"}},
+    "cudss": {"preconditioner": "async_ldlt", "graph": "auto", "ldlt": {"backend": "cudss"}},
 }
-CUDA_ONLY = {"ldlt_device_graph_thread", "ldlt_device_graph_amd", "ldlt_device_graph_tail256"}
-CONTACT_VARIANTS = ("ldlt_host", "ldlt_device_graph")
+CUDA_ONLY = {"cudss"}
+CONTACT_VARIANTS = ("cholmod", "dense")
 
 
 def scene_config(name: str) -> dict:
@@ -99,81 +87,36 @@ def _dist(a) -> dict:
             "max": float(a.max())}
 
 
-def level_counts(cfg: dict) -> dict:
-    """Levels of the factor of A at rest for CHOLMOD's default (AMD) and the METIS ordering."""
-    from sksparse.cholmod import analyze
-
-    from ..ldlt_device import factor_values
-
-    c = dict(cfg, solver={**(cfg.get("solver") or {}), "preconditioner": "none"}, device="cpu")
-    for k in ("instruments", "contact", "cutting"):
-        c.pop(k, None)
-    from ..ldlt_preconditioner import _drop_decoupled
-
-    with load_scene(c) as sim:
-        A = sps.csc_matrix(sim._snapshot()[0])
-    A.sort_indices()
-    A = _drop_decoupled(A)  # as the factorization sees it
-    out = {}
-    for ordering in ("default", "metis"):
-        f = analyze(A, mode="simplicial", ordering_method=ordering)
-        t0 = time.perf_counter()
-        f.cholesky_inplace(A)
-        fact_ms = 1000.0 * (time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        s = factor_values(f).structure
-        out["amd (CHOLMOD default)" if ordering == "default" else ordering] = s.summary() | {
-            "factorization_ms_here": fact_ms, "layout_ms": 1000.0 * (time.perf_counter() - t0)}
-    return out
-
-
 def apply_timing(sim, reps: int) -> dict:
-    """ms per preconditioner application, several ways, at the simulation's current state."""
-    from ..cg import DeviceLDLTPreconditioner, HostPreconditioner
-
+    """ms per preconditioner application at the simulation's current state: launched from
+    Python and synchronised, and replayed as a CUDA graph where the apply can be captured."""
     pre = sim.preconditioner
+    if not hasattr(pre, "inner"):
+        return {}
     dev = wp.get_device(sim.device)
     n = sim.mesh.n_nodes
     rng = np.random.default_rng(0)
     r = wp.array(rng.standard_normal((n, 3)), dtype=wp.vec3d, device=dev)
     z = wp.zeros_like(r)
-    out = {}
-    inner = getattr(pre, "inner", None)
-    if inner is None or inner.factor is None:
-        return out
-    b = rng.standard_normal(3 * n)
-    t0 = time.perf_counter()
-    for _ in range(reps):
-        inner.factor(b)
-    out["cholmod_numpy_ms"] = 1000.0 * (time.perf_counter() - t0) / reps
+    pre.apply(r, z)
     wp.synchronize_device(dev)
     t0 = time.perf_counter()
     for _ in range(reps):
-        HostPreconditioner.apply(pre, r, z)
+        pre.apply(r, z)
     wp.synchronize_device(dev)
-    out["host_wrapper_ms"] = 1000.0 * (time.perf_counter() - t0) / reps
-    if isinstance(pre, DeviceLDLTPreconditioner) and pre.device_capable():
-        d = pre.dev
-        d.apply(r, z, pre._dR)
-        wp.synchronize_device(dev)
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            d.apply(r, z, pre._dR)
-        t_launch = time.perf_counter() - t0
-        wp.synchronize_device(dev)
-        out["device_ms"] = 1000.0 * (time.perf_counter() - t0) / reps
-        out["device_launch_ms"] = 1000.0 * t_launch / reps  # host time to issue the launches
+    out = {"apply_ms": 1000.0 * (time.perf_counter() - t0) / reps}
+    key = getattr(pre, "graph_key", lambda: None)()
+    if dev.is_cuda and key is not None:
         with wp.ScopedCapture(device=dev) as cap:
-            d.apply(r, z, pre._dR)
+            for _ in range(10):
+                pre.apply(r, z)
         wp.capture_launch(cap.graph)
         wp.synchronize_device(dev)
         t0 = time.perf_counter()
         for _ in range(reps):
             wp.capture_launch(cap.graph)
         wp.synchronize_device(dev)
-        out["device_graph_ms"] = 1000.0 * (time.perf_counter() - t0) / reps
-        out["launches_per_apply"] = d.launches_per_apply()
-        out["lanes"], out["tail_width"], out["tail_block"] = d.lanes, d.tail_width, d.tail_block
+        out["graph_apply_ms"] = 1000.0 * (time.perf_counter() - t0) / (10 * reps)
     return out
 
 
@@ -214,11 +157,9 @@ def run_variant(cfg: dict, variant: str, device: str, steps: int, warmup: int, r
         "converged_fraction": float(np.mean([r["converged"] for r in rows])),
         "precond_ms_per_step": _dist(pre_ms) if np.isfinite(pre_ms).any() else None,
         "apply": applies,
-        "apply_on": ps.get("apply_on", "host" if "ldlt" in variant else "n/a"),
-        "device_fallback": ps.get("device_fallback"),
+        "backend": ps.get("backend", "n/a"),
         "factor_count": ps.get("factor_count"), "refresh_interval": ps.get("refresh_interval"),
-        "factorization_ms_last": ps.get("factorization_ms"),
-        "device_launches_per_apply": ps.get("device_launches"), "device_patterns": ps.get("device_patterns"),
+        "factorization_ms_last": ps.get("factorization_ms"), "factor_age_last": ps.get("factor_age"),
         "pcg": type(cg).__name__, "graph": bool(getattr(cg, "graph", False)),
         "captures": getattr(cg, "captures", 0), "replays": getattr(cg, "replays", 0),
         "host_solves": getattr(cg, "host_solves", None),
@@ -226,7 +167,7 @@ def run_variant(cfg: dict, variant: str, device: str, steps: int, warmup: int, r
         "step_ms_series": [round(w, 4) for w in wall],
         "iterations_series": its.tolist(),
     }
-    g = applies.get("device_graph_ms")
+    g = applies.get("graph_apply_ms")
     res["precond_ms_est"] = float(its.mean() * g) if g is not None else None
     return res
 
@@ -264,7 +205,7 @@ def plot(result: dict, path: str) -> None:
         ax.bar(range(len(names)), its, color="C1")
         for i, k in enumerate(names):
             ap = sc["variants"][k].get("apply") or {}
-            lab = ap.get("device_graph_ms", ap.get("host_wrapper_ms"))
+            lab = ap.get("graph_apply_ms", ap.get("apply_ms"))
             if lab is not None:
                 ax.text(i, its[i], f"{lab:.3g} ms/apply", ha="center", va="bottom", fontsize=7)
         ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
@@ -313,7 +254,7 @@ def main(argv=None) -> int:
     for sname in scenes:
         cfg = scene_config(sname)
         sc = {"scene": "brain_resection.yaml" if sname.startswith("brain") else "beam_2000.yaml",
-              "levels": level_counts(cfg) if sname != "brain_contact" else None, "variants": {}}
+              "variants": {}}
         for v in variants if sname != "brain_contact" else [v for v in variants if v in CONTACT_VARIANTS]:
             t0 = time.perf_counter()
             try:
@@ -328,30 +269,24 @@ def main(argv=None) -> int:
                 a = r["apply"]
                 print(f"{sname:>13} {v:<26} step median {r['step_ms']['median']:8.3f} p99 {r['step_ms']['p99']:8.3f} "
                       f"mean {r['step_ms']['mean']:8.3f} ms | integ median {r['integrator_ms']['median']:8.3f} | "
-                      f"it {r['iterations']['mean']:7.2f} | apply graph {a.get('device_graph_ms', float('nan')):.4f} "
-                      f"dev {a.get('device_ms', float('nan')):.4f} host {a.get('host_wrapper_ms', float('nan')):.4f} ms"
+                      f"it {r['iterations']['mean']:7.2f} | apply graph {a.get('graph_apply_ms', float('nan')):.4f} "
+                      f"launched {a.get('apply_ms', float('nan')):.4f} ms"
                       f" [{time.perf_counter() - t0:.1f} s]", flush=True)
         figures["scenes"][sname] = sc
     summ = {}
     for sname in ("beam", "brain"):
         vs = (figures["scenes"].get(sname) or {}).get("variants", {})
-        base, best = vs.get("cg", {}), vs.get("ldlt_device_graph", {})
+        base, best = vs.get("cg", {}), vs.get("dense", {})
         if "step_ms" in base and "step_ms" in best:
-            summ[f"{sname}_speedup_device_graph_ldlt_over_cg_median_step"] = \
-                base["step_ms"]["median"] / best["step_ms"]["median"]
-            summ[f"{sname}_speedup_device_graph_ldlt_over_cg_mean_step"] = base["step_ms"]["mean"] / best["step_ms"]["mean"]
-        for other in ("cg_graph", "ldlt_host"):
+            summ[f"{sname}_speedup_dense_over_cg_median_step"] = base["step_ms"]["median"] / best["step_ms"]["median"]
+            summ[f"{sname}_speedup_dense_over_cg_mean_step"] = base["step_ms"]["mean"] / best["step_ms"]["mean"]
+        for other in ("cg_graph", "cholmod"):
             o = vs.get(other, {})
             if "step_ms" in o and "step_ms" in best:
-                summ[f"{sname}_speedup_device_graph_ldlt_over_{other}_median_step"] = \
-                    o["step_ms"]["median"] / best["step_ms"]["median"]
+                summ[f"{sname}_speedup_dense_over_{other}_median_step"] = o["step_ms"]["median"] / best["step_ms"]["median"]
         if "step_ms" in best:
-            summ[f"{sname}_device_graph_ldlt_median_step_ms"] = best["step_ms"]["median"]
-            summ[f"{sname}_device_graph_ldlt_p99_step_ms"] = best["step_ms"]["p99"]
-    if "beam_speedup_device_graph_ldlt_over_cg_median_step" in summ:
-        summ["target_10x_over_cg_on_beam_met"] = bool(summ["beam_speedup_device_graph_ldlt_over_cg_median_step"] >= 10.0)
-    if "brain_device_graph_ldlt_median_step_ms" in summ:
-        summ["target_brain_median_step_1ms_met"] = bool(summ["brain_device_graph_ldlt_median_step_ms"] <= 1.0)
+            summ[f"{sname}_dense_median_step_ms"] = best["step_ms"]["median"]
+            summ[f"{sname}_dense_p99_step_ms"] = best["step_ms"]["p99"]
     if not cuda:
         summ["note"] = "targets are for the GPU; this run is on the CPU backend"
     figures["summary"] = summ

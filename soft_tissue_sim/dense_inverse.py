@@ -1,0 +1,301 @@
+"""The ``dense`` factor backend: A(t_u)^-1 held as a dense matrix on the device.
+
+For the bodies of the paper (a few thousand nodes) the inverse of A = M + dt^2 K fits in
+device memory (8 n3^2 bytes: 216 MB for the 1,734-node brain), and what the method needs of
+its factor becomes dense linear algebra that a GPU does at memory speed:
+
+* the factor is cuSOLVER's Cholesky factorization and the inverse from it (``potrf``,
+  ``potri``, through nvmath-python's bindings; SciPy's LAPACK on the CPU);
+* an application of eq. (2), z = dR A^-1 dR^T r, is one matrix-vector product between two
+  rotations (:func:`dense_apply_kernel`: a block of threads per node, its three rows against
+  the rotated vector);
+* the Sherman-Morrison-Woodbury correction of eq. (5)-(7) is exact and folded into the
+  inverse: U = P^-1 G is a gather of columns, and P^-1 - U Q U^T replaces P^-1 (a rank-3k
+  update, cuBLAS ``gemm``);
+* the Delassus operator W = H P^-1 H^T of eq. (4) gathers the 3x3 blocks of the contact
+  nodes (:func:`delassus_kernel`, an entry of W per thread).
+
+The matrix is symmetric and stored row-major (C order); LAPACK and cuSOLVER see it as its
+column-major transpose, the same matrix. ``potri`` fills one triangle, which
+:func:`symmetrize_kernel` mirrors. Arrays are Warp arrays; CuPy (GPU) or NumPy (CPU) view them
+without copies for the library calls (``xp``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import warp as wp
+
+from .cg import _block_sum
+
+BLOCK = 256  # threads per node in the matrix-vector product on CUDA
+
+
+@wp.kernel
+def scatter_dense_kernel(rows: wp.array(dtype=wp.int32), cols: wp.array(dtype=wp.int32),
+                         vals: wp.array(dtype=wp.mat33d), A: wp.array2d(dtype=wp.float64)):
+    """A += the 3x3 block triplets (rows, cols, vals) (duplicates add up)."""
+    t = wp.tid()
+    r = 3 * rows[t]
+    c = 3 * cols[t]
+    v = vals[t]
+    for a in range(3):
+        for b in range(3):
+            if v[a, b] != wp.float64(0.0):
+                wp.atomic_add(A, r + a, c + b, v[a, b])
+
+
+@wp.kernel
+def symmetrize_kernel(A: wp.array2d(dtype=wp.float64)):
+    """A[i, j] = A[j, i] below the diagonal: the row-major upper triangle (LAPACK's column-major
+    lower one, which ``potri`` with ``lower`` fills) mirrored."""
+    i, j = wp.tid()
+    if i > j:
+        A[i, j] = A[j, i]
+
+
+@wp.kernel
+def rotate_in_kernel(dR: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d), s: wp.array(dtype=wp.float64)):
+    """s = dR^T r, node by node, flattened (the right rotation of eq. 2)."""
+    i = wp.tid()
+    v = wp.transpose(dR[i]) * r[i]
+    s[3 * i] = v[0]
+    s[3 * i + 1] = v[1]
+    s[3 * i + 2] = v[2]
+
+
+@wp.kernel
+def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.float64),
+                       dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d)):
+    """z_i = dR_i (P s)_i: a block of threads per node i, its three rows of P against s, the
+    left rotation of eq. (2) applied to the result."""
+    t = wp.tid()
+    nt = wp.block_dim()
+    i = t // nt
+    lane = t - i * nt
+    n3 = s.shape[0]
+    r = 3 * i
+    a0 = wp.float64(0.0)
+    a1 = wp.float64(0.0)
+    a2 = wp.float64(0.0)
+    for j in range(lane, n3, nt):
+        sj = s[j]
+        a0 += P[r, j] * sj
+        a1 += P[r + 1, j] * sj
+        a2 += P[r + 2, j] * sj
+    a0 = _block_sum(a0)
+    a1 = _block_sum(a1)
+    a2 = _block_sum(a2)
+    if lane == 0:
+        z[i] = dR[i] * wp.vec3d(a0, a1, a2)
+
+
+@wp.kernel
+def rotate_rows_kernel(nodes: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.vec3d),
+                       dR: wp.array(dtype=wp.mat33d), out: wp.array2d(dtype=wp.vec3d)):
+    """out[a, s] = dR_n^T coef[a, s] for the node n = nodes[a, s] of constraint row a (-1: none)."""
+    a, k = wp.tid()
+    n = nodes[a, k]
+    if n >= 0:
+        out[a, k] = wp.transpose(dR[n]) * coef[a, k]
+    else:
+        out[a, k] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+@wp.kernel
+def delassus_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.int32),
+                    coef: wp.array2d(dtype=wp.vec3d), W: wp.array2d(dtype=wp.float64)):
+    """W[a, b] = h_a^T P h_b for constraint rows given as up to 4 (node, 3-vector) pairs each
+    (already rotated into the factor's frame): 3x3 blocks of P gathered, one entry per thread."""
+    a, b = wp.tid()
+    acc = wp.float64(0.0)
+    for k in range(4):
+        i = nodes[a, k]
+        if i >= 0:
+            ca = coef[a, k]
+            for l in range(4):
+                j = nodes[b, l]
+                if j >= 0:
+                    cb = coef[b, l]
+                    for p in range(3):
+                        for q in range(3):
+                            acc += ca[p] * P[3 * i + p, 3 * j + q] * cb[q]
+    W[a, b] = acc
+
+
+def array_module(device):
+    """CuPy for a CUDA device, NumPy for the CPU: the array library the backends call."""
+    if wp.get_device(device).is_cuda:
+        import cupy
+
+        return cupy
+    return np
+
+
+def xp_view(xp, a: wp.array):
+    """``a`` as an ``xp`` array, sharing its memory."""
+    return a.numpy() if xp is np else xp.asarray(a)
+
+
+def xp_stream(xp, stream):
+    """Context in which ``xp`` enqueues on the Warp ``stream`` (no-op on the CPU)."""
+    if xp is np or stream is None:
+        return contextlib.nullcontext()
+    return xp.cuda.ExternalStream(stream.cuda_stream)
+
+
+class DenseInverse:
+    """A dense inverse of A on one device, with a second buffer in which the next one is made.
+
+    ``request(triplets, n3, stream)`` assembles A into the work buffer on ``stream`` (the
+    simulation's); ``factorize(stream)`` turns it into A^-1 in place on another stream (the
+    factor's: this is what runs beside the steps); ``install(stream)`` copies it into the
+    buffer in use (a fixed address, so captured graphs stay valid) and reports failure
+    (A not positive definite). Between installs, :meth:`fold` applies corrections and
+    :meth:`regrow` changes the node set of the inverse in use.
+    """
+
+    name = "dense"
+
+    def __init__(self, device):
+        self.device = wp.get_device(device)
+        self.xp = array_module(self.device)
+        self.inv: wp.array | None = None  # (n3, n3) the inverse in use
+        self.work: wp.array | None = None  # (n3, n3) the next one
+        self._s: wp.array | None = None
+        self._info = wp.zeros(2, dtype=wp.int32, device=self.device)
+        self._handle = None  # cuSOLVER
+        self._lwork = 0
+        self._workspace = None
+
+    # ----------------------------------------------------------- making one
+    @property
+    def n3(self) -> int:
+        return 0 if self.inv is None else self.inv.shape[0]
+
+    def assemble(self, triplets, n3: int, stream=None, topology=None) -> None:
+        """The work buffer = A (n3 x n3) from 3x3 block triplets, on ``stream``."""
+        rows, cols, vals = triplets
+        if self.work is None or self.work.shape[0] != n3:
+            self.work = wp.zeros((n3, n3), dtype=wp.float64, device=self.device)
+        else:
+            self.work.zero_()
+        wp.launch(scatter_dense_kernel, rows.shape[0], [rows, cols, vals, self.work], device=self.device,
+                  stream=stream)
+
+    def factorize(self, stream=None) -> None:
+        """Work buffer A -> A^-1 in place: Cholesky, inverse, mirrored triangle; on ``stream``."""
+        n = self.work.shape[0]
+        if self.xp is np:
+            from scipy.linalg import lapack
+
+            At = self.work.numpy().T  # column-major view of the symmetric matrix
+            c, info = lapack.dpotrf(At, lower=1, clean=0, overwrite_a=1)
+            if info == 0:
+                c, info = lapack.dpotri(c, lower=1, overwrite_c=1)
+            if not np.shares_memory(c, At):
+                At[...] = c
+            self._info.assign(np.array([info, 0], dtype=np.int32))
+        else:
+            from nvmath.bindings import cusolverDn
+
+            if self._handle is None:
+                self._handle = cusolverDn.create()
+            cusolverDn.set_stream(self._handle, stream.cuda_stream if stream is not None else 0)
+            lower = 0  # CUBLAS_FILL_MODE_LOWER
+            ptr = self.work.ptr
+            lwork = max(cusolverDn.dpotrf_buffer_size(self._handle, lower, n, ptr, n),
+                        cusolverDn.dpotri_buffer_size(self._handle, lower, n, ptr, n))
+            if self._workspace is None or self._lwork < lwork:
+                self._workspace = wp.empty(lwork, dtype=wp.float64, device=self.device)
+                self._lwork = lwork
+            ws, info = self._workspace.ptr, self._info.ptr
+            cusolverDn.dpotrf(self._handle, lower, n, ptr, n, ws, lwork, info)
+            cusolverDn.dpotri(self._handle, lower, n, ptr, n, ws, lwork, info + 4)
+        wp.launch(symmetrize_kernel, (n, n), [self.work], device=self.device, stream=stream)
+
+    def install(self, stream=None) -> str | None:
+        """The finished work buffer becomes the inverse in use; returns why not, or None."""
+        info = self._info.numpy()
+        if info[0] != 0 or info[1] != 0:
+            return (f"dense factorization failed (potrf info {info[0]}, potri info {info[1]}): "
+                    "A is not positive definite")
+        n = self.work.shape[0]
+        if self.inv is None or self.inv.shape[0] != n:
+            self.inv = wp.empty((n, n), dtype=wp.float64, device=self.device)
+            self._s = wp.zeros(n, dtype=wp.float64, device=self.device)
+        wp.copy(self.inv, self.work, stream=stream)
+        return None
+
+    # ------------------------------------------------------------- using it
+    def apply(self, r: wp.array, z: wp.array, dR: wp.array) -> None:
+        """z = dR A^-1 dR^T r (eq. 2): launches only (capturable in a graph)."""
+        n = r.shape[0]
+        wp.launch(rotate_in_kernel, n, [dR, r, self._s], device=self.device)
+        block = BLOCK if self.device.is_cuda else 1
+        wp.launch(dense_apply_kernel, n * block, [self.inv, self._s, dR, z], device=self.device, block_dim=block)
+
+    def graph_key(self) -> tuple:
+        return (self.inv.ptr, self.inv.shape[0], self._s.ptr)
+
+    def matrix(self):
+        """The inverse in use as an ``xp`` array (a view)."""
+        return xp_view(self.xp, self.inv)
+
+    def delassus(self, nodes: wp.array, coef: wp.array, dR: wp.array) -> np.ndarray:
+        """W = H dR A^-1 dR^T H^T (m x m, host) for constraint rows in node form (m, 4)."""
+        m = nodes.shape[0]
+        rot = wp.empty((m, 4), dtype=wp.vec3d, device=self.device)
+        wp.launch(rotate_rows_kernel, (m, 4), [nodes, coef, dR, rot], device=self.device)
+        W = wp.empty((m, m), dtype=wp.float64, device=self.device)
+        wp.launch(delassus_kernel, (m, m), [self.inv, nodes, rot, W], device=self.device)
+        return W.numpy()
+
+    # ----------------------------------------------------------- changing it
+    def fold(self, rows: np.ndarray, Q_fn) -> None:
+        """P^-1 <- P^-1 - U Q U^T with U = P^-1 G (G selecting ``rows``): the exact corrected
+        inverse of eq. (5)-(7). ``Q_fn(S)`` returns Q (host) from S = G^T P^-1 G (host)."""
+        xp = self.xp
+        P = self.matrix()
+        r = xp.asarray(rows)
+        U = xp.ascontiguousarray(P[r].T)  # columns of the symmetric P: rows are contiguous
+        S = U[r]
+        Q = xp.asarray(Q_fn(S if xp is np else xp.asnumpy(S)))
+        V = U @ Q
+        if xp is np:
+            P -= U @ V.T
+        else:
+            import cupy.cublas
+
+            cupy.cublas.gemm("N", "T", U, V, out=P, alpha=-1.0, beta=1.0)
+
+    def regrow(self, keep: np.ndarray, added: int) -> None:
+        """Change the node set of the inverse in use: keep the DOFs ``keep`` (in that order),
+        then append ``added`` DOFs as identity rows (eq. 10's padding)."""
+        xp = self.xp
+        old = self.matrix()
+        keep = xp.asarray(keep)
+        n = int(keep.shape[0]) + int(added)
+        new = wp.zeros((n, n), dtype=wp.float64, device=self.device)
+        N = xp_view(xp, new)
+        k = int(keep.shape[0])
+        N[:k, :k] = old[keep[:, None], keep[None, :]]
+        if added:
+            idx = xp.arange(k, n)
+            N[idx, idx] = 1.0
+        self.inv = new
+        self._s = wp.zeros(n, dtype=wp.float64, device=self.device)
+
+    def reset(self) -> None:
+        """Forget the inverse in use (a new one must be installed before the next apply)."""
+        self.inv = None
+
+    def close(self) -> None:
+        if self._handle is not None:
+            from nvmath.bindings import cusolverDn
+
+            cusolverDn.destroy(self._handle)
+            self._handle = None
+        self.inv = self.work = self._workspace = None

@@ -1,0 +1,404 @@
+"""The asynchronous rotated preconditioner made, applied and corrected on the device
+(paper section 2.2, eq. 2; section 3, eq. 5-12).
+
+A factor backend (:class:`soft_tissue_sim.dense_inverse.DenseInverse`, or
+:class:`soft_tissue_sim.cudss_factor.CuDSSFactor`) holds A(t_u)^-1 on the device. This class
+schedules its refreshes and applies it rotated by the nodal rotations:
+
+    P^-1 r = dR A(t_u)^-1 dR^T r,     dR_n = R_n(t) R_n(t_u)^T.
+
+Schedule. A request assembles A at the current state into the backend's work buffer on the
+simulation's stream, then enqueues the factorization on a stream of its own, after an event:
+the steps go on with the factor in use while the new one is made, as the paper's background
+thread does on a CPU. Each step polls the factorization's end event (no host wait) and
+installs the factor when it has finished. ``deterministic`` makes and installs it in the step
+that requests it, or ``lag`` steps later (a background factorization's delay, reproducibly).
+On the CPU (Warp's CPU backend, NumPy and SciPy) the factorization runs in the request and
+is installed at the next step.
+
+Topological changes. A modification (:class:`soft_tissue_sim.sherman_morrison.Modification`)
+is folded into the inverse in use at once, exactly (eq. 5-7 with a dense inverse): the new
+nodes enter as identity rows (eq. 10), vanished ones become decoupled identity rows and are
+dropped, so the inverse always has the current numbering and the rotations of eq. (8) are
+those of eq. (2) with reference rotations R(t_u) (factor nodes) or R at creation (new ones).
+A factor made from an older mesh is brought up to date when it is installed: the
+modifications it does not contain are folded into it (fig. 2).
+
+Contact. W = H P^-1 H^T (eq. 4, 11-12) is gathered from the inverse by the backend
+(``delassus``) and dx = P^-1 H^T lambda is one application.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.sparse as sps
+import warp as wp
+
+from .sherman_morrison import Modification, perturbation, woodbury_q
+
+
+@wp.kernel
+def relative_rotation_kernel(R: wp.array(dtype=wp.mat33d), R_ref: wp.array(dtype=wp.mat33d),
+                             dR: wp.array(dtype=wp.mat33d)):
+    """dR_n = R_n(t) R_ref_n^T (eq. 2 and 8)."""
+    n = wp.tid()
+    dR[n] = R[n] * wp.transpose(R_ref[n])
+
+
+@wp.kernel
+def identity_kernel(dR: wp.array(dtype=wp.mat33d)):
+    dR[wp.tid()] = wp.identity(n=3, dtype=wp.float64)
+
+
+class _Ticket:
+    """One factorization in flight: what it was made from and the events that time it."""
+
+    def __init__(self, step, gen, uids, version, R, start=None, done=None, cpu_ms=None):
+        self.step, self.gen, self.uids, self.version, self.R = step, gen, uids, version, R
+        self.start, self.done, self.cpu_ms = start, done, cpu_ms
+        self.requested = time.perf_counter()
+
+    def ready(self) -> bool:
+        return self.done is None or self.done.is_complete
+
+    def ms(self) -> float:
+        if self.done is None:
+            return float(self.cpu_ms)
+        return float(wp.get_event_elapsed_time(self.start, self.done))
+
+
+class FoldedCorrection:
+    """The cutter's view of the corrections (``add``, ``clear``, ``perturbation_nodes``,
+    ``stats``): each modification is folded into the device inverse when it happens.
+    ``enabled=False`` keeps only the identity padding of eq. (10) (the uncorrected
+    preconditioner of the paper's comparison)."""
+
+    def __init__(self, owner: "AsyncDevicePreconditioner", enabled: bool = True):
+        self.owner = owner
+        self.enabled = bool(enabled)
+        self.u_ms = 0.0  # time of the rank-3k updates, accumulated; the cutter resets it
+        self.q_ms = 0.0
+        self.folds = 0
+
+    @property
+    def active(self) -> bool:
+        return False  # nothing to apply beside the inverse: it is corrected in place
+
+    def add(self, mod: Modification, current_uids: np.ndarray) -> None:
+        self.owner._modified(mod, np.asarray(current_uids, np.int64))
+
+    def clear(self) -> None:
+        self.owner.mods = []
+
+    def perturbation_nodes(self) -> int:
+        """Nodes of every modification the installed factor does not contain (the paper's N)."""
+        mods = self.owner.mods
+        return int(len(np.unique(np.concatenate([m.uids for m in mods])))) if mods else 0
+
+    def stats(self) -> dict:
+        return {"smf_terms": 0, "smf_columns": 0, "pending_modifications": len(self.owner.mods),
+                "smf_folds": self.folds}
+
+
+def constraint_rows(B, n_nodes: int):
+    """Constraint columns B (3n x m, dense or sparse) in node form: (nodes (m, 4) int32, -1 for
+    none; coef (m, 4, 3)), column a = sum_k e_{nodes[a, k]} (x) coef[a, k]. A column touching
+    more than 4 nodes raises ValueError."""
+    Bt = sps.csr_matrix(B.T) if sps.issparse(B) else sps.csr_matrix(np.asarray(B, dtype=np.float64).T)
+    m = Bt.shape[0]
+    if Bt.shape[1] != 3 * n_nodes:
+        raise ValueError(f"preconditioner is for {3 * n_nodes} DOFs, got a block of {Bt.shape[1]} rows")
+    row = np.repeat(np.arange(m), np.diff(Bt.indptr))
+    node = Bt.indices // 3
+    comp = Bt.indices % 3
+    key = row.astype(np.int64) * n_nodes + node
+    uniq, inv = np.unique(key, return_inverse=True)
+    urow = uniq // n_nodes
+    slot = np.arange(len(uniq)) - np.searchsorted(urow, urow, side="left")
+    if len(slot) and slot.max() >= 4:
+        raise ValueError("a constraint touches more than 4 nodes")
+    nodes = np.full((m, 4), -1, np.int32)
+    nodes[urow, slot] = (uniq % n_nodes).astype(np.int32)
+    coef = np.zeros((m, 4, 3))
+    np.add.at(coef, (row, slot[inv], comp), Bt.data)
+    return nodes, coef
+
+
+class AsyncDevicePreconditioner:
+    """The preconditioner of eq. (2) with a device factor backend. See the module docstring.
+
+    ``meta_fn()`` returns the simulation's topology ({"uids", "version"}) for the bookkeeping
+    of modifications; ``backend`` a factor backend on ``device``.
+    """
+
+    def __init__(self, backend, meta_fn, device, *, rotate=True, refresh_every=1, deterministic=False, lag=0,
+                 name="async_ldlt"):
+        if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
+            raise ValueError(f"lag must be a whole number of steps >= 0, got {lag!r}")
+        if lag and not deterministic:
+            raise ValueError("lag needs deterministic: true (a background factor arrives when it is ready)")
+        self.backend = backend
+        self.meta_fn = meta_fn
+        self.device = wp.get_device(device)
+        self.name = name
+        self.rotate = bool(rotate)
+        self.refresh_every = max(1, int(refresh_every))
+        self.deterministic = bool(deterministic)
+        self.lag = int(lag)
+        if self.device.is_cuda:
+            self._main = wp.get_stream(self.device)
+            self._side = wp.Stream(self.device)
+        else:
+            self._main = self._side = None
+        self.correction: FoldedCorrection | None = None
+        self.mods: list[Modification] = []
+        self._busy = None  # end event of the last factorization enqueued (its work buffer is in use)
+        self._gen = 0
+        self.worker_error = None
+        self._reset_counters()
+
+    @property
+    def inner(self):
+        """The object contact and cutting ask for the factor's services (this one)."""
+        return self
+
+    def _reset_counters(self):
+        self.uids = None  # node uids of the inverse's numbering
+        self.factor_version = -1
+        self.R_ref_host = None
+        self.R_ref = None  # device copy
+        self.dR = None
+        self.factor_step = -1
+        self.step = 0
+        self.last_request_step = -10**9
+        self._pending: _Ticket | None = None
+        self._held = None
+        self.swaps = []
+        self.factorization_ms = 0.0
+        self.factor_latency_steps = 0
+        self.factor_count = 0
+        self.precond_ms = float("nan")
+        self.failures = 0
+
+    # ------------------------------------------------------------ schedule
+    def _request(self, system) -> _Ticket:
+        fem = system.fem
+        meta = dict(self.meta_fn() or {})
+        uids = np.asarray(meta.get("uids", np.arange(fem.n_nodes)), np.int64).copy()
+        if self._main is not None and self._busy is not None:
+            self._main.wait_event(self._busy)  # the work buffer is free once the last one ended
+        triplets = fem.assemble_triplets(system.m_coef, system.k_coef)
+        self.backend.assemble(triplets, 3 * fem.n_nodes, stream=self._main, topology=meta.get("version"))
+        R = wp.clone(fem._node_rot)
+        if self._side is None:
+            t0 = time.perf_counter()
+            self.backend.factorize()
+            ticket = _Ticket(self.step, self._gen, uids, int(meta.get("version", -1)), R,
+                             cpu_ms=1000.0 * (time.perf_counter() - t0))
+        else:
+            self._side.wait_event(self._main.record_event())
+            start = self._side.record_event(wp.Event(self.device, enable_timing=True))
+            self.backend.factorize(stream=self._side)
+            done = self._side.record_event(wp.Event(self.device, enable_timing=True))
+            ticket = _Ticket(self.step, self._gen, uids, int(meta.get("version", -1)), R, start, done)
+            self._busy = done
+        self.last_request_step = self.step
+        return ticket
+
+    def _install(self, t: _Ticket) -> bool:
+        if t.gen != self._gen:
+            return False
+        if t.done is not None:
+            self._main.wait_event(t.done)
+        err = self.backend.install(stream=self._main)
+        if err is not None:  # keep the factor in use (if any) and say why
+            self.worker_error = err
+            self.failures += 1
+            return False
+        self.uids = t.uids
+        self.factor_version = t.version
+        self.R_ref_host = t.R.numpy().astype(np.float64)
+        self.factor_step = t.step
+        self.factorization_ms = t.ms()
+        self.factor_latency_steps = self.step - t.step
+        self.factor_count += 1
+        self.swaps.append(self.step)
+        self.mods = [m for m in self.mods if m.version > self.factor_version]  # the factor contains the rest
+        for m in self.mods:
+            self._fold(m)
+        current = (self.meta_fn() or {}).get("uids")
+        if current is not None:
+            self._compact(np.asarray(current, np.int64))
+        self._upload_R_ref()
+        return True
+
+    def refresh(self, system) -> None:
+        """A factor of the current state, made and installed now (waits for it)."""
+        fem = system.fem
+        fem.update_node_rotations()
+        self._refresh_now(system)
+
+    def _refresh_now(self, system) -> None:
+        t = self._request(system)
+        if t.done is not None:
+            wp.synchronize_event(t.done)
+        self._install(t)
+
+    def begin_step(self, system) -> None:
+        fem = system.fem
+        R = fem.update_node_rotations()
+        self.step = int(system.step_index)
+        if self.backend.n3 == 0 or self.uids is None:
+            self._refresh_now(system)  # the only wait
+        elif self.deterministic and self.lag:
+            if self._held is not None and self.step >= self._held[0]:
+                self._install(self._held[1])
+                self._held = None
+            if self._held is None and self.step - self.last_request_step >= self.refresh_every:
+                t = self._request(system)
+                if t.done is not None:
+                    wp.synchronize_event(t.done)
+                self._held = (self.step + self.lag, t)
+        elif self.deterministic:
+            if self.step - self.last_request_step >= self.refresh_every:
+                self._refresh_now(system)
+        else:
+            t = self._pending
+            if t is not None and t.ready():
+                self._pending = None
+                self._install(t)
+            if self._pending is None and self.step - self.last_request_step >= self.refresh_every:
+                self._pending = self._request(system)
+        if self.backend.n3 != 3 * fem.n_nodes:  # a size change no modification announced
+            self._refresh_now(system)
+        n = fem.n_nodes
+        if self.dR is None or self.dR.shape[0] != n:
+            self.dR = wp.empty(n, dtype=wp.mat33d, device=self.device)
+        if self.rotate:
+            wp.launch(relative_rotation_kernel, n, [R, self.R_ref, self.dR], device=self.device)
+        else:
+            wp.launch(identity_kernel, n, [self.dR], device=self.device)
+
+    # ------------------------------------------------------------ modifications
+    def make_correction(self, enabled: bool = True, rotate: bool = True) -> FoldedCorrection:
+        """The correction object a cutter feeds modifications to (eq. 5-12)."""
+        self.correction = FoldedCorrection(self, enabled)
+        return self.correction
+
+    def _modified(self, mod: Modification, current_uids: np.ndarray) -> None:
+        self.mods.append(mod)
+        if self.uids is not None:
+            self._fold(mod)
+            self._compact(current_uids)
+            self._upload_R_ref()
+
+    def _index(self, uids: np.ndarray) -> np.ndarray:
+        order = np.argsort(self.uids, kind="stable")
+        pos = np.searchsorted(self.uids, uids, sorter=order)
+        pos = np.clip(pos, 0, len(order) - 1)
+        idx = order[pos]
+        if len(uids) and not np.array_equal(self.uids[idx], uids):
+            raise KeyError("node uid unknown to the preconditioner")
+        return idx
+
+    def _fold(self, mod: Modification) -> None:
+        t0 = time.perf_counter()
+        created = mod.created[~np.isin(mod.created, self.uids)]
+        if len(created):  # identity rows for the new nodes (eq. 10), their rotation at creation
+            self.backend.regrow(np.arange(self.backend.n3), 3 * len(created))
+            self.uids = np.concatenate([self.uids, created])
+            self.R_ref_host = np.concatenate([self.R_ref_host, mod.R[np.searchsorted(mod.uids, created)]])
+        idx = self._index(mod.uids)
+        N = perturbation(mod, self.R_ref_host[idx], created, self.rotate)
+        corr = self.correction
+        if corr is None or corr.enabled:
+            rows = (3 * idx[:, None] + np.arange(3)).ravel()
+            self.backend.fold(rows, lambda S: woodbury_q(N, S))
+        if corr is not None:
+            corr.folds += 1
+            corr.u_ms += 1000.0 * (time.perf_counter() - t0)
+
+    def _compact(self, current: np.ndarray) -> None:
+        if np.array_equal(current, self.uids):
+            return
+        idx = self._index(current)
+        self.backend.regrow((3 * idx[:, None] + np.arange(3)).ravel(), 0)
+        self.uids = current.copy()
+        self.R_ref_host = self.R_ref_host[idx]
+
+    def _upload_R_ref(self) -> None:
+        n = len(self.R_ref_host)
+        if self.R_ref is None or self.R_ref.shape[0] != n:
+            self.R_ref = wp.empty(n, dtype=wp.mat33d, device=self.device)
+        self.R_ref.assign(np.ascontiguousarray(self.R_ref_host))
+
+    # ----------------------------------------------------------------- apply
+    def apply(self, r: wp.array, z: wp.array) -> None:
+        self.backend.apply(r, z, self.dR)
+
+    def device_capable(self) -> bool:
+        return self.backend.n3 > 0 and self.dR is not None and self.backend.n3 == 3 * self.dR.shape[0]
+
+    def graph_capturable(self) -> bool:
+        return self.backend.graph_key() is not None
+
+    def graph_key(self) -> tuple | None:
+        k = self.backend.graph_key()
+        return None if k is None else k + (self.dR.ptr, self.dR.shape[0])
+
+    def apply_columns(self, B: np.ndarray) -> np.ndarray:
+        """P^-1 B for a block of columns B (3n, c), host in and out."""
+        B = np.asarray(B, dtype=np.float64)
+        n = B.shape[0] // 3
+        out = np.empty_like(B)
+        r = wp.empty(n, dtype=wp.vec3d, device=self.device)
+        z = wp.empty(n, dtype=wp.vec3d, device=self.device)
+        for c in range(B.shape[1]):
+            r.assign(np.ascontiguousarray(B[:, c]).reshape(n, 3))
+            self.apply(r, z)
+            out[:, c] = z.numpy().reshape(-1)
+        return out
+
+    def delassus(self, B) -> np.ndarray | None:
+        """B^T P^-1 B for constraint columns B = H^T (3n, m) (W / dt^2 of eq. 4, corrected after
+        cuts, rotated), or None when the backend cannot gather it (use apply_columns)."""
+        if not hasattr(self.backend, "delassus"):
+            return None
+        n = self.dR.shape[0]
+        nodes, coef = constraint_rows(B, n)
+        m = len(nodes)
+        if m == 0:
+            return np.zeros((0, 0))
+        W = self.backend.delassus(wp.array(nodes, dtype=wp.int32, device=self.device),
+                                  wp.array(coef, dtype=wp.vec3d, device=self.device), self.dR)
+        return 0.5 * (W + W.T)
+
+    # -------------------------------------------------------------- lifecycle
+    def invalidate(self) -> None:
+        self.mods = []
+        self._gen += 1  # a factorization in flight is dropped when it ends
+        self._reset_counters()
+        self.backend.reset()
+
+    def stats(self) -> dict:
+        sw = self.swaps
+        extra = self.correction.stats() if self.correction is not None else {}
+        return extra | {
+            "factor_age": self.step - self.factor_step if self.factor_step >= 0 else -1,
+            "factorization_ms": self.factorization_ms,
+            "factor_latency_steps": self.factor_latency_steps,
+            "refresh_interval": float(np.mean(np.diff(sw))) if len(sw) > 1 else 0.0,
+            "precond_ms": self.precond_ms,
+            "worker": "device stream" if self._side is not None else "synchronous",
+            "backend": self.backend.name,
+            "worker_error": self.worker_error,
+            "factor_count": self.factor_count,
+            "factor_failures": self.failures,
+        }
+
+    def close(self) -> None:
+        """Returns at once: a factorization in flight is abandoned with the buffers."""
+        self._pending = self._held = None
+        self.backend.close()

@@ -1,0 +1,315 @@
+"""The device factor backends (dense inverse, cuDSS) behind the preconditioner interface, the
+device-scalar / graph PCG (cg.DevicePCG) and the options that select them.
+
+Runs on Warp's CPU backend by default (the dense backend with NumPy and SciPy's LAPACK);
+``STS_TEST_DEVICE=cuda:0`` runs the same tests on a GPU (cuSOLVER, cuBLAS, cuDSS).
+"""
+
+import os
+import time
+
+import numpy as np
+import pytest
+import scipy.sparse as sps
+import scipy.sparse.linalg as spla
+import warp as wp
+
+from soft_tissue_sim import load_scene
+from soft_tissue_sim.cg import PCG, DevicePCG
+from soft_tissue_sim.device_preconditioner import AsyncDevicePreconditioner, constraint_rows
+from soft_tissue_sim.material import ParameterError
+from soft_tissue_sim.preconditioner import choose_backend
+from soft_tissue_sim.scene import read_scene, resolve_path
+
+DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
+CUDA = DEVICE.startswith("cuda")
+if CUDA and wp.get_cuda_device_count() == 0:
+    # a GPU run asked for where there is no GPU is a mistake, not a run to report as passed
+    raise RuntimeError(f"STS_TEST_DEVICE={DEVICE} but Warp sees no CUDA device")
+BACKENDS = ["dense", "cudss"] if CUDA else ["dense"]
+
+
+def _brain_without_instruments():
+    cfg, base = read_scene("brain_resection.yaml")
+    for k in ("instruments", "contact", "cutting"):
+        cfg.pop(k, None)
+    cfg["mesh"] = {"file": str(resolve_path(cfg["mesh"]["file"], base))}
+    return cfg
+
+
+def _layered_beam():
+    """A beam of three materials (stiffness ratio 100), so the factor sees very different scales."""
+    return {
+        "mesh": {"generator": "beam", "n_long": 14, "n_cross": 3, "spacing": 0.01,
+                 "regions": [{"box": {"min": [0.04, -1, -1], "max": [0.09, 1, 1]}, "material": 1},
+                             {"box": {"min": [0.09, -1, -1], "max": [1, 1, 1]}, "material": 2}]},
+        "materials": [{"id": 0, "young": 5e4, "poisson": 0.3, "density": 1000.0},
+                      {"id": 1, "young": 5e6, "poisson": 0.45, "density": 1100.0},
+                      {"id": 2, "young": 2e4, "poisson": 0.2, "density": 900.0}],
+        "damping": {"mass": 0.2, "stiffness": 0.005},
+        "fixed": {"axis": "x", "below": 0.0},
+        "time": {"dt": 0.01},
+    }
+
+
+def _scene(name):
+    return {"brain": _brain_without_instruments, "layered": _layered_beam}.get(name, lambda: name)()
+
+
+def _solver(pre="async_ldlt", backend="dense", graph=False, tol=1e-10, **ldlt):
+    s = {"preconditioner": pre, "tolerance": tol, "max_iterations": 3000, "graph": graph}
+    if pre in ("async_ldlt", "direct"):
+        s["ldlt"] = {"backend": backend, "deterministic": True, **ldlt}
+    return s
+
+
+def _apply(pre, r, device):
+    z = wp.zeros(len(r), dtype=wp.vec3d, device=device)
+    pre.apply(wp.array(r, dtype=wp.vec3d, device=device), z)
+    return z.numpy().reshape(-1)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("scene", ["test_small.yaml", "layered", "brain"])
+def test_device_factor_solves_like_a_direct_solve(scene, backend):
+    """At the state the factor was made (dR = I), P^-1 r = A^-1 r to 1e-10 (SuperLU here as an
+    independent direct solve)."""
+    with load_scene(_scene(scene), device=DEVICE, overrides={"solver": _solver(backend=backend)}) as sim:
+        integ = sim.integrator
+        sim.step()
+        integ.build()
+        pre = sim.preconditioner
+        assert isinstance(pre, AsyncDevicePreconditioner) and pre.backend.name == backend
+        pre.refresh(integ)
+        pre.begin_step(integ)
+        assert np.abs(pre.dR.numpy() - np.eye(3)).max() < 1e-12
+        A = sim.fem.assemble_scipy(integ.m_coef, integ.k_coef).tocsc()
+        lu = spla.splu(A)
+        rng = np.random.default_rng(3)
+        for _ in range(3):
+            r = rng.standard_normal((sim.mesh.n_nodes, 3))
+            ref = lu.solve(r.reshape(-1))
+            z = _apply(pre, r, DEVICE)
+            assert np.linalg.norm(z - ref) <= 1e-10 * np.linalg.norm(ref)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_rotated_device_apply_equals_the_host_apply(backend):
+    """A stale factor rotated by eq. (2): the device backend and CHOLMOD's host preconditioner,
+    run on the same deterministic schedule, give the same P^-1 r."""
+    sims = {}
+    for b in (backend, "cholmod"):
+        dev = DEVICE if b != "cholmod" else "cpu"
+        sims[b] = load_scene("beam_2000.yaml" if CUDA else _layered_beam(), device=dev,
+                             overrides={"solver": _solver(backend=b, refresh_every=1000)})
+    try:
+        for s in sims.values():
+            for _ in range(12):  # swinging down: the factor of step 0 is stale and rotated
+                s.step()
+            s.integrator.build()
+            s.preconditioner.begin_step(s.integrator)
+        dev_pre, host_pre = sims[backend].preconditioner, sims["cholmod"].preconditioner
+        assert np.abs(dev_pre.dR.numpy() - np.eye(3)).max() > 1e-3  # the rotation matters here
+        rng = np.random.default_rng(4)
+        n = sims[backend].mesh.n_nodes
+        for _ in range(3):
+            r = rng.standard_normal((n, 3))
+            z = _apply(dev_pre, r, DEVICE)
+            ref = np.empty(r.size)
+            host_pre.inner.apply(r.reshape(-1), ref)
+            assert np.linalg.norm(z - ref) <= 1e-8 * np.linalg.norm(ref)
+            plain = host_pre.inner.factor(r.reshape(-1))  # unrotated: another vector
+            assert np.linalg.norm(plain - ref) > 1e-6 * np.linalg.norm(ref)
+    finally:
+        for s in sims.values():
+            s.close()
+
+
+@pytest.mark.parametrize("graph", [False, True])
+@pytest.mark.parametrize("pre", ["dense", "jacobi", "none"])
+def test_device_scalar_pcg_matches_host_pcg(pre, graph):
+    kind = "async_ldlt" if pre == "dense" else pre
+    ov = {"solver": _solver(pre=kind, graph=graph, tol=1e-8, refresh_every=1000)}
+    with load_scene(_layered_beam(), device=DEVICE, overrides=ov) as sim:
+        for _ in range(8):
+            sim.step()
+        integ = sim.integrator
+        n = sim.mesh.n_nodes
+        host = PCG(n, DEVICE, integ.cg.tolerance, integ.cg.max_iterations)
+        dpcg = DevicePCG(n, DEVICE, integ.cg.tolerance, integ.cg.max_iterations, graph=graph)
+        x_h = wp.zeros(n, dtype=wp.vec3d, device=DEVICE)
+        x_d = wp.full(n, wp.vec3d(1.0, 2.0, 3.0), dtype=wp.vec3d, device=DEVICE)  # the solve starts from 0
+        for _ in range(3):  # third solve: a graph replay (captured at the second) with a new right-hand side
+            integ.build()
+            integ.preconditioner.begin_step(integ)
+            rh = host.solve(integ.matvec, integ.b, x_h, integ.preconditioner)
+            rd = dpcg.solve(integ.matvec, integ.b, x_d, integ.preconditioner)
+            assert rh.iterations > 1 and rh.converged
+            assert abs(rd.iterations - rh.iterations) <= (0 if pre == "dense" else 1) and rd.converged
+            assert rd.residual <= dpcg.tolerance
+            assert np.abs(x_d.numpy() - x_h.numpy()).max() <= 1e-6 * np.abs(x_h.numpy()).max()
+            integ.step_index += 1
+            wp.copy(integ.x, wp.array(integ.x.numpy() + 0.002 * x_h.numpy(), dtype=wp.vec3d, device=DEVICE))
+        assert (dpcg.captures, dpcg.replays) == ((1, 2) if graph else (0, 0))
+
+
+def test_device_pcg_zero_and_nonfinite_right_hand_sides():
+    with load_scene(_layered_beam(), device=DEVICE, overrides={"solver": _solver(pre="jacobi")}) as sim:
+        integ = sim.integrator
+        integ.build()
+        integ.preconditioner.begin_step(integ)
+        n = sim.mesh.n_nodes
+        dpcg = DevicePCG(n, DEVICE, 1e-8, 100)
+        x = wp.zeros(n, dtype=wp.vec3d, device=DEVICE)
+        b = wp.zeros(n, dtype=wp.vec3d, device=DEVICE)
+        res = dpcg.solve(integ.matvec, b, x, integ.preconditioner)
+        assert res.iterations == 0 and res.converged and res.residual == 0.0 and np.all(x.numpy() == 0)
+        bn = np.zeros((n, 3))
+        bn[3, 1] = np.nan
+        res = dpcg.solve(integ.matvec, wp.array(bn, dtype=wp.vec3d, device=DEVICE), x, integ.preconditioner)
+        assert not res.converged and np.isnan(res.residual)
+        dpcg = DevicePCG(n, DEVICE, 1e-14, 3)  # max_iterations reached
+        res = dpcg.solve(integ.matvec, integ.b, x, integ.preconditioner)
+        assert res.iterations == 3 and not res.converged
+
+
+@pytest.mark.parametrize("graph", [False, True])
+def test_simulation_with_the_dense_backend_follows_the_cholmod_trajectory(graph):
+    runs = {}
+    for backend in ("cholmod", "dense"):
+        ov = {"solver": _solver(backend=backend, graph=graph and backend == "dense", refresh_every=4)}
+        with load_scene("test_small.yaml", device=DEVICE if backend == "dense" else "cpu", overrides=ov) as sim:
+            its = [sim.step().iterations for _ in range(20)]
+            runs[backend] = (sim.positions(), its, sim.preconditioner.stats(), sim.integrator.cg)
+    (xh, ih, sh, _), (xd, idv, sd, cg) = runs["cholmod"], runs["dense"]
+    assert sd["backend"] == "dense" and sh["backend"] == "cholmod"
+    assert max(ih) > 3  # stale factors between refreshes: several iterations
+    assert idv == ih
+    assert np.abs(xd - xh).max() <= 1e-8
+    with load_scene("test_small.yaml", device=DEVICE) as rest:
+        assert np.abs(xh - rest.positions()).max() > 1e-3  # it moved
+    if graph and CUDA:
+        assert cg.captures >= 1 and cg.replays >= 15
+
+
+def test_asynchronous_schedule_installs_each_factor_after_its_request():
+    """Without ``deterministic``: a factor requested at step s is installed when it has ended
+    (on the CPU at once, so at s + 1; on a GPU when its event says so), and the factor in use is
+    never older than its own latency plus the refresh interval."""
+    ov = {"solver": {"preconditioner": "async_ldlt", "tolerance": 1e-8,
+                     "ldlt": {"backend": "dense", "refresh_every": 3}}}
+    with load_scene("test_small.yaml", device=DEVICE, overrides=ov) as sim:
+        ages, lat = [], []
+        for _ in range(30):
+            st = sim.step()
+            assert st.converged
+            ps = sim.preconditioner.stats()
+            ages.append(ps["factor_age"])
+            lat.append(ps["factor_latency_steps"])
+        assert ps["factor_count"] >= 5 and ps["worker"] == ("device stream" if CUDA else "synchronous")
+        assert ps["factorization_ms"] > 0.0
+        if not CUDA:
+            assert max(lat) == 1 and max(ages) <= 3
+        assert max(ages) <= max(lat) + 3
+        assert ps["refresh_interval"] >= 3
+
+
+def test_lag_installs_each_factor_lag_steps_later_on_the_device():
+    ov = {"solver": _solver(backend="dense", refresh_every=2, lag=3, tol=1e-8)}
+    with load_scene("test_small.yaml", device=DEVICE, overrides=ov) as sim:
+        for _ in range(16):
+            sim.step()
+        pre = sim.preconditioner
+        assert np.all(np.diff(pre.swaps[1:]) == 3) and pre.stats()["factor_latency_steps"] == 3
+    with pytest.raises(ParameterError, match="deterministic"):
+        load_scene("test_small.yaml", device=DEVICE,
+                   overrides={"solver": {"preconditioner": "async_ldlt", "ldlt": {"backend": "dense", "lag": 2, "deterministic": False}}})
+
+
+def test_a_matrix_that_is_not_positive_definite_is_refused_and_the_factor_kept():
+    with load_scene("test_small.yaml", device=DEVICE, overrides={"solver": _solver(refresh_every=1000)}) as sim:
+        sim.step()
+        pre = sim.preconditioner
+        rng = np.random.default_rng(7)
+        r = rng.standard_normal((sim.mesh.n_nodes, 3))
+        before = _apply(pre, r, DEVICE)
+        n = sim.mesh.n_nodes
+        neg = wp.array(np.tile(-np.eye(3), (n, 1, 1)), dtype=wp.mat33d, device=DEVICE)
+        idx = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32, device=DEVICE)
+        pre.backend.assemble((idx, idx, neg), 3 * n)
+        pre.backend.factorize(stream=pre._side)
+        wp.synchronize_device(DEVICE)
+        err = pre.backend.install()
+        assert err is not None and "positive definite" in err
+        assert np.array_equal(_apply(pre, r, DEVICE), before)
+
+
+def test_close_returns_at_once_with_a_factorization_in_flight():
+    cfg = _brain_without_instruments()
+    ov = {"solver": {"preconditioner": "async_ldlt", "ldlt": {"backend": "dense", "refresh_every": 1}}}
+    sim = load_scene(cfg, device=DEVICE, overrides=ov)
+    sim.step()
+    sim.step()  # a request in flight (on the CPU: made, waiting to be installed)
+    t0 = time.perf_counter()
+    sim.close()
+    assert time.perf_counter() - t0 < 1.0
+    with pytest.raises(RuntimeError, match="closed"):
+        sim.step()
+
+
+def test_invalidate_starts_afresh_and_reset_gives_the_same_trajectory():
+    ov = {"solver": _solver(refresh_every=5, tol=1e-9)}
+    with load_scene("test_small.yaml", device=DEVICE, overrides=ov) as sim:
+        first = [sim.step().iterations for _ in range(8)]
+        x1 = sim.positions()
+        n_factors = sim.preconditioner.factor_count
+        sim.reset()
+        assert sim.preconditioner.factor_count == 0  # invalidated
+        again = [sim.step().iterations for _ in range(8)]
+        assert again == first and np.abs(sim.positions() - x1).max() <= 1e-12
+        assert n_factors >= 2
+
+
+def test_constraint_rows_in_node_form_rebuild_the_columns():
+    rng = np.random.default_rng(9)
+    n, m = 20, 13
+    B = np.zeros((3 * n, m))
+    for c in range(m):
+        nodes = rng.choice(n, rng.integers(1, 5), replace=False)
+        for j in nodes:
+            B[3 * j:3 * j + 3, c] = rng.standard_normal(3)
+    nodes, coef = constraint_rows(sps.csc_matrix(B), n)
+    R = np.zeros_like(B)
+    for a in range(m):
+        for k in range(4):
+            if nodes[a, k] >= 0:
+                R[3 * nodes[a, k]:3 * nodes[a, k] + 3, a] += coef[a, k]
+    np.testing.assert_array_equal(R, B)
+    nodes2, coef2 = constraint_rows(B, n)  # dense in, same result
+    np.testing.assert_array_equal(nodes2, nodes)
+    with pytest.raises(ValueError, match="DOFs"):
+        constraint_rows(B[:-3], n)
+
+
+def test_backend_options():
+    base = {"preconditioner": "async_ldlt"}
+    with load_scene("test_small.yaml", device="cpu", overrides={"solver": base}) as sim:
+        assert sim.preconditioner.stats()["backend"] == "cholmod"  # auto on the CPU
+    assert choose_backend("auto", "cpu", 10**6, True, True, 15000) == "cholmod"
+    with pytest.raises(ParameterError, match="CUDA"):
+        choose_backend("cudss", "cpu", 300, False, False, 15000)
+    with pytest.raises(ParameterError, match="backend must be one of"):
+        load_scene("test_small.yaml", device="cpu", overrides={"solver": {**base, "ldlt": {"backend": "magma"}}})
+    with pytest.raises(ParameterError, match="retired"):
+        load_scene("test_small.yaml", device="cpu", overrides={"solver": {**base, "ldlt": {"apply_on": "device"}}})
+    with pytest.raises(ParameterError, match="unknown ldlt options"):
+        load_scene("test_small.yaml", device="cpu", overrides={"solver": {**base, "ldlt": {"refresh": 2}}})
+    with pytest.raises(ParameterError, match="dense_max_dofs"):
+        load_scene("test_small.yaml", device="cpu",
+                   overrides={"solver": {**base, "ldlt": {"dense_max_dofs": -1}}})
+    if CUDA:
+        assert choose_backend("auto", DEVICE, 5202, True, True, 15000) == "dense"
+        assert choose_backend("auto", DEVICE, 300_000, False, False, 15000) == "cudss"
+        assert choose_backend("auto", DEVICE, 300_000, True, False, 15000) == "cholmod"
+        with pytest.raises(ParameterError, match="neither contact nor cutting"):
+            choose_backend("cudss", DEVICE, 300, True, False, 15000)

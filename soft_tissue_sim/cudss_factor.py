@@ -73,12 +73,18 @@ class _Slot:
                                             DirectSolverOptions)
 
         indptr, indices, n3 = pattern
-        self.values = wp.zeros(int(indices.shape[0]), dtype=wp.float64, device=device)
-        self.b = wp.zeros(n3, dtype=wp.float64, device=device)
-        A = csp.csr_matrix((cupy.asarray(self.values), cupy.asarray(indices), cupy.asarray(indptr)), shape=(n3, n3))
+        values = wp.zeros(int(indices.shape[0]), dtype=wp.float64, device=device)
+        b = wp.zeros(n3, dtype=wp.float64, device=device)
+        self.A = csp.csr_matrix((cupy.asarray(values), cupy.asarray(indices), cupy.asarray(indptr)), shape=(n3, n3))
+        self.rhs = cupy.asarray(b)
         opts = DirectSolverOptions(sparse_system_type=DirectSolverMatrixType.SPD,
                                    sparse_system_view=DirectSolverMatrixViewType.FULL)
-        self.solver = DirectSolver(A, cupy.asarray(self.b), options=opts, stream=stream.cuda_stream)
+        self.solver = DirectSolver(self.A, self.rhs, options=opts, stream=stream.cuda_stream)
+        # write where the solver reads (the matrix's values, the right-hand side), whatever it wrapped
+        self.values = wp.array(ptr=self.A.data.data.ptr, dtype=wp.float64, shape=(int(indices.shape[0]),),
+                               device=device)
+        self.b = wp.array(ptr=self.rhs.data.ptr, dtype=wp.float64, shape=(n3,), device=device)
+        self._keep = (values, b)
         self.planned = False
 
     def free(self):

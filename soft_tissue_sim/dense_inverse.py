@@ -256,35 +256,38 @@ class DenseInverse:
     # ----------------------------------------------------------- changing it
     def fold(self, rows: np.ndarray, Q_fn) -> None:
         """P^-1 <- P^-1 - U Q U^T with U = P^-1 G (G selecting ``rows``): the exact corrected
-        inverse of eq. (5)-(7). ``Q_fn(S)`` returns Q (host) from S = G^T P^-1 G (host)."""
+        inverse of eq. (5)-(7). ``Q_fn(S)`` returns Q (host) from S = G^T P^-1 G (host).
+        Runs on the simulation's stream."""
         xp = self.xp
-        P = self.matrix()
-        r = xp.asarray(rows)
-        U = xp.ascontiguousarray(P[r].T)  # columns of the symmetric P: rows are contiguous
-        S = U[r]
-        Q = xp.asarray(Q_fn(S if xp is np else xp.asnumpy(S)))
-        V = U @ Q
-        if xp is np:
-            P -= U @ V.T
-        else:
-            import cupy.cublas
+        with xp_stream(xp, wp.get_stream(self.device) if self.device.is_cuda else None):
+            P = self.matrix()
+            r = xp.asarray(rows)
+            U = xp.ascontiguousarray(P[r].T)  # columns of the symmetric P: rows are contiguous
+            S = U[r]
+            Q = xp.asarray(Q_fn(S if xp is np else xp.asnumpy(S)))
+            V = U @ Q
+            if xp is np:
+                P -= U @ V.T
+            else:
+                import cupy.cublas
 
-            cupy.cublas.gemm("N", "T", U, V, out=P, alpha=-1.0, beta=1.0)
+                cupy.cublas.gemm("N", "T", U, V, out=P, alpha=-1.0, beta=1.0)
 
     def regrow(self, keep: np.ndarray, added: int) -> None:
         """Change the node set of the inverse in use: keep the DOFs ``keep`` (in that order),
-        then append ``added`` DOFs as identity rows (eq. 10's padding)."""
+        then append ``added`` DOFs as identity rows (eq. 10's padding). On the simulation's stream."""
         xp = self.xp
-        old = self.matrix()
-        keep = xp.asarray(keep)
-        n = int(keep.shape[0]) + int(added)
+        k = int(len(keep))
+        n = k + int(added)
         new = wp.zeros((n, n), dtype=wp.float64, device=self.device)
-        N = xp_view(xp, new)
-        k = int(keep.shape[0])
-        N[:k, :k] = old[keep[:, None], keep[None, :]]
-        if added:
-            idx = xp.arange(k, n)
-            N[idx, idx] = 1.0
+        with xp_stream(xp, wp.get_stream(self.device) if self.device.is_cuda else None):
+            old = self.matrix()
+            keep = xp.asarray(keep)
+            N = xp_view(xp, new)
+            N[:k, :k] = old[keep[:, None], keep[None, :]]
+            if added:
+                idx = xp.arange(k, n)
+                N[idx, idx] = 1.0
         self.inv = new
         self._s = wp.zeros(n, dtype=wp.float64, device=self.device)
 

@@ -12,7 +12,9 @@ BENCHMARKS = {
     "profile": "profile",  # where the time of one step goes (kernels, copies, host)
     "scaling": "scaling",  # cost against mesh size
     "haptic": "haptic",  # step time distribution: CG vs LDL^T host / device / device + graph
-    "workers": "workers",  # the async factorization in a thread or in worker processes
+    "workers": "workers",
+    "backends": "backends",  # the factor backends (cholmod, dense, cudss) against body size
+    "targets": "targets",  # every target row, one table and targets_<cpu|gpu>.json  # the async factorization in a thread or in worker processes
 }
 
 

@@ -1,0 +1,246 @@
+"""Every speed and fidelity target in one run: ``python -m soft_tissue_sim.bench targets``.
+
+Measures each target row of the GPU preconditioner and GPU step issues on the device given
+(``--device cuda:0`` for the GPU rows; the CPU rows on the CPU), prints a table and writes
+``targets_<cpu|gpu>.json``: a list ``targets`` of ``{name, value, unit, goal, met}`` with the
+device, date and commit. Rows that do not apply to the device are listed with ``value``
+None and the reason. The README's and docs/benchmarks.md's targets tables are made from it.
+
+Rows (scenes of ``config/scenes``):
+
+* ``precond_apply_ms``: one application of the brain's preconditioner (eq. 2), replayed in a
+  CUDA graph (GPU) or called from Python (CPU);
+* ``precond_factor_ms``: wall time of one new factor of the brain (assembly, factorization,
+  install), median of 5;
+* ``beam2000_smf_*``: the paper's cut beam at 2,000 nodes (a cut every 3 steps, a refresh
+  every 4, 90 steps): the PCG solve with the corrections (``solve``), the whole step with
+  the cuts (``step``), its mean iterations, and plain CG's step over the SMF step;
+* ``beam100k_step_ms``: a 100,000-node beam (20 x 20 x 250 nodes) swinging under gravity,
+  median step (GPU only);
+* ``brain_contact_step_*``: the brain with both instruments pressed into it, no cutting;
+* ``brain_resection_*``: the shipped scripted resection (``bench brain``): step time,
+  iterations, the tumour freed, rollbacks, inverted tets; on the CPU its frame rate;
+* ``close_s``: ``Simulation.close()`` of the brain while a factorization is in flight.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+import warp as wp
+
+from ..scene import load_scene, read_scene, resolve_device, resolve_path
+from . import RESULTS_DIR, write_result
+
+
+def _row(name, value, unit, goal, better="<=", note=None):
+    if value is None:
+        met = None
+    elif better == "<=":
+        met = bool(value <= goal)
+    elif better == ">=":
+        met = bool(value >= goal)
+    else:  # "==": a boolean or a count that must equal the goal
+        met = bool(value == goal)
+    r = {"name": name, "value": value, "unit": unit, "goal": goal, "goal_relation": better, "met": met}
+    if note:
+        r["note"] = note
+    return r
+
+
+def _brain(contact=False):
+    cfg, base = read_scene("brain_resection.yaml")
+    cfg.pop("cutting", None)
+    if not contact:
+        cfg.pop("instruments", None)
+        cfg.pop("contact", None)
+    cfg["mesh"] = {"file": str(resolve_path(cfg["mesh"]["file"], base))}
+    return cfg
+
+
+def precond_rows(device, reps=100):
+    """precond_apply_ms and precond_factor_ms on the brain, with the scene's preconditioner."""
+    with load_scene(_brain(), device=device) as sim:
+        for _ in range(5):
+            sim.step()
+        pre, integ = sim.preconditioner, sim.integrator
+        backend = pre.stats().get("backend")
+        integ.build()
+        pre.begin_step(integ)
+        dev = wp.get_device(device)
+        n = sim.mesh.n_nodes
+        r = wp.array(np.random.default_rng(0).standard_normal((n, 3)), dtype=wp.vec3d, device=dev)
+        z = wp.zeros_like(r)
+        pre.apply(r, z)
+        wp.synchronize_device(dev)
+        if dev.is_cuda and pre.graph_key() is not None:
+            with wp.ScopedCapture(device=dev) as cap:
+                for _ in range(10):
+                    pre.apply(r, z)
+            wp.capture_launch(cap.graph)
+            wp.synchronize_device(dev)
+            t0 = time.perf_counter()
+            for _ in range(reps):
+                wp.capture_launch(cap.graph)
+            wp.synchronize_device(dev)
+            apply_ms = 1000.0 * (time.perf_counter() - t0) / (10 * reps)
+        else:
+            t0 = time.perf_counter()
+            for _ in range(reps):
+                pre.apply(r, z)
+            wp.synchronize_device(dev)
+            apply_ms = 1000.0 * (time.perf_counter() - t0) / reps
+        walls = []
+        for _ in range(5):
+            wp.synchronize_device(dev)
+            t0 = time.perf_counter()
+            pre.refresh(integ)
+            wp.synchronize_device(dev)
+            walls.append(1000.0 * (time.perf_counter() - t0))
+    note = f"brain, 5,202 DOFs, backend {backend}"
+    return [_row("precond_apply_ms", apply_ms, "ms", 0.1, note=note),
+            _row("precond_factor_ms", float(np.median(walls)), "ms", 25.0, note=note)]
+
+
+def cut_beam_rows(device, steps=90):
+    from .cut_beam import run, summarize
+
+    smf_stats, cuts, n0, n1 = run("beam_2000.yaml", "smf", steps, 3, 4, device)
+    smf = summarize(smf_stats, cuts, n0, n1, "smf")
+    cg_stats, cg_cuts, _, _ = run("beam_2000.yaml", "cg", max(12, steps // 3), 3, 4, device)
+    cg_step = float(np.mean([s["total_ms"] + s.get("cut_ms", 0.0) for s in cg_stats]))
+    corr_ms = sum(c["u_ms"] + c["q_ms"] for c in cuts) / len(smf_stats)
+    solve = float(np.mean([s["solve_ms"] for s in smf_stats])) + corr_ms
+    note = f"{smf['cuts']} cuts in {steps} steps, the scene's backend (auto)"
+    return [_row("beam2000_smf_solve_ms", solve, "ms", 1.0, note=note + "; PCG solve + corrections, mean"),
+            _row("beam2000_smf_step_ms", smf["total_ms"], "ms", 3.4, note=note + "; whole step with the cuts, mean"),
+            _row("beam2000_smf_iterations_mean", smf["iterations"], "iterations", 8.0, note=note),
+            _row("beam2000_smf_over_cg", cg_step / smf["total_ms"], "x", 20.0, ">=",
+                 note=f"plain CG {cg_step:.1f} ms a step (mean of {len(cg_stats)}) on the same device")]
+
+
+def beam100k_rows(device, steps=40, warmup=8):
+    if not wp.get_device(device).is_cuda:
+        return [_row("beam100k_step_ms", None, "ms", 16.7, note="GPU only (the CPU takes seconds a step)")]
+    cfg = {"name": "beam100k", "mesh": {"generator": "beam", "n_long": 250, "n_cross": 20, "spacing": 0.01},
+           "materials": [{"id": 0, "young": 5.0e4, "poisson": 0.3, "density": 1000.0}],
+           "damping": {"mass": 0.1, "stiffness": 0.01}, "fixed": {"axis": "x", "below": 0.0},
+           "time": {"dt": 0.01}, "solver": {"tolerance": 1.0e-6, "preconditioner": "async_ldlt",
+                                           "ldlt": {"refresh_every": 4}}}
+    with load_scene(cfg, device=device) as sim:
+        for _ in range(warmup):
+            sim.step()
+        walls, its = [], []
+        for _ in range(steps):
+            t0 = time.perf_counter()
+            st = sim.step()
+            walls.append(1000.0 * (time.perf_counter() - t0))
+            its.append(st.iterations)
+        ps = sim.preconditioner.stats()
+        n = sim.mesh.n_nodes
+    return [_row("beam100k_step_ms", float(np.median(walls)), "ms", 16.7,
+                 note=f"{n} nodes, backend {ps.get('backend')}, {np.mean(its):.2f} iterations, "
+                      f"p99 {np.percentile(walls, 99):.1f} ms, factorization {ps.get('factorization_ms', 0):.1f} ms")]
+
+
+def brain_contact_rows(device, steps=200, ramp=20):
+    """Both instruments pressed into the brain (the probe 6 mm over the tumour, the scalpel's
+    shaft 3 mm beside it, pedal up), held; the held steps are timed."""
+    cfg = _brain(contact=True)
+    with load_scene(cfg, device=device) as sim:
+        P = sim.mesh.points
+        cen = sim.mesh.centroids()[sim.mesh.material_ids == 1].mean(axis=0)
+
+        def top(x, y):
+            near = np.hypot(P[:, 0] - x, P[:, 1] - y) < 0.01
+            return float(P[near, 2].max())
+
+        spots = {"probe": (cen[0], cen[1], 0.006), "scalpel": (cen[0] + 0.025, cen[1], 0.003)}
+        walls, its, contacts = [], [], []
+        for k in range(ramp + steps):
+            s = min(1.0, k / ramp)
+            for name, (x, y, depth) in spots.items():
+                sim.set_instrument_pose(name, [x, y, top(x, y) + 0.01 - s * (0.01 + depth)], [0, 0, 0, 1])
+            t0 = time.perf_counter()
+            st = sim.step()
+            w = 1000.0 * (time.perf_counter() - t0)
+            if k >= ramp:
+                walls.append(w)
+                its.append(st.iterations)
+                contacts.append(st.as_dict().get("contacts", 0))
+        backend = sim.preconditioner.stats().get("backend")
+    note = (f"{steps} held steps, {np.mean(contacts):.0f} contacts, {np.mean(its):.2f} iterations, "
+            f"backend {backend}")
+    return [_row("brain_contact_step_median_ms", float(np.median(walls)), "ms", 1.0, note=note),
+            _row("brain_contact_step_p99_ms", float(np.percentile(walls, 99)), "ms", 2.0, note=note)]
+
+
+def brain_resection_rows(device):
+    from .brain import run
+
+    rows, mods, freed, finite, _, _, info = run(device, progress=True)
+    wall = np.array([r["wall_ms"] for r in rows])
+    its = np.array([r["iterations"] for r in rows])
+    note = f"{len(rows)} steps, {len(mods)} modifications"
+    out = [_row("brain_resection_step_median_ms", float(np.median(wall)), "ms", 2.0, note=note),
+           _row("brain_resection_step_p99_ms", float(np.percentile(wall, 99)), "ms", 20.0, note=note),
+           _row("brain_resection_iterations_mean", float(its.mean()), "iterations", 5.7, note=note),
+           _row("brain_resection_tumour_freed", bool(freed and finite), "", True, "=="),
+           _row("brain_resection_rollbacks", int(sum(r["rolled_back"] for r in rows)), "", 0, "=="),
+           _row("brain_resection_inverted_tets", int(info["inverted_tets_end"]), "", 0, "==")]
+    if not wp.get_device(device).is_cuda:
+        out.append(_row("brain_resection_fps", float(1000.0 / wall.mean()), "FPS", 20.0, ">=", note=note))
+    return out
+
+
+def close_rows(device):
+    sim = load_scene(_brain(), device=device, overrides={"solver": {"ldlt": {"refresh_every": 1}}})
+    sim.step()
+    sim.step()  # a factorization requested and (on a GPU or in the worker thread) in flight
+    t0 = time.perf_counter()
+    sim.close()
+    return [_row("close_s", time.perf_counter() - t0, "s", 1.0, note="brain, a factorization in flight")]
+
+
+GROUPS = {"precond": precond_rows, "cut_beam": cut_beam_rows, "beam100k": beam100k_rows,
+          "brain_contact": brain_contact_rows, "brain_resection": brain_resection_rows, "close": close_rows}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench targets", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--only", default=None, help=f"comma list of {', '.join(GROUPS)} (default: all)")
+    ap.add_argument("--out", default=str(RESULTS_DIR))
+    args = ap.parse_args(argv)
+    device = resolve_device(args.device)
+    groups = args.only.split(",") if args.only else list(GROUPS)
+    for g in groups:
+        if g not in GROUPS:
+            ap.error(f"unknown group {g!r}")
+    targets, t_all = [], time.perf_counter()
+    for g in groups:
+        t0 = time.perf_counter()
+        try:
+            rows = GROUPS[g](device)
+        except Exception as exc:  # noqa: BLE001 - recorded as rows without a value; the others still run
+            rows = [_row(g, None, "", None, note=f"failed: {type(exc).__name__}: {exc}")]
+        for r in rows:
+            v = r["value"]
+            vs = "-" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v))
+            flag = {True: "met", False: "NOT met", None: "n/a"}[r["met"]]
+            print(f"{r['name']:<34} {vs:>10} {r['unit']:<10} goal {r['goal_relation']} {r['goal']!s:<6} {flag:<8}"
+                  f" {r.get('note', '')}", flush=True)
+        print(f"  [{g}: {time.perf_counter() - t0:.1f} s]", file=sys.stderr, flush=True)
+        targets += rows
+    path = write_result("targets", device, {"targets": targets, "wall_s": time.perf_counter() - t_all}, args.out)
+    doc = json.load(open(path))
+    doc["targets"] = doc["figures"].pop("targets")
+    with open(path, "w") as fh:
+        json.dump(doc, fh, indent=1, default=float)
+    print(f"wrote {path}")
+    return 0

@@ -145,7 +145,10 @@ def test_device_scalar_pcg_matches_host_pcg(pre, graph):
             rh = host.solve(integ.matvec, integ.b, x_h, integ.preconditioner)
             rd = dpcg.solve(integ.matvec, integ.b, x_d, integ.preconditioner)
             assert rh.iterations > 1 and rh.converged
-            assert abs(rd.iterations - rh.iterations) <= (0 if pre == "dense" else 1) and rd.converged
+            # plain CG and Jacobi take hundreds of iterations: on a GPU the dot products, summed in
+            # another order, shift the count by a few percent
+            slack = 0 if pre == "dense" else max(1, int(0.05 * rh.iterations)) if CUDA else 1
+            assert abs(rd.iterations - rh.iterations) <= slack and rd.converged
             assert rd.residual <= dpcg.tolerance
             assert np.abs(x_d.numpy() - x_h.numpy()).max() <= 1e-6 * np.abs(x_h.numpy()).max()
             integ.step_index += 1

@@ -4,10 +4,13 @@ the GPU, through nvmath-python's ``DirectSolver``) and applied with its solve.
 For bodies too large for a dense inverse. A is assembled on the device straight into the
 values of a fixed CSR pattern (3x3 block triplets scattered by :func:`csr_scatter_kernel`;
 the pattern and each triplet's place in it are found once per topology). Two solver objects
-alternate: one serves the solves with the factor in use while the other factorizes the next
-A on the factor stream; each is planned (ordering and symbolic factorization) once per
-pattern and refactorized in place afterwards. An application of eq. (2) is a rotation into
-the solver's right-hand side, cuDSS's solve, and a rotation back.
+alternate: one serves the solves with the factor in use while the other is refactorized with
+the next A; each is planned (ordering and symbolic factorization) once per pattern and
+refactorized in place afterwards. An application of eq. (2) is a rotation into
+the solver's right-hand side, cuDSS's solve (into a solution buffer of our own), and a
+rotation back. cuDSS factorizes and solves on one stream, the simulation's: its solves with a
+factor made on another stream are wrong, so a new factor is made in the step that requests
+it (the host does not wait; the step's kernels queue behind it).
 
 Not supported here (the factory refuses them): cutting (no correction of a cuDSS factor)
 and contact (no gathered Delassus operator); the dense backend serves those scenes.
@@ -15,10 +18,15 @@ and contact (no gathered Delassus operator); the dense backend serves those scen
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import warp as wp
 
 from .dense_inverse import rotate_in_kernel
+
+CAPTURE_SOLVE = False  # whether PCG may capture cuDSS's solve in a CUDA graph
+BLOCKING = os.environ.get("STS_CUDSS_BLOCKING", "0") == "1"  # nvmath's blocking calls (cuDSS's own allocator)
 
 
 @wp.kernel
@@ -78,14 +86,28 @@ class _Slot:
         self.A = csp.csr_matrix((cupy.asarray(values), cupy.asarray(indices), cupy.asarray(indptr)), shape=(n3, n3))
         self.rhs = cupy.asarray(b)
         opts = DirectSolverOptions(sparse_system_type=DirectSolverMatrixType.SPD,
-                                   sparse_system_view=DirectSolverMatrixViewType.FULL)
+                                   sparse_system_view=DirectSolverMatrixViewType.FULL,
+                                   blocking=True if BLOCKING else "auto")
         self.solver = DirectSolver(self.A, self.rhs, options=opts, stream=stream.cuda_stream)
         # write where the solver reads (the matrix's values, the right-hand side), whatever it wrapped
         self.values = wp.array(ptr=self.A.data.data.ptr, dtype=wp.float64, shape=(int(indices.shape[0]),),
                                device=device)
         self.b = wp.array(ptr=self.rhs.data.ptr, dtype=wp.float64, shape=(n3,), device=device)
+        # the solution in a buffer of our own (nvmath's solve would allocate a new one each call)
+        from nvmath.bindings import cudss
+
+        self.x = wp.zeros(n3, dtype=wp.float64, device=device)
+        cudss.matrix_set_values(self.solver.x_ptr, self.x.ptr)
         self._keep = (values, b)
         self.planned = False
+
+    def solve(self, stream) -> None:
+        """x = A^-1 b with the factor of this solver, enqueued on ``stream``."""
+        from nvmath.bindings import cudss
+
+        s = self.solver
+        cudss.set_stream(s.handle, stream.cuda_stream)
+        cudss.execute(s.handle, cudss.Phase.SOLVE, s.config_ptr, s.data_ptr, s.a_ptr, s.x_ptr, s.b_ptr)
 
     def free(self):
         self.solver.free()
@@ -95,6 +117,7 @@ class CuDSSFactor:
     """Two cuDSS solvers on one device (see the module docstring)."""
 
     name = "cudss"
+    one_stream = True  # a factor made on one stream and solved on another gives wrong solves: one stream
 
     def __init__(self, device):
         self.device = wp.get_device(device)
@@ -109,7 +132,6 @@ class CuDSSFactor:
         self._slots: list[_Slot | None] = [None, None]
         self._active = None  # index of the slot in use
         self._next = 0
-        self._y = None
 
     @property
     def n3(self) -> int:
@@ -160,24 +182,21 @@ class CuDSSFactor:
             return f"cuDSS factorization failed (info {info}): A is not positive definite"
         self._active = self._next
         self._next = 1 - self._next
-        n3 = int(self._pattern[2])
-        if self._y is None or self._y.shape[0] != n3:
-            self._y = None
         return None
 
     def apply(self, r: wp.array, z: wp.array, dR: wp.array) -> None:
-        """z = dR A^-1 dR^T r with cuDSS's solve, on the current stream."""
+        """z = dR A^-1 dR^T r with cuDSS's solve, on the current stream (no allocation)."""
         slot = self._slots[self._active]
         n = r.shape[0]
-        stream = wp.get_stream(self.device)
         wp.launch(rotate_in_kernel, n, [dR, r, slot.b], device=self.device)
-        x = slot.solver.solve(stream=stream.cuda_stream)
-        y = wp.array(ptr=x.data.ptr, dtype=wp.float64, shape=(3 * n,), device=self.device)
-        wp.launch(rotate_out_kernel, n, [dR, y, z], device=self.device)
-        self._y = x  # keep the solution's memory alive until the launches that read it are queued
+        slot.solve(wp.get_stream(self.device))
+        wp.launch(rotate_out_kernel, n, [dR, slot.x, z], device=self.device)
 
     def graph_key(self):
-        return None  # cuDSS's solve allocates its result: not capturable
+        if not CAPTURE_SOLVE or self._active is None:
+            return None
+        slot = self._slots[self._active]
+        return ("cudss", id(slot.solver), slot.x.ptr, slot.b.ptr)
 
     def reset(self) -> None:
         self._active = None

@@ -147,17 +147,18 @@ class AsyncDevicePreconditioner:
         self.refresh_every = max(1, int(refresh_every))
         self.deterministic = bool(deterministic)
         self.lag = int(lag)
-        if self.device.is_cuda:
-            self._main = wp.get_stream(self.device)
-            self._side = wp.Stream(self.device)
-        else:
-            self._main = self._side = None
+        self._side = wp.Stream(self.device) if self.device.is_cuda else None
         self.correction: FoldedCorrection | None = None
         self.mods: list[Modification] = []
         self._busy = None  # end event of the last factorization enqueued (its work buffer is in use)
         self._gen = 0
         self.worker_error = None
         self._reset_counters()
+
+    @property
+    def _main(self):
+        """The simulation's stream (the device's current one), None on the CPU."""
+        return wp.get_stream(self.device) if self.device.is_cuda else None
 
     @property
     def inner(self):
@@ -198,10 +199,14 @@ class AsyncDevicePreconditioner:
             ticket = _Ticket(self.step, self._gen, uids, int(meta.get("version", -1)), R,
                              cpu_ms=1000.0 * (time.perf_counter() - t0))
         else:
-            self._side.wait_event(self._main.record_event())
-            start = self._side.record_event(wp.Event(self.device, enable_timing=True))
-            self.backend.factorize(stream=self._side)
-            done = self._side.record_event(wp.Event(self.device, enable_timing=True))
+            # the factor's own stream, or the simulation's for a backend that must factorize and
+            # solve on one stream (cuDSS)
+            side = self._main if getattr(self.backend, "one_stream", False) else self._side
+            if side is not self._main:
+                side.wait_event(self._main.record_event())
+            start = side.record_event(wp.Event(self.device, enable_timing=True))
+            self.backend.factorize(stream=side)
+            done = side.record_event(wp.Event(self.device, enable_timing=True))
             ticket = _Ticket(self.step, self._gen, uids, int(meta.get("version", -1)), R, start, done)
             self._busy = done
         self.last_request_step = self.step

@@ -43,7 +43,7 @@ from .material import ParameterError
 
 PRECONDITIONERS = ("none", "jacobi", "async_ldlt", "direct")
 BACKENDS = ("auto", "cholmod", "dense", "cudss")
-DENSE_MAX_DOFS = 15_000  # auto: the dense inverse up to this size on a GPU (docs/benchmarks.md, "backends")
+DENSE_MAX_DOFS = 12_000  # auto: the dense inverse up to this size on a GPU (bench backends, docs/benchmarks.md)
 _RETIRED = {"apply_on", "columns_on", "lanes", "tail_width", "tail_block", "cols_lanes", "min_device_columns"}
 _LDLT_KEYS = {"backend", "rotate", "refresh_every", "deterministic", "lag", "mode", "ordering", "worker",
               "release_gil", "dense_max_dofs"}

@@ -24,12 +24,13 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
                     lag: 0,                       # with deterministic: install each factor this many
                                                   #   steps after its request (a background
                                                   #   factorization's delay, reproducibly)
-                    dense_max_dofs: 15000,        # auto on a GPU: the dense inverse up to this size
+                    dense_max_dofs: 12000,        # auto on a GPU: the dense inverse up to this size
                     mode: auto,                   # cholmod: auto | simplicial | supernodal
                     ordering: default,            # cholmod: default | amd | metis | nesdis | best | ...
                     worker: thread,               # cholmod: thread | process (two factorization processes)
                     release_gil: true},           # cholmod: simplicial factorization with the GIL released
-             graph: auto}                         # auto (on CUDA with a device factor) | true | false
+             graph: auto,                         # auto (on CUDA with a device factor) | true | false
+             stream_priority: high}               # CUDA: the simulation's stream ahead of the factor's | default
 
 ``graph`` captures the PCG solve as a CUDA graph (Warp's API capture on the CPU) replayed each
 step, with every scalar on the device (cg.DevicePCG); it needs a preconditioner that applies on
@@ -223,6 +224,14 @@ class Simulation:
             raise ParameterError(f"solver max_iterations must be an integer >= 1, got {max_it!r}")
         dt = (config.get("time") or {}).get("dt", 0.01)
         graph = _graph_option(solver.get("graph", "auto"))
+        priority = str(solver.get("stream_priority", "high"))
+        if priority not in ("high", "default"):
+            raise ParameterError(f"solver stream_priority must be high or default, got {priority!r}")
+        self.stream = None
+        if wp.get_device(self.device).is_cuda and priority == "high":
+            # the step's kernels go ahead of a factorization running beside them on another stream
+            self.stream = wp.Stream(self.device, priority=-1)
+            wp.set_stream(self.stream, device=self.device, sync=True)
         # Node identities across topological changes (the preconditioner maps numberings by them).
         self.node_uids = np.arange(self.mesh.n_nodes, dtype=np.int64)
         self.mesh_version = 0

@@ -298,9 +298,9 @@ def test_backend_options():
     base = {"preconditioner": "async_ldlt"}
     with load_scene("test_small.yaml", device="cpu", overrides={"solver": base}) as sim:
         assert sim.preconditioner.stats()["backend"] == "cholmod"  # auto on the CPU
-    assert choose_backend("auto", "cpu", 10**6, True, True, 15000) == "cholmod"
+    assert choose_backend("auto", "cpu", 10**6, True, True, 12000) == "cholmod"
     with pytest.raises(ParameterError, match="CUDA"):
-        choose_backend("cudss", "cpu", 300, False, False, 15000)
+        choose_backend("cudss", "cpu", 300, False, False, 12000)
     with pytest.raises(ParameterError, match="backend must be one of"):
         load_scene("test_small.yaml", device="cpu", overrides={"solver": {**base, "ldlt": {"backend": "magma"}}})
     with pytest.raises(ParameterError, match="retired"):
@@ -311,8 +311,8 @@ def test_backend_options():
         load_scene("test_small.yaml", device="cpu",
                    overrides={"solver": {**base, "ldlt": {"dense_max_dofs": -1}}})
     if CUDA:
-        assert choose_backend("auto", DEVICE, 5202, True, True, 15000) == "dense"
-        assert choose_backend("auto", DEVICE, 300_000, False, False, 15000) == "cudss"
-        assert choose_backend("auto", DEVICE, 300_000, True, False, 15000) == "cholmod"
+        assert choose_backend("auto", DEVICE, 5202, True, True, 12000) == "dense"
+        assert choose_backend("auto", DEVICE, 300_000, False, False, 12000) == "cudss"
+        assert choose_backend("auto", DEVICE, 300_000, True, False, 12000) == "cholmod"
         with pytest.raises(ParameterError, match="neither contact nor cutting"):
-            choose_backend("cudss", DEVICE, 300, True, False, 15000)
+            choose_backend("cudss", DEVICE, 300, True, False, 12000)

@@ -38,6 +38,7 @@ import numpy as np
 import warp as wp
 
 from .material import ParameterError
+from .paths import resolve_path
 
 QUATERNION_TOLERANCE = 1e-3  # |  |q| - 1 | accepted (then normalised); beyond that a pose is rejected
 _INSTRUMENT_KEYS = {"name", "shape", "radius", "length", "pose", "blade", "friction"}
@@ -314,8 +315,6 @@ class MeshObstacle:
 def _mesh_arrays(what: str, cfg: dict) -> tuple[np.ndarray, np.ndarray]:
     if "file" in cfg:
         import meshio
-
-        from .scene import resolve_path
 
         path = resolve_path(cfg["file"])
         try:

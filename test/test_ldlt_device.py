@@ -46,7 +46,7 @@ def _brain_without_instruments():
     cfg, base = read_scene("brain_resection.yaml")
     for k in ("instruments", "contact", "cutting"):
         cfg.pop(k, None)
-    from soft_tissue_sim.scene import resolve_path
+    from soft_tissue_sim.paths import resolve_path
 
     cfg["mesh"] = {"file": str(resolve_path(cfg["mesh"]["file"], base))}
     return cfg

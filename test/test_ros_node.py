@@ -19,7 +19,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from soft_tissue_sim.ros.node import SimNode
 from soft_tissue_sim.ros.scripted_instrument import Script, ScriptedInstrument, path, sample, script_over_surface
-from soft_tissue_sim.scene import SCENES_DIR, load_scene
+from soft_tissue_sim.paths import SCENES_DIR
+from soft_tissue_sim.scene import load_scene
 
 
 @pytest.fixture

@@ -28,8 +28,9 @@ import warp as wp
 from sksparse.cholmod import analyze
 
 from ..ldlt_device import DeviceLDLT, StructureCache, factor_values
+from ..paths import resolve_path
 from ..report import Progress
-from ..scene import load_scene, read_scene, resolve_device, resolve_path
+from ..scene import load_scene, read_scene, resolve_device
 from . import RESULTS_DIR, write_result
 
 COLUMNS = (1, 3, 6, 12, 24, 48, 96, 192, 384)

@@ -51,7 +51,8 @@ import numpy as np
 import scipy.sparse as sps
 import warp as wp
 
-from ..scene import load_scene, read_scene, resolve_device, resolve_path
+from ..paths import resolve_path
+from ..scene import load_scene, read_scene, resolve_device
 from . import RESULTS_DIR, write_result
 
 VARIANTS = {

@@ -58,6 +58,7 @@ from scipy.sparse.csgraph import connected_components
 from .material import ParameterError
 from .mesh import _FACES, TetMesh, tet_quality, unique_rows
 from .sherman_morrison import ShermanMorrisonCorrection, modification_from_blocks
+from .stats import CutStats
 
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 CORRECTIONS = ("sherman_morrison", "none")
@@ -631,7 +632,7 @@ class Cutter:
             q0, q1 = q0 + lead * d / dn, q1 + lead * d / dn
         return self.cut_triangles(sim, sweep_triangles(prev[0], prev[1], q0, q1), frame="world", stroke="blade")
 
-    def step(self, sim) -> dict:
+    def step(self, sim) -> CutStats:
         """Per step: scripted cuts due now, and the blade's sweep while cutting is active."""
         results = []
         s = self.script
@@ -646,14 +647,9 @@ class Cutter:
         else:
             self._blade_at_last_cut = None  # a pedal press starts a new path
         done = [r for r in results if r.changed]
-        return {
-            "cuts": self.modifications,
-            "tets_changed": sum(r.tets_changed for r in done),
-            "affected_nodes": sum(r.affected_nodes for r in done),
-            "cut_ms": sum(r.ms for r in results),
-            "smf_u_ms": sum(r.smf_u_ms for r in done),
-            "smf_q_ms": sum(r.smf_q_ms for r in done),
-        }
+        return CutStats(cuts=self.modifications, tets_changed=sum(r.tets_changed for r in done),
+                        affected_nodes=sum(r.affected_nodes for r in done), cut_ms=sum(r.ms for r in results),
+                        smf_u_ms=sum(r.smf_u_ms for r in done), smf_q_ms=sum(r.smf_q_ms for r in done))
 
     # ------------------------------------------------------------- cutting
     def cut_triangles(self, sim, triangles, frame: str = "world", stroke: str | None = None) -> CutResult:

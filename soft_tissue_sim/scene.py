@@ -69,6 +69,7 @@ from .corotational_fem import CorotationalFEM
 from .implicit_integration import BackwardEuler, StepStats
 from .material import Damping, MaterialTable, ParameterError
 from .paths import resolve_path
+from .stats import GuardStats
 
 PRECONDITIONERS = ("none", "jacobi", "async_ldlt", "direct")
 _KNOWN_KEYS = {
@@ -395,7 +396,7 @@ class Simulation:
         if self.guard_retry:
             stats = integ.step()
             if self._diverged(stats, ke_before) is None:
-                stats.extra.update(rolled_back=True, rollbacks=self.rollbacks, guard=reason, remedy="fresh factor")
+                stats.guard = GuardStats(True, self.rollbacks, reason, "fresh factor")
                 return stats, True
             rollback()
             dt = integ.dt  # remedy 2: two half steps
@@ -415,26 +416,27 @@ class Simulation:
                 integ.step_index, integ.time = k0 + 1, t0 + dt  # two half steps count as one step
                 s2.step, s2.time = k0 + 1, t0 + dt
                 s2.iterations += s1.iterations
-                s2.extra.update(rolled_back=True, rollbacks=self.rollbacks, guard=reason, remedy="two half steps")
+                s2.guard = GuardStats(True, self.rollbacks, reason, "two half steps")
                 return s2, True
             rollback()
         stats.converged = False
-        stats.extra.update(rolled_back=True, rollbacks=self.rollbacks, guard=reason,
-                           remedy="none: last good state kept (tried " + ", ".join(attempts) + ")")
+        stats.guard = GuardStats(True, self.rollbacks, reason,
+                                 "none: last good state kept (tried " + ", ".join(attempts) + ")")
         return stats, False
 
-    def _contact_response(self) -> dict:
+    def _contact_response(self, stats: StepStats) -> None:
         """The contact step under the divergence guard: a correction that leaves NaN or a runaway
         kinetic energy is dropped (the free motion stands for this step; the next step detects
-        and corrects again) and reported as ``contact_rejected``."""
+        and corrects again) and reported as ``contact_rejected``. Fills ``stats.contact`` (None
+        when the solve failed) and the guard's contact fields."""
         integ = self.integrator
         x_free, v_free = wp.clone(integ.x), wp.clone(integ.v)
         ke_free = self._kinetic_energy() if self.guard_ratio > 0 else 0.0
         try:
-            cstats = self.contact.step(self)
+            stats.contact = self.contact.step(self)
             reason = None
         except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
-            cstats, reason = {}, f"contact solve failed: {type(exc).__name__}: {exc}"
+            reason = f"contact solve failed: {type(exc).__name__}: {exc}"
         if reason is None:
             if not np.isfinite(integ.x.numpy()).all() or not np.isfinite(integ.v.numpy()).all():
                 reason = "non-finite state after the contact correction"
@@ -446,9 +448,9 @@ class Simulation:
             integ.x, integ.v = x_free, v_free
             self.contact_rejections += 1
             warnings.warn(f"step {integ.step_index}: {reason}; the free motion stands for this step", stacklevel=2)
-            cstats = dict(cstats, contact_rejected=reason)
-        cstats["contact_rejections"] = self.contact_rejections
-        return cstats
+        stats.guard = stats.guard or GuardStats()
+        stats.guard.contact_rejected = reason
+        stats.guard.contact_rejections = self.contact_rejections
 
     def step(self) -> StepStats:
         if self._closed:
@@ -458,9 +460,9 @@ class Simulation:
             self.last_stats = stats
             return stats
         if self.contact is not None:
-            stats.extra.update(self._contact_response())  # LCP correction of x and v, eq. (3)-(4)
+            self._contact_response(stats)  # LCP correction of x and v, eq. (3)-(4)
         if self.cutting is not None:
-            stats.extra.update(self.cutting.step(self))  # blade motion -> mesh change + SMF, eq. (5)-(12)
+            stats.cutting = self.cutting.step(self)  # blade motion -> mesh change + SMF, eq. (5)-(12)
         self.last_stats = stats
         return stats
 

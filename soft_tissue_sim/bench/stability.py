@@ -116,8 +116,8 @@ def run_case(name, case, solver, steps, device, rng):
             its.append(s.iterations)
             res.append(s.residual)
             conv.append(s.converged)
-            if "max_penetration" in s.extra:
-                pen.append(s.extra["max_penetration"])
+            if s.contact is not None:
+                pen.append(s.contact.max_penetration)
             if k % 5 == 0 or k == n_steps - 1:
                 e = sim.energy()["total"]
                 if not np.isfinite(e):

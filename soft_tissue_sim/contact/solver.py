@@ -21,6 +21,7 @@ import warp as wp
 
 from ..instrument import Instrument, MeshObstacle, obstacle_from_config
 from ..material import ParameterError
+from ..stats import ContactStats
 from .compliance import compliance, positive_definite
 from .detection import SurfaceTopology, face_contacts, node_contacts, self_contacts
 from .geometry import tangent_basis
@@ -68,7 +69,6 @@ class ContactSolver:
         self._topo: SurfaceTopology | None = None
         self._warm: dict = {}
         self.contacts = Contacts.empty().responded(np.zeros(0), np.zeros((0, 3)))
-        self.last_stats: dict = {}
         self.compliance_used = "none"
         self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite
 
@@ -123,7 +123,6 @@ class ContactSolver:
         self._topo = None
         self._warm = {}
         self.contacts = Contacts.empty().responded(np.zeros(0), np.zeros((0, 3)))
-        self.last_stats = {}
         self.compliance_fallbacks = 0
 
     # ------------------------------------------------------------ detection
@@ -163,7 +162,7 @@ class ContactSolver:
         return Contacts.concat([p for p in parts if p is not None])
 
     # ------------------------------------------------------------------ step
-    def step(self, sim) -> dict:
+    def step(self, sim) -> ContactStats:
         """Detect, solve the LCP, correct x and v, update the wrenches. Returns statistics."""
         t0 = time.perf_counter()
         o = self.options
@@ -220,9 +219,8 @@ class ContactSolver:
         c = c.take(keep)
         nodes4, w4, ws4 = nodes4[keep], w4[keep], ws4[keep]
         k = len(c.node)
-        stats = {"contacts": k, "self_contacts": int(np.sum(c.obj < 0)),
-                 "face_contacts": int(np.sum((c.node < 0) & (c.obj >= 0))), "active_contacts": 0,
-                 "gs_iterations": 0, "lcp_residual": 0.0, "max_penetration": 0.0, "contact_ms": 0.0}
+        stats = ContactStats(contacts=k, self_contacts=int(np.sum(c.obj < 0)),
+                             face_contacts=int(np.sum((c.node < 0) & (c.obj >= 0))))
         for obj in self.objects:
             obj.force, obj.torque = np.zeros(3), np.zeros(3)
         if k == 0:
@@ -233,13 +231,12 @@ class ContactSolver:
         # penetration left after the correction: detection again at the corrected positions
         after = self.detect(sim, x_start=xs_wp)
         if len(after):
-            stats["max_penetration"] = float(max(0.0, -after.gap.min()))
-        stats["contact_ms"] = 1000.0 * (time.perf_counter() - t0)
-        self.last_stats = stats
+            stats.max_penetration = float(max(0.0, -after.gap.min()))
+        stats.contact_ms = 1000.0 * (time.perf_counter() - t0)
         return stats
 
     def _respond(self, sim, c: Contacts, nodes4: np.ndarray, w4: np.ndarray, ws4: np.ndarray, free: np.ndarray,
-                 x: np.ndarray, v: np.ndarray, x_start: np.ndarray, stats: dict) -> None:
+                 x: np.ndarray, v: np.ndarray, x_start: np.ndarray, stats: ContactStats) -> None:
         """LCP of eq. (3) for the contacts ``c`` and the correction of x and v (free motion in,
         corrected out, also written to the integrator). ``nodes4`` (k, 4): the contact's node
         and triangle nodes (-1: none), ``ws4`` their weights in the tissue point's relative
@@ -293,7 +290,7 @@ class ContactSolver:
             kind = f"diagonal ({kind} not positive definite on the contacts)"
             self.compliance_fallbacks += 1
         self.compliance_used = kind
-        stats["compliance_fallbacks"] = self.compliance_fallbacks
+        stats.compliance_fallbacks = self.compliance_fallbacks
         # warm start from last step's forces on the same (object, node) or (object, triangle)
         # pairs; nodes are named by the simulation's node uids where it keeps them (stable
         # across cuts), else by index
@@ -313,7 +310,7 @@ class ContactSolver:
                     lam[r + 1], lam[r + 2] = float(f @ t1[i]), float(f @ t2[i])
         lam, its, res = solve_pgs(W, d0, row_start, rows, mu, o["max_iterations"], o["tolerance"],
                                   o["friction_cone"] == "pyramid", lam)
-        stats.update(gs_iterations=its, lcp_residual=res, compliance=kind)
+        stats.gs_iterations, stats.lcp_residual, stats.compliance = its, res, kind
         # correction with the same compliance: dx = dt^2 P^-1 H^T lambda, v += dx / dt
         dx = (dt * dt) * np.asarray(apply_y(lam)).reshape(n, 3) * free[:, None]
         x += dx
@@ -332,4 +329,4 @@ class ContactSolver:
                 obj.torque = np.cross(c.point[sel] - obj.origin, f_obj).sum(axis=0)
         self._warm = {keys[i]: force[i] for i in range(k) if ln[i] > 0.0}
         self.contacts = c.responded(ln, force)
-        stats["active_contacts"] = int(np.sum(ln > 0.0))
+        stats.active_contacts = int(np.sum(ln > 0.0))

@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import scipy.sparse as sps
@@ -57,7 +58,7 @@ from scipy.sparse.csgraph import connected_components
 
 from .material import ParameterError
 from .mesh import _FACES, TetMesh, tet_quality, unique_rows
-from .sherman_morrison import ShermanMorrisonCorrection, modification_from_blocks
+from .sherman_morrison import Modification, ShermanMorrisonCorrection, modification_from_blocks
 from .stats import CutStats
 
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
@@ -107,6 +108,70 @@ class CutState:
         """This state followed by ``more`` (nodes appended)."""
         return CutState(np.concatenate([self.on, more.on]), np.concatenate([self.normals, more.normals]),
                         np.concatenate([self.offsets, more.offsets]))
+
+
+@dataclass
+class Tissue:
+    """What cutting reads of the body: the rest mesh and the state on it (copies)."""
+
+    mesh: TetMesh
+    x: np.ndarray  # (n, 3) current positions
+    v: np.ndarray  # (n, 3) velocities
+    node_uids: np.ndarray  # (n,) identities that survive topology changes
+    free: np.ndarray  # (n,) 1.0 free, 0.0 fixed
+
+
+@dataclass
+class TopologyChange:
+    """A change of the mesh for the simulation to apply (paper section 3.1): the new mesh and
+    the state on it, and what the preconditioner's correction needs to know of it.
+
+    New nodes come after the old ones (a node on an edge, or a copy of a node: its rest and
+    current position and its velocity follow the displacement field exactly); a removal
+    compacts the numbering. ``removed_tets`` (old numbering) and ``added_tets`` (new
+    numbering) are the elements whose blocks leave and enter A."""
+
+    mesh: TetMesh
+    x: np.ndarray
+    v: np.ndarray
+    node_uids: np.ndarray
+    free: np.ndarray
+    removed_tets: np.ndarray
+    added_tets: np.ndarray
+    created: np.ndarray  # uids of the new nodes
+    removed: np.ndarray  # uids of the deleted nodes
+    rotation_source: np.ndarray  # per new node, the old node (index) whose rotation it takes
+    old_uids: np.ndarray  # the numbering before
+    old_free: np.ndarray
+
+    @property
+    def fixed(self) -> np.ndarray:
+        return np.flatnonzero(self.free == 0.0)
+
+    def modification(self, version: int, old_blocks, new_blocks, R_nodes: np.ndarray) -> Modification:
+        """The change of A (eq. 5-7) from the removed tets' element blocks (old numbering) and the
+        added ones' (new numbering), with the old nodes' rotations ``R_nodes`` (a new node takes
+        its source's)."""
+        R_index = dict(zip(self.old_uids.tolist(), range(len(self.old_uids))))
+        R_index.update((int(u), R_index[int(self.old_uids[s])]) for u, s in zip(self.created, self.rotation_source))
+        free = dict(zip(self.node_uids.tolist(), self.free.tolist()))
+        free.update(zip(self.old_uids.tolist(), self.old_free.tolist()))
+        return modification_from_blocks(version, old_blocks, new_blocks, self.old_uids, self.node_uids,
+                                        lambda uids: np.stack([R_nodes[R_index[u]] for u in uids.tolist()]),
+                                        lambda uids: np.array([free[u] for u in uids.tolist()]),
+                                        created=self.created, removed=self.removed)
+
+
+@dataclass
+class CutPlan:
+    """What a cutting request asks for: a result, and the change to apply (None: nothing to do,
+    the result says why). The result's correction figures and message are completed by
+    :meth:`Cutter.record` once the change is applied."""
+
+    result: CutResult
+    change: TopologyChange | None = None
+    note: str = ""  # appended to the message once applied
+    t0: float = 0.0  # perf_counter() when the request began (the result's ms count from it)
 
 
 @dataclass
@@ -479,7 +544,9 @@ class Cutter:
              origin: [x, y, z], edge: [ex, ey, ez], direction: [dx, dy, dz], advance: 0.01}
     """
 
-    def __init__(self, sim, cfg):
+    def __init__(self, cfg, preconditioner=None):
+        """``preconditioner``: the scene's; a factor that takes a correction (the asynchronous
+        LDL^T) gets this cutter's Sherman-Morrison correction installed. Raises ParameterError."""
         cfg = dict(cfg) if isinstance(cfg, dict) else {}
         unknown = set(cfg) - {"instrument", "correction", "min_quality", "tolerance", "script", "enabled",
                             "min_fragment", "scheme", "snap", "lead"}
@@ -512,7 +579,7 @@ class Cutter:
         self.script = self._parse_script(cfg.get("script"))
         self.active = False
         self.correction = None
-        inner = getattr(sim.preconditioner, "inner", None)
+        inner = getattr(preconditioner, "inner", None)
         if inner is not None and hasattr(inner, "correction"):
             self.correction = ShermanMorrisonCorrection(enabled=self.correction_mode == "sherman_morrison",
                                                         rotate=bool(getattr(inner, "rotate", True)))
@@ -567,7 +634,7 @@ class Cutter:
     def set_active(self, active: bool) -> None:
         self.active = bool(active)
 
-    def reset(self, sim) -> None:
+    def reset(self) -> None:
         self._reset_counters()
         self.active = False
         if self.correction is not None:
@@ -588,25 +655,18 @@ class Cutter:
     def _lead(self, inst) -> float:
         """How far ahead of its axis a sweep of the blade cuts (subdivide): the blade's capsule
         pushes the tissue it meets, so an edge ahead of a slow blade slides along in front of it
-        and is never crossed (a beam swept at 0.3-0.6 mm a step stayed whole). Default: twice
-        the capsule's radius (its radius alone was not enough there; 2.5 radii put the new
-        nodes millimetres off the blade as the crack opened ahead of it)."""
+        and is never crossed. Default: twice the capsule's radius."""
         if self.lead is not None:
             return self.lead
         if self.scheme != "subdivide":
             return 0.0
         return 2.0 * float(getattr(inst, "radius", 0.0))
 
-    def _instrument(self, sim):
-        """The cutting instrument and its blade's world end points: the scene's (named)
-        instrument that has a blade, as (instrument, (p0, p1)), or None."""
-        if sim.contact is None:
-            return None
-        insts = getattr(sim.contact, "instruments", None)
-        if insts is None:
-            return None
-        items = insts.values() if isinstance(insts, dict) else insts
-        for inst in items:
+    def _instrument(self, instruments):
+        """The cutting instrument and its blade's world end points: the (named) instrument of
+        ``instruments`` (a mapping name -> instrument) that has a blade, as (instrument,
+        (p0, p1)), or None."""
+        for inst in (instruments or {}).values():
             if self.instrument is None or getattr(inst, "name", None) == self.instrument:
                 fn = getattr(inst, "blade_world", None)
                 blade = fn() if fn is not None else None
@@ -614,45 +674,51 @@ class Cutter:
                     return inst, tuple(np.asarray(p, dtype=np.float64) for p in blade)
         return None
 
-    def cut(self, sim) -> CutResult:
+    def cut(self, tissue: Tissue, instruments) -> CutPlan:
         """Cut along the blade's path since the last cut (or since the blade was first seen)."""
-        found = self._instrument(sim)
+        found = self._instrument(instruments)
         if found is None:
-            return CutResult(False, "no instrument with a blade in this scene: nothing to cut with")
+            return CutPlan(CutResult(False, "no instrument with a blade in this scene: nothing to cut with"))
         inst, blade = found
         prev = self._blade_at_last_cut
         self._blade_at_last_cut = blade
         if prev is None:
             self._strokes.pop("blade", None)  # a new stroke of the blade
-            return CutResult(False, "blade position recorded; the next cut follows its path from here")
+            return CutPlan(CutResult(False, "blade position recorded; the next cut follows its path from here"))
         q0, q1 = blade
         d = 0.5 * ((q0 - prev[0]) + (q1 - prev[1]))
         lead, dn = self._lead(inst), float(np.linalg.norm(d))
         if lead > 0.0 and dn > 0.0:  # cut what the blade's capsule reaches ahead of its axis
             q0, q1 = q0 + lead * d / dn, q1 + lead * d / dn
-        return self.cut_triangles(sim, sweep_triangles(prev[0], prev[1], q0, q1), frame="world", stroke="blade")
+        return self.cut_triangles(tissue, sweep_triangles(prev[0], prev[1], q0, q1), frame="world", stroke="blade")
 
-    def step(self, sim) -> CutStats:
-        """Per step: scripted cuts due now, and the blade's sweep while cutting is active."""
-        results = []
+    def step(self, step_count: int, instruments) -> list:
+        """The modifications due at step ``step_count``, in order: the scripted cut due now, then
+        the blade's sweep while cutting is active. Each is a function of the tissue (planned on
+        the tissue the previous one left) returning a :class:`CutPlan`."""
+        ops = []
         s = self.script
         if s is not None and self._script_done < s["count"]:
-            k = sim.step_count - s["start_step"]
+            k = step_count - s["start_step"]
             if k >= 0 and k % s["every"] == 0:
-                results.append(self.cut_triangles(sim, self.scripted_triangles(self._script_done), frame=s["frame"],
-                                                  stroke="script"))
+                ops.append(partial(self.cut_triangles, triangles=self.scripted_triangles(self._script_done),
+                                   frame=s["frame"], stroke="script"))
                 self._script_done += 1
         if self.active:
-            results.append(self.cut(sim))
+            ops.append(partial(self.cut, instruments=instruments))
         else:
             self._blade_at_last_cut = None  # a pedal press starts a new path
+        return ops
+
+    def step_stats(self, results: list[CutResult]) -> CutStats:
+        """The statistics of one step's modifications (their results once applied)."""
         done = [r for r in results if r.changed]
         return CutStats(cuts=self.modifications, tets_changed=sum(r.tets_changed for r in done),
                         affected_nodes=sum(r.affected_nodes for r in done), cut_ms=sum(r.ms for r in results),
                         smf_u_ms=sum(r.smf_u_ms for r in done), smf_q_ms=sum(r.smf_q_ms for r in done))
 
     # ------------------------------------------------------------- cutting
-    def cut_triangles(self, sim, triangles, frame: str = "world", stroke: str | None = None) -> CutResult:
+    def cut_triangles(self, tissue: Tissue, triangles, frame: str = "world", stroke: str | None = None) -> CutPlan:
         """Cut along blade triangles (k, 3, 3), given in the current (world) or rest frame.
 
         ``subdivide``: first the crossed edges are split and their tets bisected
@@ -666,7 +732,7 @@ class Cutter:
         t0 = time.perf_counter()
         tris = np.asarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
         if not np.all(np.isfinite(tris)):
-            return CutResult(False, "blade has non-finite coordinates: no cut")
+            return CutPlan(CutResult(False, "blade has non-finite coordinates: no cut"))
         if frame not in ("world", "rest"):
             raise ValueError(f"frame must be 'world' or 'rest', got {frame!r}")
 
@@ -675,10 +741,10 @@ class Cutter:
 
         tris, tri_n = _path_planes(tris)  # the non-degenerate triangles and their normals
         if not len(tris):
-            return CutResult(False, "the blade swept no area: no cut", ms=ms())
-        mesh = sim.mesh
+            return CutPlan(CutResult(False, "the blade swept no area: no cut", ms=ms()))
+        mesh = tissue.mesh
         n = mesh.n_nodes
-        pts = sim.positions() if frame == "world" else mesh.points
+        pts = tissue.x if frame == "world" else mesh.points
         tets = mesh.tets.astype(np.int64)
         tol = self.tolerance + 1e-9 * float(np.ptp(mesh.points, axis=0).max())
         if self.scheme == "subdivide":
@@ -687,13 +753,13 @@ class Cutter:
             if ref is not None:  # orient the blade's normals along the stroke (the motion may reverse)
                 tri_n = tri_n * np.where(tri_n @ ref < 0.0, -1.0, 1.0)[:, None]
             work, parent, fresh, ea, eb, et, state = subdivide_for_cut(
-                pts, tets, tris, self.snap, tol, self._state_of(st, sim.node_uids), tri_n)
+                pts, tets, tris, self.snap, tol, self._state_of(st, tissue.node_uids), tri_n)
             P = np.concatenate([pts, (1.0 - et)[:, None] * pts[ea] + et[:, None] * pts[eb]])
             pairs, fnodes, cut = faces_on_cut(P, work, state)
             if stroke is not None:  # the old nodes on the cut, whatever happens below (new ones added on commit)
                 m = tri_n.sum(axis=0)
                 on_old = state.on[:n]
-                self._strokes[stroke] = _Stroke(sim.node_uids[on_old], state.take(np.flatnonzero(on_old)),
+                self._strokes[stroke] = _Stroke(tissue.node_uids[on_old], state.take(np.flatnonzero(on_old)),
                                                 m / np.linalg.norm(m) if np.linalg.norm(m) > 0 else ref)
         else:
             work, parent, fresh = tets, np.arange(len(tets)), np.zeros(len(tets), bool)
@@ -705,10 +771,10 @@ class Cutter:
             new_tets, dup = split_along_faces(work, pairs[cut], fnodes[cut], pairs, fnodes, len(P))
         if not len(ea) and not len(dup):
             if not cut.any():
-                return CutResult(False, "the blade crossed no tissue (no uncut face on its path): nothing changed",
-                                 ms=ms())
-            return CutResult(False, "the cut faces do not separate anything yet (the blade only grazed the "
-                             "tissue): nothing changed", faces_cut=int(cut.sum()), ms=ms())
+                return CutPlan(CutResult(False, "the blade crossed no tissue (no uncut face on its path): nothing "
+                                         "changed", ms=ms()))
+            return CutPlan(CutResult(False, "the cut faces do not separate anything yet (the blade only grazed the "
+                                     "tissue): nothing changed", faces_cut=int(cut.sum()), ms=ms()))
         # new nodes: the edge nodes, then the copies (of old or of edge nodes), as (a, b, t) of old nodes
         ext_a, ext_b = np.concatenate([np.arange(n), ea]), np.concatenate([np.arange(n), eb])
         ext_t = np.concatenate([np.zeros(n), et])
@@ -716,70 +782,61 @@ class Cutter:
                    np.concatenate([et, ext_t[dup]]))
         same = ~fresh & np.all(new_tets == tets[parent], axis=1)
         removed_ids = np.setdiff1d(np.arange(len(tets)), parent[same])
-        res = self._commit(sim, new_tets, (a, b, t), removed_ids, np.flatnonzero(~same), keep=np.arange(n),
-                           mats=mesh.material_ids[parent])
-        res.faces_cut = int(cut.sum())
-        if res.changed and stroke is not None and self.scheme == "subdivide":
+        what = "cut (subdivision)" if len(ea) else "cut"
+        note = " (refined inside the elements the blade is crossing, not separated yet)" if len(ea) and not len(dup) else ""
+        plan = self._change(tissue, new_tets, (a, b, t), removed_ids, np.flatnonzero(~same), keep=np.arange(n),
+                            mats=mesh.material_ids[parent], what=what, note=note, t0=t0)
+        plan.result.faces_cut = int(cut.sum())
+        if plan.change is not None and stroke is not None and self.scheme == "subdivide":
             # every new node is on the cut: the crossings and the copies of nodes of cut faces
             st = self._strokes[stroke]
             added = state.take(np.concatenate([np.arange(n, n + len(ea)), dup]))  # edge nodes, then copies
-            st.uids = np.concatenate([st.uids, sim.node_uids[n:]])  # (debris is removed below)
+            st.uids = np.concatenate([st.uids, plan.change.node_uids[n:]])  # (debris is removed after)
             st.state = st.state.extended(added)
-        if res.changed and len(ea):
-            res.message = res.message.replace("cut:", "cut (subdivision):", 1)
-            if not len(dup):
-                res.message += " (refined inside the elements the blade is crossing, not separated yet)"
-        self._remove_debris(sim, res)
-        res.ms = ms()
-        return res
+        return plan
 
-    def remove_elements(self, sim, center, radius: float, frame: str = "world") -> CutResult:
+    def remove_elements(self, tissue: Tissue, center, radius: float, frame: str = "world") -> CutPlan:
         """Ablation / aspiration: delete the tets whose centroid lies within ``radius`` of ``center``."""
         t0 = time.perf_counter()
         c = np.asarray(center, dtype=np.float64)
         if c.shape != (3,) or not np.all(np.isfinite(c)) or not (float(radius) > 0.0):
-            return CutResult(False, f"element removal needs a finite center and radius > 0, got {center!r}, {radius!r}")
-        mesh = sim.mesh
-        pts = sim.positions() if frame == "world" else mesh.points
+            return CutPlan(CutResult(False, f"element removal needs a finite center and radius > 0, got {center!r}, "
+                                     f"{radius!r}"))
+        mesh = tissue.mesh
+        pts = tissue.x if frame == "world" else mesh.points
         cen = pts[mesh.tets].mean(axis=1)
         gone = np.linalg.norm(cen - c, axis=1) <= float(radius)
         if not gone.any():
-            return CutResult(False, "no element within the removal sphere: nothing changed")
-        return self._remove_mask(sim, gone, t0)
+            return CutPlan(CutResult(False, "no element within the removal sphere: nothing changed"))
+        return self._removal(tissue, gone, t0)
 
-    def remove_tets(self, sim, tets) -> CutResult:
+    def remove_tets(self, tissue: Tissue, tets) -> CutPlan:
         """Delete given tets (a boolean mask over the tets or their indices): the extraction of
         a part cut free (a resected specimen), or any removal decided outside."""
         t0 = time.perf_counter()
-        n = sim.mesh.n_tets
+        n = tissue.mesh.n_tets
         sel = np.asarray(tets)
         if sel.dtype == bool:
             if sel.shape != (n,):
-                return CutResult(False, f"tet mask must have one entry per tet ({n}), got shape {sel.shape}")
+                return CutPlan(CutResult(False, f"tet mask must have one entry per tet ({n}), got shape {sel.shape}"))
             gone = sel.copy()
         else:
             if sel.size and (not np.issubdtype(sel.dtype, np.integer) or sel.min() < 0 or sel.max() >= n):
-                return CutResult(False, f"tet indices must be integers in [0, {n}), got {tets!r}")
+                return CutPlan(CutResult(False, f"tet indices must be integers in [0, {n}), got {tets!r}"))
             gone = np.zeros(n, bool)
             gone[sel.astype(np.int64).ravel()] = True
         if not gone.any():
-            return CutResult(False, "no tet given: nothing changed")
-        return self._remove_mask(sim, gone, t0)
+            return CutPlan(CutResult(False, "no tet given: nothing changed"))
+        return self._removal(tissue, gone, t0)
 
-    def _remove_mask(self, sim, gone: np.ndarray, t0: float) -> CutResult:
+    def _removal(self, tissue: Tissue, gone: np.ndarray, t0: float) -> CutPlan:
         if gone.all():
-            return CutResult(False, "refused: the removal would delete every element of the body")
-        res = self._remove_tets(sim, gone)
-        self._remove_debris(sim, res)
-        res.ms = 1000.0 * (time.perf_counter() - t0)
-        return res
-
-    def _remove_tets(self, sim, gone: np.ndarray) -> CutResult:
-        tets = sim.mesh.tets.astype(np.int64)
-        used = np.zeros(sim.mesh.n_nodes, bool)
+            return CutPlan(CutResult(False, "refused: the removal would delete every element of the body"))
+        tets = tissue.mesh.tets.astype(np.int64)
+        used = np.zeros(tissue.mesh.n_nodes, bool)
         used[tets[~gone].ravel()] = True
-        return self._commit(sim, None, np.zeros(0, np.int64), np.flatnonzero(gone), np.zeros(0, np.int64),
-                            keep=np.flatnonzero(used), kept_tets=~gone)
+        return self._change(tissue, None, np.zeros(0, np.int64), np.flatnonzero(gone), np.zeros(0, np.int64),
+                            keep=np.flatnonzero(used), kept_tets=~gone, what="removal", t0=t0)
 
     def small_fragments(self, mesh, free: np.ndarray) -> np.ndarray:
         """Mask of the tets in free fragments (no fixed node) of fewer than ``min_fragment`` tets."""
@@ -793,39 +850,37 @@ class Cutter:
         small = (count < self.min_fragment) & ~anchored
         return small[tet_lab]
 
-    def _remove_debris(self, sim, res: CutResult) -> None:
-        """After a change: remove the small free fragments it left (a lone tet shaved off by the
-        blade would otherwise tumble through the cut at free-fall speed) and say so in ``res``."""
-        if not res.changed:
-            return
-        debris = self.small_fragments(sim.mesh, sim.fem.free.numpy())
+    def debris(self, tissue: Tissue) -> CutPlan | None:
+        """After a change: the removal of the small free fragments it left (a lone tet shaved off
+        by the blade would otherwise tumble through the cut at free-fall speed), or None."""
+        debris = self.small_fragments(tissue.mesh, tissue.free)
         if not debris.any() or debris.all():
-            return
-        r = self._remove_tets(sim, debris)
-        if r.changed:
-            res.debris_tets = int(debris.sum())
-            res.nodes_removed += r.nodes_removed
-            res.affected_nodes += r.affected_nodes
-            res.perturbation_nodes = r.perturbation_nodes
-            res.smf_u_ms += r.smf_u_ms
-            res.smf_q_ms += r.smf_q_ms
-            res.message += f"; {res.debris_tets} debris tets of fragments under {self.min_fragment} tets removed"
+            return None
+        return self._removal(tissue, debris, time.perf_counter())
 
-    # ------------------------------------------------------------- commit
-    def _commit(self, sim, new_tets, source, removed_ids, added_ids, keep, kept_tets=None, mats=None) -> CutResult:
-        """Apply a topology change to mesh, FEM, state and preconditioner, or refuse it unchanged.
+    def absorb_debris(self, res: CutResult, debris: CutResult) -> None:
+        """Count the applied removal of debris ``debris`` in the result ``res`` of the change
+        that left it."""
+        res.debris_tets = debris.tets_changed
+        res.nodes_removed += debris.nodes_removed
+        res.affected_nodes += debris.affected_nodes
+        res.perturbation_nodes = debris.perturbation_nodes
+        res.smf_u_ms += debris.smf_u_ms
+        res.smf_q_ms += debris.smf_q_ms
+        res.message += f"; {res.debris_tets} debris tets of fragments under {self.min_fragment} tets removed"
+
+    # ------------------------------------------------------------- planning
+    def _change(self, tissue: Tissue, new_tets, source, removed_ids, added_ids, keep, kept_tets=None, mats=None,
+                what: str = "cut", note: str = "", t0: float = 0.0) -> CutPlan:
+        """A topology change of ``tissue``, or a refusal (the mesh unchanged).
 
         ``new_tets``: the new tets (None: element removal, ``keep`` the nodes kept, ``kept_tets``
         the tets). New nodes are appended after the old ones, node k at (1 - t) a + t b of old
         nodes ``source = (a, b, t)`` (a copy of node a: b = a, t = 0), for its rest and current
         position and its velocity: a node on an edge follows the displacement field exactly.
         ``mats``: the new tets' material ids (default: unchanged)."""
-        fem, integ, mesh = sim.fem, sim.integrator, sim.mesh
-        old_uids = sim.node_uids
-        x, v = sim.positions(), sim.velocities()
-        free_old = fem.free.numpy()
-        fem.update_rotations(integ.x)  # old and new element blocks with the rotations of the same state
-        R_nodes = fem.node_rotations()
+        mesh, old_uids, free_old = tissue.mesh, tissue.node_uids, tissue.free
+        x, v = tissue.x, tissue.v
         if new_tets is None:  # element removal with compaction
             remap = np.full(mesh.n_nodes, -1, np.int64)
             remap[keep] = np.arange(len(keep))
@@ -836,6 +891,7 @@ class Cutter:
             mats = mesh.material_ids[kept_tets]
             created = np.zeros(0, np.int64)
             removed = np.setdiff1d(old_uids, uids_new)
+            source = np.zeros(0, np.int64)
         else:  # node splitting and subdivision: new nodes appended
             a, b, t = source
             t = np.asarray(t, dtype=np.float64)[:, None]
@@ -857,49 +913,29 @@ class Cutter:
         used = np.zeros(len(pts_new), bool)
         used[tets_new.ravel()] = True
         if q.min() < self.min_quality or not used.all():
-            return CutResult(False, f"refused: the change would create a tet of quality {q.min():.3g} < "
-                             f"{self.min_quality} or a node without a tet; mesh unchanged")
-        new_mesh = TetMesh(pts_new, tets_new, mats)
-        # the local change of A: removed elements' blocks (old numbering, current rotations) ...
-        m_coef, k_coef = integ.m_coef, integ.k_coef
-        old_blocks = fem.element_blocks(removed_ids, m_coef, k_coef)
-        R_by_uid_tab = dict(zip(old_uids.tolist(), range(len(old_uids))))
-        fixed_new = np.flatnonzero(free_new == 0.0)
-        fem.set_mesh(new_mesh, fixed_new)
-        integ.set_state(x_new, v_new)
-        fem.update_rotations(integ.x)
-        new_blocks = fem.element_blocks(added_ids, m_coef, k_coef)  # ... and the added ones' (new numbering)
-        sim.mesh = new_mesh
-        sim.node_uids = uids_new
-        sim.mesh_version += 1
+            return CutPlan(CutResult(False, f"refused: the change would create a tet of quality {q.min():.3g} < "
+                                     f"{self.min_quality} or a node without a tet; mesh unchanged",
+                                     ms=1000.0 * (time.perf_counter() - t0)))
+        change = TopologyChange(TetMesh(pts_new, tets_new, mats), x_new, v_new, uids_new, free_new, removed_ids,
+                                added_ids, created, removed, source, old_uids, free_old)
+        return CutPlan(CutResult(True, what, tets_changed=int(len(removed_ids)), nodes_added=int(len(created)),
+                                 nodes_removed=int(len(removed))), change, note, t0)
+
+    # ------------------------------------------------------------- applied
+    def record(self, plan: CutPlan, mod: Modification) -> bool:
+        """Account for ``plan`` once its change is applied, ``mod`` being the modification of A
+        it made: count it, give it to the Sherman-Morrison correction (eq. 5-12), and say what
+        it did in ``plan.result``. False where there is no correction: the preconditioner must
+        then be rebuilt from the new mesh."""
+        res, change = plan.result, plan.change
         self.modifications += 1
-        src_of_uid = {int(u): R_by_uid_tab[int(old_uids[s])] for u, s in zip(created, source)}
-        free_tab = dict(zip(uids_new.tolist(), free_new.tolist()))
-        free_tab.update(zip(old_uids.tolist(), free_old.tolist()))
-
-        def R_of(uids):
-            return np.stack([R_nodes[R_by_uid_tab[u] if u in R_by_uid_tab else src_of_uid[u]] for u in uids.tolist()])
-
-        def free_of(uids):
-            return np.array([free_tab[u] for u in uids.tolist()])
-
-        mod = modification_from_blocks(sim.mesh_version, old_blocks, new_blocks, old_uids, uids_new, R_of, free_of,
-                                       created=created, removed=removed)
-        u_ms = q_ms = 0.0
-        pert = 0  # no correction, no perturbation to carry
+        res.affected_nodes = int(len(mod.uids))
         if self.correction is not None:
             self.correction.u_ms = self.correction.q_ms = 0.0
-            self.correction.add(mod, uids_new)
-            u_ms, q_ms = self.correction.u_ms, self.correction.q_ms
-            pert = self.correction.perturbation_nodes()
-        else:  # Jacobi / plain CG rebuild from the mesh every step
-            sim.preconditioner.invalidate()
-        what = "cut" if new_tets is not None else "removal"
-        res = CutResult(True, f"{what}: {len(removed_ids)} tets changed, {len(created)} nodes added, "
-                        f"{len(removed)} removed, {len(mod.uids)} affected",
-                        tets_changed=int(len(removed_ids)), nodes_added=int(len(created)),
-                        nodes_removed=int(len(removed)), affected_nodes=int(len(mod.uids)),
-                        perturbation_nodes=pert,
-                        smf_u_ms=u_ms, smf_q_ms=q_ms)
+            self.correction.add(mod, change.node_uids)
+            res.smf_u_ms, res.smf_q_ms = self.correction.u_ms, self.correction.q_ms
+            res.perturbation_nodes = self.correction.perturbation_nodes()
+        res.message = (f"{res.message}: {len(change.removed_tets)} tets changed, {len(change.created)} nodes added, "
+                       f"{len(change.removed)} removed, {len(mod.uids)} affected{plan.note}")
         self.history.append(res)
-        return res
+        return self.correction is not None

@@ -49,15 +49,18 @@ from __future__ import annotations
 
 import copy
 import math
+import time
 import warnings
 import weakref
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 import yaml
 
 from . import mesh as mesh_mod
+from .body import BodyView
 from .cg import (
     BlockJacobiPreconditioner,
     DeviceLDLTPreconditioner,
@@ -70,6 +73,9 @@ from .implicit_integration import BackwardEuler, StepStats
 from .material import Damping, MaterialTable, ParameterError
 from .paths import resolve_path
 from .stats import GuardStats
+
+if TYPE_CHECKING:  # built only in scenes that name cutting
+    from .cutting import CutPlan, CutResult, Tissue
 
 PRECONDITIONERS = ("none", "jacobi", "async_ldlt", "direct")
 _KNOWN_KEYS = {
@@ -302,12 +308,12 @@ class Simulation:
         if self._has_contact(config):
             from .contact import ContactSolver
 
-            self.contact = ContactSolver(self, config.get("contact") or {}, config.get("instruments") or [],
-                                         config.get("obstacles") or [])
+            self.contact = ContactSolver(config.get("contact") or {}, config.get("instruments") or [],
+                                         config.get("obstacles") or [], self.device, self.mesh.points)
         if config.get("cutting"):
             from .cutting import Cutter
 
-            self.cutting = Cutter(self, config["cutting"])
+            self.cutting = Cutter(config["cutting"], self.preconditioner)
         self._initial_mesh = self.mesh.copy()
         self._initial_fixed = fixed.copy()
         self.last_stats: StepStats | None = None
@@ -338,6 +344,50 @@ class Simulation:
         integ = self.integrator
         return (self.fem.assemble_scipy(integ.m_coef, integ.k_coef), self.fem.node_rotations(),
                 {"uids": self.node_uids.copy(), "version": self.mesh_version})
+
+    def tissue(self) -> Tissue:
+        """The body as cutting reads it: the rest mesh and copies of the state on it."""
+        from .cutting import Tissue
+
+        return Tissue(self.mesh, self.positions(), self.velocities(), self.node_uids, self.fem.free.numpy())
+
+    def _instruments(self) -> dict:
+        return self.contact.instruments if self.contact is not None else {}
+
+    def _modify(self, plan: CutPlan) -> CutResult:
+        """Apply a planned topology change and remove the debris it leaves; the plan's result,
+        completed, says what was done."""
+        if plan.change is None:
+            return plan.result
+        self._apply_topology(plan)
+        debris = self.cutting.debris(self.tissue())
+        if debris is not None and debris.change is not None:
+            self._apply_topology(debris)
+            self.cutting.absorb_debris(plan.result, debris.result)
+        plan.result.ms = 1000.0 * (time.perf_counter() - plan.t0)
+        return plan.result
+
+    def _apply_topology(self, plan: CutPlan) -> None:
+        """Mesh, FEM, state and node identities from ``plan.change``; the modification of A it
+        makes (the blocks of the removed and added elements, with the rotations of one state)
+        goes to the cutter's correction, or the preconditioner starts afresh without one."""
+        change, fem, integ = plan.change, self.fem, self.integrator
+        m_coef, k_coef = integ.m_coef, integ.k_coef
+        fem.update_rotations(integ.x)
+        R_nodes = fem.node_rotations()
+        old_blocks = fem.element_blocks(change.removed_tets, m_coef, k_coef)
+        fem.set_mesh(change.mesh, change.fixed)
+        integ.set_state(change.x, change.v)
+        fem.update_rotations(integ.x)
+        new_blocks = fem.element_blocks(change.added_tets, m_coef, k_coef)
+        self.mesh, self.node_uids = change.mesh, change.node_uids
+        self.mesh_version += 1
+        if not self.cutting.record(plan, change.modification(self.mesh_version, old_blocks, new_blocks, R_nodes)):
+            self.preconditioner.invalidate()
+
+    def view(self) -> BodyView:
+        """The body as the components read it during a step (they return what they change)."""
+        return BodyView(self.integrator, self.fem, self.preconditioner, self.node_uids)
 
     # --------------------------------------------------------------- public
     @property
@@ -433,11 +483,15 @@ class Simulation:
         x_free, v_free = wp.clone(integ.x), wp.clone(integ.v)
         ke_free = self._kinetic_energy() if self.guard_ratio > 0 else 0.0
         try:
-            stats.contact = self.contact.step(self)
+            response = self.contact.step(self.view())
             reason = None
         except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
             reason = f"contact solve failed: {type(exc).__name__}: {exc}"
         if reason is None:
+            stats.contact = response.stats
+            if response.dx is not None:  # x += dx, v += dx / dt
+                integ.x.assign(integ.x.numpy() + response.dx)
+                integ.v.assign(integ.v.numpy() + response.dx / integ.dt)
             if not np.isfinite(integ.x.numpy()).all() or not np.isfinite(integ.v.numpy()).all():
                 reason = "non-finite state after the contact correction"
             elif self.guard_ratio > 0:
@@ -461,8 +515,9 @@ class Simulation:
             return stats
         if self.contact is not None:
             self._contact_response(stats)  # LCP correction of x and v, eq. (3)-(4)
-        if self.cutting is not None:
-            stats.cutting = self.cutting.step(self)  # blade motion -> mesh change + SMF, eq. (5)-(12)
+        if self.cutting is not None:  # blade motion -> mesh change + SMF, eq. (5)-(12)
+            ops = self.cutting.step(self.step_count, self._instruments())
+            stats.cutting = self.cutting.step_stats([self._modify(op(self.tissue())) for op in ops])
         self.last_stats = stats
         return stats
 
@@ -471,7 +526,7 @@ class Simulation:
         self.preconditioner.invalidate()
         for comp in (self.contact, self.cutting):
             if comp is not None:
-                comp.reset(self)
+                comp.reset()
         if self.mesh_version != 0 or self.mesh is not self.fem.mesh:
             self.mesh = self._initial_mesh.copy()
             self.fem.set_mesh(self.mesh, self._initial_fixed)
@@ -515,25 +570,25 @@ class Simulation:
         """Cut along the blade path since the last cut. Returns a CutResult (tets_changed, message)."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self.cutting.cut(self)
+        return self._modify(self.cutting.cut(self.tissue(), self._instruments()))
 
     def cut_triangles(self, triangles, frame: str = "world"):
         """Cut along blade triangles (k, 3, 3) in the world (current) or rest frame. Returns a CutResult."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self.cutting.cut_triangles(self, triangles, frame)
+        return self._modify(self.cutting.cut_triangles(self.tissue(), triangles, frame))
 
     def remove_elements(self, center, radius: float, frame: str = "world"):
         """Ablation / aspiration: delete the elements whose centroid is within radius of center."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self.cutting.remove_elements(self, center, radius, frame)
+        return self._modify(self.cutting.remove_elements(self.tissue(), center, radius, frame))
 
     def remove_tets(self, tets):
         """Delete given tets (boolean mask or indices): e.g. lift out a part that was cut free."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self.cutting.remove_tets(self, tets)
+        return self._modify(self.cutting.remove_tets(self.tissue(), tets))
 
     def set_cutting(self, active: bool) -> None:
         """Blade active: cut continuously while the instrument moves (like a pedal)."""

@@ -13,6 +13,8 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from ..stats import ContactStats
+
 DETECTED = ("node", "obj", "gap", "normal", "point", "tri", "bary")  # the fields detection fills
 
 
@@ -63,3 +65,12 @@ class Contacts:
         if name not in {f.name for f in fields(self)}:
             raise KeyError(name)
         return getattr(self, name)
+
+
+@dataclass
+class ContactResponse:
+    """What one contact step changes: the correction of the free motion, which the caller
+    applies as x += dx, v += dx / dt (None: no contact), and its statistics."""
+
+    dx: np.ndarray | None  # (n, 3) [m], zero on fixed nodes
+    stats: ContactStats

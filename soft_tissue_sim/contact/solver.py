@@ -21,13 +21,14 @@ import warp as wp
 
 from ..instrument import Instrument, MeshObstacle, obstacle_from_config
 from ..material import ParameterError
+from ..body import BodyView
 from ..stats import ContactStats
 from .compliance import compliance, positive_definite
 from .detection import SurfaceTopology, face_contacts, node_contacts, self_contacts
 from .geometry import tangent_basis
 from .options import parse_options
 from .pgs import solve_pgs
-from .records import Contacts
+from .records import ContactResponse, Contacts
 
 
 class ContactSolver:
@@ -38,12 +39,13 @@ class ContactSolver:
     the units and the sign conventions.
     """
 
-    def __init__(self, sim, options: dict, instruments: list, obstacles: list):
+    def __init__(self, options: dict, instruments: list, obstacles: list, device, points: np.ndarray):
+        """``points``: the tissue's rest positions (an instrument without a pose is parked above
+        them). Raises ParameterError on bad options."""
         self.options = parse_options(options or {})
         o = self.options
-        self.device = sim.fem.device
-        pts = sim.mesh.points
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        self.device = device
+        lo, hi = points.min(axis=0), points.max(axis=0)
         self.instruments: dict[str, Instrument] = {}
         if not isinstance(instruments, list) or not isinstance(obstacles, list):
             raise ParameterError("scene 'instruments' and 'obstacles' must be lists")
@@ -114,7 +116,7 @@ class ContactSolver:
         c = self.contacts
         return c.force[c.lambda_n > 0.0].copy()
 
-    def reset(self, sim=None) -> None:
+    def reset(self) -> None:
         for inst in self.instruments.values():
             inst.reset()
         for obs in self.obstacles.values():
@@ -162,13 +164,16 @@ class ContactSolver:
         return Contacts.concat([p for p in parts if p is not None])
 
     # ------------------------------------------------------------------ step
-    def step(self, sim) -> ContactStats:
-        """Detect, solve the LCP, correct x and v, update the wrenches. Returns statistics."""
+    def step(self, body: BodyView) -> ContactResponse:
+        """Detect the contacts of the free motion (``body.integrator``'s x and v), solve the LCP
+        and update the wrenches and :attr:`contacts`. Returns the correction of x and v (the
+        caller applies it) and the statistics; ``body`` is only read."""
         t0 = time.perf_counter()
         o = self.options
         for inst in self.instruments.values():
             inst.begin_step()
-        integ, dt = sim.integrator, sim.dt
+        integ = body.integrator
+        dt = integ.dt
         x = integ.x.numpy().copy()  # free motion
         v = integ.v.numpy().copy()
         x_start = x - dt * v  # the step's start (x = x_start + dt v)
@@ -177,10 +182,10 @@ class ContactSolver:
         # and their gap is linearised to the free motion; the search reaches `distance` plus
         # how far surface nodes moved in the free motion (twice: node and triangle may close
         # in on each other), so that nothing tunnels through a triangle in one step.
-        surf = self._topology(sim.fem).surface
+        surf = self._topology(body.fem).surface
         moved = float(np.sqrt(np.max(np.sum((x[surf] - x_start[surf]) ** 2, axis=1)))) if len(surf) else 0.0
         xs_wp = wp.array(x_start, dtype=wp.vec3d, device=self.device)
-        c = self.detect(sim, integ.x, xs_wp, reach=2.0 * moved, x_start=xs_wp)
+        c = self.detect(body, integ.x, xs_wp, reach=2.0 * moved, x_start=xs_wp)
         tri_feature = c.obj < 0
         for oi, obj in enumerate(self.objects):
             if isinstance(obj, MeshObstacle):
@@ -200,7 +205,7 @@ class ContactSolver:
             c.point[own] = np.einsum("ks,ksj->kj", c.bary[own], x[c.tri[own]])
             c.gap[tri_feature] = np.einsum("kj,kj->k", c.normal[tri_feature],
                                               x[c.node[tri_feature]] - c.point[tri_feature])
-        free = sim.fem.free.numpy().copy()
+        free = body.fem.free.numpy().copy()
         k = len(c.node)
         # Jacobian blocks: up to 4 nodes per contact with weights: the tissue point moves with
         # +1 on its node, or +w_i on the triangle's nodes where it is a triangle's point
@@ -223,27 +228,30 @@ class ContactSolver:
                              face_contacts=int(np.sum((c.node < 0) & (c.obj >= 0))))
         for obj in self.objects:
             obj.force, obj.torque = np.zeros(3), np.zeros(3)
+        dx = None
         if k == 0:
             self.contacts = Contacts.empty().responded(np.zeros(0), np.zeros((0, 3)))
             self._warm = {}
         else:
-            self._respond(sim, c, nodes4, w4, ws4, free, x, v, x_start, stats)
+            dx = self._respond(body, c, nodes4, w4, ws4, free, x, x_start, stats)
         # penetration left after the correction: detection again at the corrected positions
-        after = self.detect(sim, x_start=xs_wp)
+        x_after = integ.x if dx is None else wp.array(x + dx, dtype=wp.vec3d, device=self.device)
+        after = self.detect(body, x_after, x_start=xs_wp)
         if len(after):
             stats.max_penetration = float(max(0.0, -after.gap.min()))
         stats.contact_ms = 1000.0 * (time.perf_counter() - t0)
-        return stats
+        return ContactResponse(dx, stats)
 
-    def _respond(self, sim, c: Contacts, nodes4: np.ndarray, w4: np.ndarray, ws4: np.ndarray, free: np.ndarray,
-                 x: np.ndarray, v: np.ndarray, x_start: np.ndarray, stats: ContactStats) -> None:
-        """LCP of eq. (3) for the contacts ``c`` and the correction of x and v (free motion in,
-        corrected out, also written to the integrator). ``nodes4`` (k, 4): the contact's node
-        and triangle nodes (-1: none), ``ws4`` their weights in the tissue point's relative
+    def _respond(self, body: BodyView, c: Contacts, nodes4: np.ndarray, w4: np.ndarray, ws4: np.ndarray,
+                 free: np.ndarray, x: np.ndarray, x_start: np.ndarray, stats: ContactStats) -> np.ndarray:
+        """LCP of eq. (3) for the contacts ``c`` at the free motion ``x``; returns the correction
+        dx = dt^2 P^-1 H^T lambda of the positions. ``nodes4`` (k, 4): the contact's node and
+        triangle nodes (-1: none), ``ws4`` their weights in the tissue point's relative
         displacement, ``w4`` the same zeroed on fixed nodes (the Jacobian's)."""
         o = self.options
-        integ, dt = sim.integrator, sim.dt
-        n = sim.fem.n_nodes
+        integ = body.integrator
+        dt = integ.dt
+        n = body.fem.n_nodes
         k = len(c.node)
         normal = c.normal
         t1, t2 = tangent_basis(normal)
@@ -279,13 +287,13 @@ class ContactSolver:
                     ci.append(3 * nodes4[cs, s] + j)
                     vi.append(w4[cs, s] * dirs[cs, j])
         H = sps.coo_matrix((np.concatenate(vi), (np.concatenate(ri), np.concatenate(ci))), shape=(m, 3 * n)).tocsr()
-        W0, apply_y, kind = compliance(H, o["compliance"], sim.preconditioner, integ, sim.fem)
+        W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
         W = dt * dt * 0.5 * (W0 + W0.T)
         if kind != "diagonal" and not positive_definite(W):
             # A factor corrected by many cuts, stale, with identity-padded DOFs, can stop being
             # positive definite on the contact rows; PGS then diverges. The block diagonal of A
             # always is: use it for this step and say so.
-            W0, apply_y, _ = compliance(H, "diagonal", sim.preconditioner, integ, sim.fem)
+            W0, apply_y, _ = compliance(H, "diagonal", body.preconditioner, integ, body.fem)
             W = dt * dt * 0.5 * (W0 + W0.T)
             kind = f"diagonal ({kind} not positive definite on the contacts)"
             self.compliance_fallbacks += 1
@@ -294,7 +302,7 @@ class ContactSolver:
         # warm start from last step's forces on the same (object, node) or (object, triangle)
         # pairs; nodes are named by the simulation's node uids where it keeps them (stable
         # across cuts), else by index
-        uids = getattr(sim, "node_uids", None)
+        uids = body.node_uids
         uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
         node_u = uids[np.clip(c.node, 0, None)]
         tri_u = np.sort(uids[np.clip(c.tri, 0, None)], axis=1)
@@ -313,10 +321,6 @@ class ContactSolver:
         stats.gs_iterations, stats.lcp_residual, stats.compliance = its, res, kind
         # correction with the same compliance: dx = dt^2 P^-1 H^T lambda, v += dx / dt
         dx = (dt * dt) * np.asarray(apply_y(lam)).reshape(n, 3) * free[:, None]
-        x += dx
-        v += dx / dt
-        integ.x.assign(x)
-        integ.v.assign(v)
         # forces on the tissue, wrenches on the objects, warm start
         ln = lam[row_start]
         force = ln[:, None] * normal
@@ -330,3 +334,4 @@ class ContactSolver:
         self._warm = {keys[i]: force[i] for i in range(k) if ln[i] > 0.0}
         self.contacts = c.responded(ln, force)
         stats.active_contacts = int(np.sum(ln > 0.0))
+        return dx

@@ -18,8 +18,6 @@ result against CHOLMOD is recorded. Writes ``columns_<cpu|gpu>.json`` and ``.png
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 
 import numpy as np
@@ -30,8 +28,8 @@ from sksparse.cholmod import analyze
 from ..ldlt_device import DeviceLDLT, StructureCache, factor_values
 from ..paths import resolve_path
 from ..report import Progress
-from ..scene import load_scene, read_scene, resolve_device
-from . import RESULTS_DIR, write_result
+from ..scene import load_scene, read_scene
+from .common import figure, parser, publish, resolved_device, save_figure
 
 COLUMNS = (1, 3, 6, 12, 24, 48, 96, 192, 384)
 
@@ -85,13 +83,8 @@ def run(scene: str, device: str, columns, lanes, repeat: int):
 
 
 def plot(result, prefix):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     scenes = list(dict.fromkeys(r["scene"] for r in result["rows"]))
-    fig, axes = plt.subplots(1, len(scenes), figsize=(6.5 * len(scenes), 4.8), squeeze=False)
+    fig, axes = figure(1, len(scenes), figsize=(6.5 * len(scenes), 4.8), squeeze=False)
     for ax, sc in zip(axes[0], scenes):
         rs = [r for r in result["rows"] if r["scene"] == sc]
         c = [r["columns"] for r in rs]
@@ -102,23 +95,17 @@ def plot(result, prefix):
         ax.set(xlabel="columns", ylabel="ms per block solve", title=f"{sc} ({rs[0]['dofs']} DOFs)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-    fig.suptitle(f"A^-1 B for a block of columns on {result['device']}")
-    fig.tight_layout()
-    fig.savefig(f"{prefix}.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, prefix, f"A^-1 B for a block of columns on {result['device']}")
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench columns", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser("columns", __doc__)
     ap.add_argument("--scenes", nargs="*", default=["beam_2000.yaml", "brain_resection.yaml"])
     ap.add_argument("--columns", nargs="*", type=int, default=list(COLUMNS))
     ap.add_argument("--lanes", nargs="*", type=int, default=None, help="cols_lanes variants (CUDA: 4 8 32)")
     ap.add_argument("--repeat", type=int, default=20)
-    ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
-    device = resolve_device(args.device)
+    device = resolved_device(args)
     wp.init()
     cuda = wp.get_device(device).is_cuda
     lanes = args.lanes or ([4, 8, 32] if cuda else [1])
@@ -133,12 +120,9 @@ def main(argv=None) -> int:
         prog.update(i + 1, f"{sc}: {r[-1]['columns']} columns CHOLMOD {r[-1]['cholmod_ms']:.2f} ms, "
                            f"{best} {r[-1][best]:.2f} ms")
     result = {"rows": rows, "factors": factors, "repeat": args.repeat, "wall_s": time.perf_counter() - t0}
-    path = write_result("columns", device, result, args.out)
-    result["device"] = json.load(open(path))["device"]
-    plot(result, str(path.with_suffix("")))
+    publish("columns", device, result, args, plot)
     keys = [k for k in rows[0] if k.endswith("_ms")]
     print(f"{'scene':<22} {'cols':>5} " + " ".join(f"{k[:-3]:>15}" for k in keys))
     for r in rows:
         print(f"{r['scene']:<22} {r['columns']:>5} " + " ".join(f"{r[k]:15.3f}" for k in keys))
-    print(f"wrote {path} and {path.with_suffix('.png')}")
     return 0

@@ -74,10 +74,15 @@ def _round(v, digits: int):
     return v
 
 
+def rounded(values, digits: int = 5) -> list:
+    """A per-step series for a plot, floats to ``digits`` significant digits (a small JSON)."""
+    return [_round(v, digits) for v in values]
+
+
 def columns(rows: list[dict], keys, digits: int = 5) -> dict[str, list]:
-    """Per-step arrays for a plot, one list per key (floats to ``digits`` significant digits):
-    a few tens of kilobytes where the records they come from take megabytes."""
-    return {k: [_round(r.get(k), digits) for r in rows] for k in keys}
+    """Per-step arrays for a plot, one :func:`rounded` list per key: a few tens of kilobytes
+    where the records they come from take megabytes."""
+    return {k: rounded([r.get(k) for r in rows], digits) for k in keys}
 
 
 def write_result(name: str, device: str, figures: dict, out_dir=None, detail: dict | None = None) -> Path:

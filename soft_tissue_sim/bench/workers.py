@@ -30,7 +30,7 @@ import numpy as np
 
 from ..report import Progress
 from ..scene import load_scene, read_scene
-from .common import figure, parser, publish, resolved_device, save_figure
+from .common import figure, parser, publish, resolved_device, rounded, save_figure
 
 SCENES = {"brain": "brain_resection.yaml", "beam_2000": "beam_2000.yaml"}
 WORKERS = ("thread", "thread-gil", "process")
@@ -71,7 +71,7 @@ def run(name: str, worker: str, device: str, steps: int, warmup: int) -> dict:
                 "step_ms_p99": float(np.percentile(ms, 99)), "step_ms_max": float(ms.max()),
                 "iterations_mean": float(np.mean(its)), "factors_installed": int(st["factor_count"]),
                 "factorization_ms_last": float(st["factorization_ms"]), "worker_error": st.get("worker_error"),
-                "step_ms": ms.tolist()}
+                "step_ms": rounded(ms.tolist())}
 
 
 def plot(result: dict, prefix: str) -> None:

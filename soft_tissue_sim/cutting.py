@@ -1,49 +1,27 @@
 """Cutting and element removal by incremental mesh change (paper section 3.1, fig. 1).
 
-Two schemes (``cutting: {scheme: split | subdivide}``); both remove the tets the cut
-touches, re-create them with new connectivity and add them back, like the paper's three
-steps, and both end by node splitting along the faces of the cut.
+Two schemes (``cutting: {scheme: split | subdivide}``); both remove the tets a cut touches,
+re-create them with new connectivity and add them back (the paper's three steps), and end by
+node splitting: at each node of a separated face, every group of its tets still connected
+through uncut faces beyond the first gets its own copy of the node.
 
-``split`` (the default): separation along the existing faces. A blade is one or more
-triangles: the quad swept by an instrument's blade segment between two poses, or a plane
-patch from a scene script (in the rest or the world frame). For each blade triangle we find
-the intersected tets (their section by the triangle's plane overlaps the triangle), give
-every tet a side by the sign of its centroid's distance to that plane, and mark as *cut
-faces* the interior faces between tets of opposite sides of which at least one is
-intersected. At each node of a cut face the incident tets are grouped into the sets that
-stay connected through uncut faces; every group beyond the first gets its own copy of the
-node (same rest and current position, velocity, fixed flag). Where the blade stops, the
-tets around the tip stay connected and the crack ends. Every element keeps its shape (no
-sliver, the quality floor holds by construction), the two sides separate for real, mass and
-momentum are conserved; the cut surface is a staircase of faces within an element of the
-blade.
+- ``split`` (default): the blade's triangles (the quad its segment swept, or a scripted plane
+  patch) separate the existing interior faces between tets on opposite sides of their plane,
+  one of them crossed. No tet is subdivided; the cut follows faces within an element.
+- ``subdivide`` (progressive, after Mor & Kanade): every mesh edge the blade crosses gets a
+  node at the crossing and the tets around it are bisected there (conforming); a crossing
+  within ``snap`` of an end snaps to it. A stroke remembers its nodes on the cut; a face is
+  separated once its three nodes are on the cut and its two tets lie on opposite sides.
 
-``subdivide``: the cut on the blade itself, progressively, by subdivision (after Mor &
-Kanade, the paper's [7]). At every sweep of the blade, every mesh edge it crosses gets a new
-node at the crossing (its rest and current position and its velocity interpolated on the
-edge, so the displacement field is unchanged), and every tet holding that edge is bisected
-there: the edge bisection of all the tets around an edge keeps the mesh conforming, and
-once the crossed edges are split no edge crosses the blade, so the blade inside the body
-lies on faces. A crossing closer than ``snap`` (a fraction of its edge) to an end point is
-not split: that end point is taken as on the cut, which avoids slivers; ``min_quality``
-refuses any change that would still go below the floor. A stroke (the blade while the pedal
-is down, a script) keeps its cut state between sweeps: the nodes on its cut, with the
-blade's normal there (oriented along the stroke) and their offset from it. A face is
-separated, by the node splitting above, once its three nodes are on the cut and its two tets
-lie on opposite sides (:func:`faces_on_cut`): a face the blade passed over several sweeps is
-separated when its last node reaches the cut, and while the blade is inside an element (some
-of its faces keep a node off the cut) the refinement alone is the step's modification: the
-crack tip's partial state. A sweep cuts ``lead`` ahead of the blade (its capsule pushes the
-tissue ahead of it). More nodes per modification (the new ones), a modification at nearly
-every step of a moving blade, and the mesh grows.
+Element removal (ablation, aspiration, extraction) deletes tets; nodes left without a tet go.
 
-Element removal (ablation, aspiration) deletes the tets whose centroid lies in a sphere;
-nodes left without a tet are deleted and the rest renumbered (uids keep their identity for
-the preconditioner).
-
-Geometry here is host-side numpy on the few tets near the blade (an AABB filter then exact
-tests): the topology itself (face adjacency, node groups) changes at every cut, so a Warp
-BVH would be rebuilt per cut for a query that numpy answers in well under a millisecond.
+The :class:`Cutter` plans on a :class:`Tissue` snapshot and returns a :class:`CutPlan`: a
+:class:`TopologyChange` that the simulation applies, or a refusal. Once applied, the change
+of A goes to the Sherman-Morrison correction of the preconditioner (eq. 5-12,
+:mod:`soft_tissue_sim.sherman_morrison`). Invariants: a change is applied whole or not at all;
+no tet below ``min_quality`` and no node without a tet is created; new nodes come after the
+old ones at an interpolated rest and current position and velocity (the displacement field,
+mass and momentum are unchanged), and node uids survive every change.
 """
 
 from __future__ import annotations
@@ -64,9 +42,7 @@ from .stats import CutStats
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 CORRECTIONS = ("sherman_morrison", "none")
 SCHEMES = ("split", "subdivide")
-# subdivide: a crossing within this fraction of its edge snaps to the end. At 0.2 the brain took
-# 6.2-10.9 PCG iterations and twice the contacts, against 4.3-4.7 at 0.35 (README).
-DEFAULT_SNAP = 0.35
+DEFAULT_SNAP = 0.35  # subdivide: a crossing within this fraction of its edge snaps to the end
 
 
 @dataclass

@@ -19,7 +19,7 @@ Obstacles are static: an infinite plane (a point and the outward normal) or a tr
 (``vertices`` and ``triangles``, or a ``file`` meshio can read, its triangle cells). Both may
 carry their own Coulomb ``friction`` coefficient (else the scene's ``contact.friction``).
 
-Scene entries (see :mod:`soft_tissue_sim.contact` for the ``contact`` options)::
+Scene entries (see :mod:`soft_tissue_sim.contact.options` for the ``contact`` options)::
 
     instruments:
       - {name: grasper, shape: capsule, radius: 0.004, length: 0.1,

@@ -252,7 +252,15 @@ def _weak_call(method):
 
 
 class Simulation:
-    """One soft body and the components its scene names. See :func:`load_scene`."""
+    """One soft body and the components its scene names. See :func:`load_scene`.
+
+    A step: the free motion of eq. (1) under the divergence guard, then the contact
+    correction (eq. 3-4), then the topology changes of cutting (eq. 5-12). The components
+    read the body (:meth:`view`, :meth:`tissue`) and return what they change; the simulation
+    applies it. Invariants: a step that diverges (NaN, runaway kinetic energy) or a contact
+    correction that does is not kept (the last good state stands, and the statistics say
+    so); bad input raises a clear error and changes nothing.
+    """
 
     @staticmethod
     def _has_contact(config: dict) -> bool:

@@ -33,10 +33,11 @@ class Contacts:
     force: np.ndarray | None = None  # (k, 3) force ON THE TISSUE [N], world frame
 
     @classmethod
-    def empty(cls) -> Contacts:
+    def empty(cls, responded: bool = False) -> Contacts:
+        """No contacts (with empty ``lambda_n`` and ``force`` where ``responded``)."""
         z3 = np.zeros((0, 3))
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), z3, z3.copy(),
-                   np.zeros((0, 3), np.int64), z3.copy())
+                   np.zeros((0, 3), np.int64), z3.copy(), *((np.zeros(0), z3.copy()) if responded else ()))
 
     @classmethod
     def concat(cls, parts: list[Contacts]) -> Contacts:

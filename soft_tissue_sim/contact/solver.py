@@ -19,9 +19,9 @@ import numpy as np
 import scipy.sparse as sps
 import warp as wp
 
+from ..body import BodyView
 from ..instrument import Instrument, MeshObstacle, obstacle_from_config
 from ..material import ParameterError
-from ..body import BodyView
 from ..stats import ContactStats
 from .compliance import compliance, positive_definite
 from .detection import SurfaceTopology, face_contacts, node_contacts, self_contacts
@@ -70,8 +70,7 @@ class ContactSolver:
         self.objects = list(self.instruments.values()) + list(self.obstacles.values())
         self._topo: SurfaceTopology | None = None
         self._warm: dict = {}
-        self.contacts = Contacts.empty().responded(np.zeros(0), np.zeros((0, 3)))
-        self.compliance_used = "none"
+        self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite
 
     # ------------------------------------------------------------------ API
@@ -124,7 +123,7 @@ class ContactSolver:
             obs.torque[:] = 0.0
         self._topo = None
         self._warm = {}
-        self.contacts = Contacts.empty().responded(np.zeros(0), np.zeros((0, 3)))
+        self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0
 
     # ------------------------------------------------------------ detection
@@ -204,7 +203,7 @@ class ContactSolver:
             own = np.flatnonzero(c.obj < 0)  # tissue triangles move: their point follows the free motion
             c.point[own] = np.einsum("ks,ksj->kj", c.bary[own], x[c.tri[own]])
             c.gap[tri_feature] = np.einsum("kj,kj->k", c.normal[tri_feature],
-                                              x[c.node[tri_feature]] - c.point[tri_feature])
+                                           x[c.node[tri_feature]] - c.point[tri_feature])
         free = body.fem.free.numpy().copy()
         k = len(c.node)
         # Jacobian blocks: up to 4 nodes per contact with weights: the tissue point moves with
@@ -230,7 +229,7 @@ class ContactSolver:
             obj.force, obj.torque = np.zeros(3), np.zeros(3)
         dx = None
         if k == 0:
-            self.contacts = Contacts.empty().responded(np.zeros(0), np.zeros((0, 3)))
+            self.contacts = Contacts.empty(responded=True)
             self._warm = {}
         else:
             dx = self._respond(body, c, nodes4, w4, ws4, free, x, x_start, stats)
@@ -297,7 +296,6 @@ class ContactSolver:
             W = dt * dt * 0.5 * (W0 + W0.T)
             kind = f"diagonal ({kind} not positive definite on the contacts)"
             self.compliance_fallbacks += 1
-        self.compliance_used = kind
         stats.compliance_fallbacks = self.compliance_fallbacks
         # warm start from last step's forces on the same (object, node) or (object, triangle)
         # pairs; nodes are named by the simulation's node uids where it keeps them (stable

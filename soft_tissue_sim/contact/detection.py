@@ -52,6 +52,12 @@ def blade_span(inst: Instrument) -> tuple[float, float]:
     return (lo, hi) if lo < hi else (1.0, 0.0)
 
 
+def _output_slots(n: int, device) -> tuple:
+    """(active, gap, normal, point, bary): n output slots of a detection kernel."""
+    return (wp.zeros(n, dtype=wp.int32, device=device), wp.zeros(n, dtype=wp.float64, device=device),
+            *(wp.zeros(n, dtype=wp.vec3d, device=device) for _ in range(3)))
+
+
 class SurfaceTopology:
     """Surface data of one mesh; rebuilt when cutting changes the mesh (never reused across
     a change of node count or tets)."""
@@ -65,12 +71,8 @@ class SurfaceTopology:
         ns = max(len(self.surface), 1)
         self.nodes = wp.array(self.surface, dtype=wp.int32, device=dev)
         # one output slot per surface node, reused by every detection launch
-        self.active = wp.zeros(ns, dtype=wp.int32, device=dev)
-        self.gap = wp.zeros(ns, dtype=wp.float64, device=dev)
-        self.normal = wp.zeros(ns, dtype=wp.vec3d, device=dev)
-        self.point = wp.zeros(ns, dtype=wp.vec3d, device=dev)
+        self.active, self.gap, self.normal, self.point, self.bary = _output_slots(ns, dev)
         self.tri = wp.zeros(ns, dtype=wp.int32, device=dev)
-        self.bary = wp.zeros(ns, dtype=wp.vec3d, device=dev)
         self.scale = float(np.ptp(mesh.points, axis=0).max()) or 1.0
         # faces on the device, and which face owns each surface edge: edge_owner[f, k] = 1 where
         # face f owns its edge from vertex k to vertex k + 1, each edge owned by exactly one of
@@ -81,11 +83,7 @@ class SurfaceTopology:
         self.edge_owner = wp.array(edge_ownership(self.faces) if len(self.faces) else np.zeros((1, 3), np.int32),
                                    dtype=wp.vec3i, device=dev)
         # one output slot per surface face (instrument against triangles)
-        self.f_active = wp.zeros(nf, dtype=wp.int32, device=dev)
-        self.f_gap = wp.zeros(nf, dtype=wp.float64, device=dev)
-        self.f_normal = wp.zeros(nf, dtype=wp.vec3d, device=dev)
-        self.f_point = wp.zeros(nf, dtype=wp.vec3d, device=dev)
-        self.f_bary = wp.zeros(nf, dtype=wp.vec3d, device=dev)
+        self.f_active, self.f_gap, self.f_normal, self.f_point, self.f_bary = _output_slots(nf, dev)
         self.f_crossed = wp.zeros(nf, dtype=wp.int32, device=dev)
         self.wmesh = None
         if self_collision and len(self.faces):

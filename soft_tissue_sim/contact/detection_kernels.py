@@ -22,6 +22,24 @@ from .geometry import (
 )
 
 
+@wp.func
+def emit(
+    active: wp.array(dtype=wp.int32),
+    gap: wp.array(dtype=wp.float64),
+    nrm: wp.array(dtype=wp.vec3d),
+    cpoint: wp.array(dtype=wp.vec3d),
+    k: int,
+    g: wp.float64,
+    n: wp.vec3d,
+    p: wp.vec3d,
+):
+    """Slot k holds a contact: gap g, normal n, point p on the other surface."""
+    active[k] = 1
+    gap[k] = g
+    nrm[k] = n
+    cpoint[k] = p
+
+
 @wp.kernel
 def plane_contacts_kernel(
     x: wp.array(dtype=wp.vec3d),
@@ -40,10 +58,7 @@ def plane_contacts_kernel(
     g = wp.dot(xp - point, normal)
     active[k] = 0
     if g < distance:
-        active[k] = 1
-        gap[k] = g
-        nrm[k] = normal
-        cpoint[k] = xp - g * normal
+        emit(active, gap, nrm, cpoint, k, g, normal, xp - g * normal)
 
 
 @wp.kernel
@@ -77,10 +92,7 @@ def capsule_contacts_kernel(
                 n = wp.normalize(wp.cross(ax, wp.vec3d(F64(1.0), F64(0.0), F64(0.0))))
                 if wp.length(wp.cross(ax, wp.vec3d(F64(1.0), F64(0.0), F64(0.0)))) < F64(1e-6) * wp.length(ax):
                     n = wp.normalize(wp.cross(ax, wp.vec3d(F64(0.0), F64(1.0), F64(0.0))))
-        active[k] = 1
-        gap[k] = g
-        nrm[k] = n
-        cpoint[k] = c + radius * n
+        emit(active, gap, nrm, cpoint, k, g, n, c + radius * n)
 
 
 
@@ -155,10 +167,7 @@ def capsule_faces_kernel(
         if g < distance:
             p = a + s * (b - a)
             n = (w[0] * va + w[1] * vb + w[2] * vc - p) / dist
-            active[f] = 1
-            gap[f] = g
-            nrm[f] = n
-            cpoint[f] = p + radius * n
+            emit(active, gap, nrm, cpoint, f, g, n, p + radius * n)
             bary[f] = w
         return
     # pierced or touched
@@ -191,10 +200,7 @@ def capsule_faces_kernel(
     wl = wp.vec3d(wp.max(wl[0], zero), wp.max(wl[1], zero), wp.max(wl[2], zero))
     wl = wl / (wl[0] + wl[1] + wl[2])
     n = -nf
-    active[f] = 1
-    gap[f] = h - radius
-    nrm[f] = n
-    cpoint[f] = p + radius * n
+    emit(active, gap, nrm, cpoint, f, h - radius, n, p + radius * n)
     bary[f] = wl
 
 
@@ -268,10 +274,7 @@ def trimesh_contacts_kernel(
             n = nf
             if dist > F64(1e-12) * wp.length(vb - va):
                 n = (sgn / dist) * d
-            active[k] = 1
-            gap[k] = g
-            nrm[k] = n
-            cpoint[k] = qp
+            emit(active, gap, nrm, cpoint, k, g, n, qp)
 
 
 @wp.kernel
@@ -397,9 +400,6 @@ def self_contacts_kernel(
                 best_n = n
                 best_q = q
     if best_face >= 0:
-        active[k] = 1
+        emit(active, gap, nrm, cpoint, k, best_g, best_n, best_q)
         tri[k] = best_face
         bary[k] = best_w
-        gap[k] = best_g
-        nrm[k] = best_n
-        cpoint[k] = best_q

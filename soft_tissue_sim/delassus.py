@@ -10,17 +10,13 @@ Only the forward solve is needed, not the backward one: half the work of the m f
 of P^-1 H^T. And a contact column has at most 12 non-zeros (one to four nodes, three DOFs
 each), so its forward solve only ever touches the rows on the paths from those rows to the
 root of the elimination tree (its reach): a column j of L contributes only when y_j != 0,
-which is the test the kernel makes. On the brain (5,202 DOFs) a contact column reaches 6-10
-times fewer entries of L than the whole factor (measured on its first factor), and the
-resection's step fell from 130 to 98 ms median with this in place of CHOLMOD's full solves
-(README, "Delassus operator").
+which is the test the kernel makes (docs/benchmarks.md has the measured gain).
 
 Why our own kernel: CHOLMOD solves a sparse right-hand side by its reach only for a single
 column (``cholmod_solve2`` with ``Bset``), which scikit-sparse 0.4 does not expose, and
 scipy's ``spsolve_triangular`` takes dense right-hand sides. The kernel runs on Warp's CPU
-backend next to the host factor (a thread per group of 16 columns): the factor lives on the
-host, and a column's solve is a sequential walk up the tree, a poor fit for a GPU thread (the device
-path for blocks of columns is :meth:`soft_tissue_sim.ldlt_device.DeviceLDLT.solve_columns`).
+backend next to the host factor (a thread per group of 16 columns). On a GPU the dense
+backend gathers W from its inverse instead (:mod:`soft_tissue_sim.dense_inverse`).
 
 The displacement correction dx = P^-1 H^T lambda needs one full solve, of one column.
 """

@@ -15,7 +15,7 @@ of the system (zero right-hand side, identity rows) and keep zero velocity.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 import warp as wp
@@ -23,6 +23,7 @@ import warp as wp
 from .cg import PCG
 from .corotational_fem import CorotationalFEM
 from .material import Damping, ParameterError
+from .stats import ContactStats, CutStats, GuardStats
 
 
 @wp.kernel
@@ -76,9 +77,19 @@ def _energy_kernel(
     wp.atomic_add(out, 1, pe)
 
 
+_COMPONENT = {"component": True}  # a field holding a record some part of the step adds
+
+
 @dataclass
 class StepStats:
-    """What one step did and cost. Times in milliseconds."""
+    """What one step did and cost. Times in milliseconds.
+
+    The plain fields are the integrator's (the free motion of eq. 1). ``guard``, ``contact``
+    and ``cutting`` are the records (:mod:`soft_tissue_sim.stats`) that the divergence guard
+    and the components add, None where the scene has no such component or it had nothing to
+    say. :meth:`as_dict` is one flat mapping: the plain fields, then the records' fields that
+    are not None. A new plain field needs nothing more; a new record, ``metadata=_COMPONENT``.
+    """
 
     step: int = 0
     time: float = 0.0
@@ -94,11 +105,23 @@ class StepStats:
     factorization_ms: float = 0.0
     refresh_interval: float = 0.0
     worker_error: str | None = None
-    extra: dict = field(default_factory=dict)
+    guard: GuardStats | None = field(default=None, metadata=_COMPONENT)
+    contact: ContactStats | None = field(default=None, metadata=_COMPONENT)
+    cutting: CutStats | None = field(default=None, metadata=_COMPONENT)
+
+    @property
+    def extra(self) -> dict:
+        """The records' fields that are not None, flat (a copy: set the records' fields)."""
+        out = {}
+        for f in fields(self):
+            record = getattr(self, f.name)
+            if f.metadata.get("component") and record is not None:
+                out.update((k, v) for k, v in asdict(record).items() if v is not None)
+        return out
 
     def as_dict(self) -> dict:
-        d = asdict(self)
-        d.update(d.pop("extra"))
+        d = {f.name: getattr(self, f.name) for f in fields(self) if not f.metadata.get("component")}
+        d.update(self.extra)
         return d
 
 

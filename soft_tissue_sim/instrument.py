@@ -19,7 +19,7 @@ Obstacles are static: an infinite plane (a point and the outward normal) or a tr
 (``vertices`` and ``triangles``, or a ``file`` meshio can read, its triangle cells). Both may
 carry their own Coulomb ``friction`` coefficient (else the scene's ``contact.friction``).
 
-Scene entries (see :mod:`soft_tissue_sim.contact` for the ``contact`` options)::
+Scene entries (see :mod:`soft_tissue_sim.contact.options` for the ``contact`` options)::
 
     instruments:
       - {name: grasper, shape: capsule, radius: 0.004, length: 0.1,
@@ -38,6 +38,7 @@ import numpy as np
 import warp as wp
 
 from .material import ParameterError
+from .paths import resolve_path
 
 QUATERNION_TOLERANCE = 1e-3  # |  |q| - 1 | accepted (then normalised); beyond that a pose is rejected
 _INSTRUMENT_KEYS = {"name", "shape", "radius", "length", "pose", "blade", "friction"}
@@ -314,8 +315,6 @@ class MeshObstacle:
 def _mesh_arrays(what: str, cfg: dict) -> tuple[np.ndarray, np.ndarray]:
     if "file" in cfg:
         import meshio
-
-        from .scene import resolve_path
 
         path = resolve_path(cfg["file"])
         try:

@@ -41,54 +41,33 @@ from __future__ import annotations
 
 import copy
 import math
-import os
+import time
 import warnings
 import weakref
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 import yaml
 
 from . import mesh as mesh_mod
+from .body import BodyView
 from .cg import DevicePCG
 from .corotational_fem import CorotationalFEM
 from .implicit_integration import BackwardEuler, StepStats
 from .material import Damping, MaterialTable, ParameterError
+from .paths import resolve_path
 from .preconditioner import make_preconditioner
+from .stats import GuardStats
 
-PACKAGE_ROOT = Path(__file__).resolve().parent.parent
-SCENES_DIR = PACKAGE_ROOT / "config" / "scenes"
+if TYPE_CHECKING:  # built only in scenes that name cutting
+    from .cutting import CutPlan, CutResult, Tissue
+
 _KNOWN_KEYS = {
     "name", "description", "device", "mesh", "materials", "mass", "damping", "gravity", "fixed", "time",
     "solver", "instruments", "obstacles", "contact", "cutting", "script", "guard",
 }
-
-
-def share_dirs() -> list[Path]:
-    """Where scenes and meshes may live: the source tree, then an installed share/ directory."""
-    dirs = [PACKAGE_ROOT]
-    try:  # a colcon / ament install
-        from ament_index_python.packages import get_package_share_directory
-
-        dirs.append(Path(get_package_share_directory("soft_tissue_sim")))
-    except Exception:  # noqa: BLE001 - ament index absent or package not installed: source tree only
-        pass
-    return dirs
-
-
-def resolve_path(name: str | os.PathLike, base: Path | None = None) -> Path:
-    """Find a scene or mesh file: as given, relative to ``base``, then in the package's dirs."""
-    p = Path(name)
-    candidates = [p] if p.is_absolute() else [Path.cwd() / p]
-    if base is not None and not p.is_absolute():
-        candidates.append(base / p)
-    for d in share_dirs():
-        candidates += [d / p, d / "config" / "scenes" / p, d / "meshes" / p.name]
-    for c in candidates:
-        if c.is_file():
-            return c.resolve()
-    raise FileNotFoundError(f"cannot find {str(name)!r} (looked in: {', '.join(str(c) for c in candidates)})")
 
 
 def resolve_device(name: str | None) -> str:
@@ -190,7 +169,15 @@ def _weak_call(method):
 
 
 class Simulation:
-    """One soft body and the components its scene names. See :func:`load_scene`."""
+    """One soft body and the components its scene names. See :func:`load_scene`.
+
+    A step: the free motion of eq. (1) under the divergence guard, then the contact
+    correction (eq. 3-4), then the topology changes of cutting (eq. 5-12). The components
+    read the body (:meth:`view`, :meth:`tissue`) and return what they change; the simulation
+    applies it. Invariants: a step that diverges (NaN, runaway kinetic energy) or a contact
+    correction that does is not kept (the last good state stands, and the statistics say
+    so); bad input raises a clear error and changes nothing.
+    """
 
     @staticmethod
     def _has_contact(config: dict) -> bool:
@@ -255,12 +242,12 @@ class Simulation:
         if self._has_contact(config):
             from .contact import ContactSolver
 
-            self.contact = ContactSolver(self, config.get("contact") or {}, config.get("instruments") or [],
-                                         config.get("obstacles") or [])
+            self.contact = ContactSolver(config.get("contact") or {}, config.get("instruments") or [],
+                                         config.get("obstacles") or [], self.device, self.mesh.points)
         if config.get("cutting"):
             from .cutting import Cutter
 
-            self.cutting = Cutter(self, config["cutting"])
+            self.cutting = Cutter(config["cutting"], self.preconditioner)
         self._initial_mesh = self.mesh.copy()
         self._initial_fixed = fixed.copy()
         self.last_stats: StepStats | None = None
@@ -294,6 +281,50 @@ class Simulation:
     def _topology(self) -> dict:
         """The node uids (stable across cuts) and the mesh version: what a factor was made from."""
         return {"uids": self.node_uids.copy(), "version": self.mesh_version}
+
+    def tissue(self) -> Tissue:
+        """The body as cutting reads it: the rest mesh and copies of the state on it."""
+        from .cutting import Tissue
+
+        return Tissue(self.mesh, self.positions(), self.velocities(), self.node_uids, self.fem.free.numpy())
+
+    def _instruments(self) -> dict:
+        return self.contact.instruments if self.contact is not None else {}
+
+    def _modify(self, plan: CutPlan) -> CutResult:
+        """Apply a planned topology change and remove the debris it leaves; the plan's result,
+        completed, says what was done."""
+        if plan.change is None:
+            return plan.result
+        self._apply_topology(plan)
+        debris = self.cutting.debris(self.tissue())
+        if debris is not None and debris.change is not None:
+            self._apply_topology(debris)
+            self.cutting.absorb_debris(plan.result, debris.result)
+        plan.result.ms = 1000.0 * (time.perf_counter() - plan.t0)
+        return plan.result
+
+    def _apply_topology(self, plan: CutPlan) -> None:
+        """Mesh, FEM, state and node identities from ``plan.change``; the modification of A it
+        makes (the blocks of the removed and added elements, with the rotations of one state)
+        goes to the cutter's correction, or the preconditioner starts afresh without one."""
+        change, fem, integ = plan.change, self.fem, self.integrator
+        m_coef, k_coef = integ.m_coef, integ.k_coef
+        fem.update_rotations(integ.x)
+        R_nodes = fem.node_rotations()
+        old_blocks = fem.element_blocks(change.removed_tets, m_coef, k_coef)
+        fem.set_mesh(change.mesh, change.fixed)
+        integ.set_state(change.x, change.v)
+        fem.update_rotations(integ.x)
+        new_blocks = fem.element_blocks(change.added_tets, m_coef, k_coef)
+        self.mesh, self.node_uids = change.mesh, change.node_uids
+        self.mesh_version += 1
+        if not self.cutting.record(plan, change.modification(self.mesh_version, old_blocks, new_blocks, R_nodes)):
+            self.preconditioner.invalidate()
+
+    def view(self) -> BodyView:
+        """The body as the components read it during a step (they return what they change)."""
+        return BodyView(self.integrator, self.fem, self.preconditioner, self.node_uids)
 
     # --------------------------------------------------------------- public
     @property
@@ -352,7 +383,7 @@ class Simulation:
         if self.guard_retry:
             stats = integ.step()
             if self._diverged(stats, ke_before) is None:
-                stats.extra.update(rolled_back=True, rollbacks=self.rollbacks, guard=reason, remedy="fresh factor")
+                stats.guard = GuardStats(True, self.rollbacks, reason, "fresh factor")
                 return stats, True
             rollback()
             dt = integ.dt  # remedy 2: two half steps
@@ -372,27 +403,32 @@ class Simulation:
                 integ.step_index, integ.time = k0 + 1, t0 + dt  # two half steps count as one step
                 s2.step, s2.time = k0 + 1, t0 + dt
                 s2.iterations += s1.iterations
-                s2.extra.update(rolled_back=True, rollbacks=self.rollbacks, guard=reason, remedy="two half steps")
+                s2.guard = GuardStats(True, self.rollbacks, reason, "two half steps")
                 return s2, True
             rollback()
         stats.converged = False
-        stats.extra.update(rolled_back=True, rollbacks=self.rollbacks, guard=reason,
-                           remedy="none: last good state kept (tried " + ", ".join(attempts) + ")")
+        stats.guard = GuardStats(True, self.rollbacks, reason,
+                                 "none: last good state kept (tried " + ", ".join(attempts) + ")")
         return stats, False
 
-    def _contact_response(self) -> dict:
+    def _contact_response(self, stats: StepStats) -> None:
         """The contact step under the divergence guard: a correction that leaves NaN or a runaway
         kinetic energy is dropped (the free motion stands for this step; the next step detects
-        and corrects again) and reported as ``contact_rejected``."""
+        and corrects again) and reported as ``contact_rejected``. Fills ``stats.contact`` (None
+        when the solve failed) and the guard's contact fields."""
         integ = self.integrator
         x_free, v_free = wp.clone(integ.x), wp.clone(integ.v)
         ke_free = self._kinetic_energy() if self.guard_ratio > 0 else 0.0
         try:
-            cstats = self.contact.step(self)
+            response = self.contact.step(self.view())
             reason = None
         except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
-            cstats, reason = {}, f"contact solve failed: {type(exc).__name__}: {exc}"
+            reason = f"contact solve failed: {type(exc).__name__}: {exc}"
         if reason is None:
+            stats.contact = response.stats
+            if response.dx is not None:  # x += dx, v += dx / dt
+                integ.x.assign(integ.x.numpy() + response.dx)
+                integ.v.assign(integ.v.numpy() + response.dx / integ.dt)
             if not np.isfinite(integ.x.numpy()).all() or not np.isfinite(integ.v.numpy()).all():
                 reason = "non-finite state after the contact correction"
             elif self.guard_ratio > 0:
@@ -403,9 +439,9 @@ class Simulation:
             integ.x, integ.v = x_free, v_free
             self.contact_rejections += 1
             warnings.warn(f"step {integ.step_index}: {reason}; the free motion stands for this step", stacklevel=2)
-            cstats = dict(cstats, contact_rejected=reason)
-        cstats["contact_rejections"] = self.contact_rejections
-        return cstats
+        stats.guard = stats.guard or GuardStats()
+        stats.guard.contact_rejected = reason
+        stats.guard.contact_rejections = self.contact_rejections
 
     def step(self) -> StepStats:
         if self._closed:
@@ -415,9 +451,10 @@ class Simulation:
             self.last_stats = stats
             return stats
         if self.contact is not None:
-            stats.extra.update(self._contact_response())  # LCP correction of x and v, eq. (3)-(4)
-        if self.cutting is not None:
-            stats.extra.update(self.cutting.step(self))  # blade motion -> mesh change + SMF, eq. (5)-(12)
+            self._contact_response(stats)  # LCP correction of x and v, eq. (3)-(4)
+        if self.cutting is not None:  # blade motion -> mesh change + SMF, eq. (5)-(12)
+            ops = self.cutting.step(self.step_count, self._instruments())
+            stats.cutting = self.cutting.step_stats([self._modify(op(self.tissue())) for op in ops])
         self.last_stats = stats
         return stats
 
@@ -426,7 +463,7 @@ class Simulation:
         self.preconditioner.invalidate()
         for comp in (self.contact, self.cutting):
             if comp is not None:
-                comp.reset(self)
+                comp.reset()
         if self.mesh_version != 0 or self.mesh is not self.fem.mesh:
             self.mesh = self._initial_mesh.copy()
             self.fem.set_mesh(self.mesh, self._initial_fixed)
@@ -470,25 +507,25 @@ class Simulation:
         """Cut along the blade path since the last cut. Returns a CutResult (tets_changed, message)."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self.cutting.cut(self)
+        return self._modify(self.cutting.cut(self.tissue(), self._instruments()))
 
     def cut_triangles(self, triangles, frame: str = "world"):
         """Cut along blade triangles (k, 3, 3) in the world (current) or rest frame. Returns a CutResult."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self.cutting.cut_triangles(self, triangles, frame)
+        return self._modify(self.cutting.cut_triangles(self.tissue(), triangles, frame))
 
     def remove_elements(self, center, radius: float, frame: str = "world"):
         """Ablation / aspiration: delete the elements whose centroid is within radius of center."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self.cutting.remove_elements(self, center, radius, frame)
+        return self._modify(self.cutting.remove_elements(self.tissue(), center, radius, frame))
 
     def remove_tets(self, tets):
         """Delete given tets (boolean mask or indices): e.g. lift out a part that was cut free."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self.cutting.remove_tets(self, tets)
+        return self._modify(self.cutting.remove_tets(self.tissue(), tets))
 
     def set_cutting(self, active: bool) -> None:
         """Blade active: cut continuously while the instrument moves (like a pedal)."""

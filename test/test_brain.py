@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 
-from soft_tissue_sim.bench.brain import attachment_cut, spare_tumour_bite, specimen_tets, tumour_freed
+from soft_tissue_sim.scenarios.brain import attachment_cut, spare_tumour_bite, specimen_tets, tumour_freed
 from soft_tissue_sim.scene import load_scene
 
 
@@ -80,7 +80,7 @@ def test_the_long_session_adds_an_outer_cut_and_radial_wedges(sim):
     blade is 12 mm, so the passes overlap), its vertical moves only along a cut. Each stroke
     starts with the pedal up and the blade out of the tissue, so no blade is swept from its
     home into the brain."""
-    from soft_tissue_sim.bench.brain import plan, tumour_geometry
+    from soft_tissue_sim.scenarios.brain import plan, tumour_geometry
 
     m = sim.mesh
     c, r, _, _ = tumour_geometry(m)
@@ -142,7 +142,7 @@ def test_the_aspiration_keeps_the_floor_under_the_specimen(sim):
     the specimen has something to rest on as it comes free; the earlier plan, a layer lower,
     left 10 of these 19 nodes bare), and the bites take tissue between the floor and the
     tumour over the whole disc inside the cut."""
-    from soft_tissue_sim.bench.brain import plan, tumour_geometry
+    from soft_tissue_sim.scenarios.brain import plan, tumour_geometry
 
     m = sim.mesh
     cen = m.centroids()

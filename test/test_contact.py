@@ -12,7 +12,7 @@ import pytest
 import warp as wp
 
 from soft_tissue_sim import ParameterError, load_scene
-from soft_tissue_sim.contact import segment_triangle_closest
+from soft_tissue_sim.contact.geometry import segment_triangle_closest
 from soft_tissue_sim.mesh import beam_mesh, save_mesh, validate_mesh
 
 G = 9.81
@@ -317,7 +317,8 @@ def ridge(tmp_path):
 def test_capsule_lying_across_an_edge_counts_it_once(tmp_path, along):
     """A horizontal capsule (radius 1 mm) across the ridge, 0.2 mm into it: both faces of the
     ridge have their closest point on the shared edge; one row, from its owner."""
-    from soft_tissue_sim.contact import capsule_faces_kernel, edge_ownership
+    from soft_tissue_sim.contact.detection_kernels import capsule_faces_kernel
+    from soft_tissue_sim.contact.geometry import edge_ownership
 
     r, pen = 0.001, 0.0002
     cfg = scene(mesh={"file": ridge(tmp_path)},

@@ -17,9 +17,12 @@ from rclpy.qos import qos_profile_sensor_data
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
+from soft_tissue_sim.contact.records import ContactResponse
+from soft_tissue_sim.paths import SCENES_DIR
 from soft_tissue_sim.ros.node import SimNode
 from soft_tissue_sim.ros.scripted_instrument import Script, ScriptedInstrument, path, sample, script_over_surface
-from soft_tissue_sim.scene import SCENES_DIR, load_scene
+from soft_tissue_sim.scene import load_scene
+from soft_tissue_sim.stats import ContactStats, CutStats
 
 
 @pytest.fixture
@@ -92,10 +95,10 @@ class RecordingInstruments:
     def contact_points(self):
         return np.array([[0.05, 0.0, 0.01], [0.06, 0.0, 0.01]])
 
-    def step(self, sim):
-        return {"contacts": 2}
+    def step(self, body):
+        return ContactResponse(None, ContactStats(contacts=2))
 
-    def reset(self, sim):
+    def reset(self):
         self.calls.clear()
 
 
@@ -109,10 +112,13 @@ class RecordingBlade:
         self.active = bool(active)
         self.switches.append((self.active, self.instruments.calls[-1]["position"].copy()))
 
-    def step(self, sim):
-        return {"cuts": 0}
+    def step(self, step_count, instruments):
+        return []
 
-    def reset(self, sim):
+    def step_stats(self, results):
+        return CutStats()
+
+    def reset(self):
         self.active = False
 
 

@@ -24,15 +24,13 @@ displacement of the reference. The summary gives, per scene and error level, the
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 
 import numpy as np
 
 from ..report import Progress
-from ..scene import load_scene, read_scene, resolve_device
-from . import RESULTS_DIR, write_result
+from ..scene import load_scene, read_scene
+from .common import figure, parser, publish, resolved_device, save_figure
 
 IDENTITY = [0.0, 0.0, 0.0, 1.0]
 SOLVERS = {
@@ -130,14 +128,9 @@ def cheapest(rows, levels=ERROR_LEVELS):
 
 
 def plot(result, prefix):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rows = result["rows"]
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.6), squeeze=False)
+    fig, axes = figure(1, len(scenes), figsize=(6 * len(scenes), 4.6), squeeze=False)
     for ax, key in zip(axes[0], scenes):
         for name in dict.fromkeys(r["solver"] for r in rows):
             rs = [r for r in rows if r["scene"] == key and r["solver"] == name]
@@ -148,35 +141,26 @@ def plot(result, prefix):
                title=key)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"error against run time (labels: CG tolerance) on {result['device']}")
-    fig.tight_layout()
-    fig.savefig(f"{prefix}.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, prefix, f"error against run time (labels: CG tolerance) on {result['device']}")
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench accuracy", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser("accuracy", __doc__)
     ap.add_argument("--scenes", nargs="*", default=list(SCENES), choices=list(SCENES))
     ap.add_argument("--solvers", nargs="*", default=list(SOLVERS), choices=list(SOLVERS))
     ap.add_argument("--tolerances", nargs="*", type=float, default=TOLERANCES)
     ap.add_argument("--steps", type=int, default=20)
-    ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
-    device = resolve_device(args.device)
+    device = resolved_device(args)
     prog = Progress(len(args.scenes) * len(args.solvers) * len(args.tolerances))
     t0 = time.perf_counter()
     rows = sweep(args.scenes, args.solvers, args.tolerances, args.steps, device, prog)
     result = {"rows": rows, "cheapest": cheapest(rows), "steps": args.steps, "wall_s": time.perf_counter() - t0}
-    path = write_result("accuracy", device, result, args.out)
-    result["device"] = json.load(open(path))["device"]
-    plot(result, str(path.with_suffix("")))
+    publish("accuracy", device, result, args, plot)
     print(f"{'scene':<6} {'error <=':>8}  fastest")
     for key, levels in result["cheapest"].items():
         for lev, best in levels.items():
             what = "none reached it" if best is None else (f"{best['solver']} tol {best['tolerance']:.0e}: "
                                                            f"{best['step_ms']:.1f} ms/step")
             print(f"{key:<6} {lev:>8}  {what}")
-    print(f"wrote {path} and {path.with_suffix('.png')}")
     return 0

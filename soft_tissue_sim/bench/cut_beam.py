@@ -20,15 +20,14 @@ number of affected nodes (fig. 4). JSON and PNG under benchmarks/results/.
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 
 import numpy as np
 
 from ..report import Progress
-from ..scene import load_scene, resolve_device
-from . import RESULTS_DIR, write_result
+from ..cutting import sweep_triangles
+from ..scene import load_scene
+from .common import figure, parser, publish, resolved_device, save_figure
 
 METHODS = {
     "cg": ({"preconditioner": "none"}, "none"),
@@ -98,12 +97,7 @@ def summarize(stats, cuts, nodes0, nodes1, method):
 
 
 def plot(result, prefix):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    fig, axes = figure(1, 3, figsize=(17, 5))
     for key, its in result["iterations"].items():
         if "/cg" in key:
             continue
@@ -127,10 +121,7 @@ def plot(result, prefix):
     for ax in axes:
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"cut beam on {result['device']}")
-    fig.tight_layout()
-    fig.savefig(f"{prefix}.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, prefix, f"cut beam on {result['device']}")
 
 
 def overhead_sweep(scene, device, sizes=(4, 8, 16, 32, 64, 128), backend="auto"):
@@ -146,8 +137,6 @@ def overhead_sweep(scene, device, sizes=(4, 8, 16, 32, 64, 128), backend="auto")
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         layer = float(np.median(np.diff(np.unique(np.round(pts[:, 0], 9)))))
         ymid = 0.5 * (lo[1] + hi[1])
-        from ..cutting import sweep_triangles
-
         x = hi[0] + 0.5 * layer
         for n_layers in sizes:
             sim.reset()
@@ -164,8 +153,7 @@ def overhead_sweep(scene, device, sizes=(4, 8, 16, 32, 64, 128), backend="auto")
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench cut-beam", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser("cut-beam", __doc__)
     ap.add_argument("--scenes", nargs="*", default=["beam_1200.yaml", "beam_1600.yaml", "beam_2000.yaml"])
     ap.add_argument("--methods", nargs="*", default=list(METHODS))
     ap.add_argument("--steps", type=int, default=90)
@@ -173,10 +161,8 @@ def main(argv=None) -> int:
     ap.add_argument("--refresh-every", type=int, default=4, help="steps between factorizations (paper: 4.3)")
     ap.add_argument("--backend", default="auto", choices=["auto", "cholmod", "dense"],
                     help="the factor's backend (solver.ldlt.backend; auto: dense on CUDA)")
-    ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
-    device = resolve_device(args.device)
+    device = resolved_device(args)
     prog = Progress(len(args.scenes) * len(args.methods) + 1)
     t0 = time.perf_counter()
     rows, iters, per_cut = [], {}, []
@@ -205,9 +191,7 @@ def main(argv=None) -> int:
         if cg and sm:
             speed[str(n)] = cg["total_ms"] / sm["total_ms"]
     result["speedup_smf_vs_cg"] = speed
-    path = write_result("cut_beam", device, result, args.out)
-    result["device"] = json.load(open(path))["device"]
-    plot(result, str(path.with_suffix("")))
+    publish("cut_beam", device, result, args, plot)
     print(f"{'Nodes':>6} {'Method':<7} {'Affected':>8} {'N nodes':>7} {'Build':>7} {'Iter':>7} {'Solve':>7} {'Cut':>6} {'Total':>7}"
           f" {'Refresh':>7} {'CutEvery':>8}")
     for r in rows:
@@ -215,5 +199,4 @@ def main(argv=None) -> int:
               f"{r['solve_ms']:7.2f} {r['cut_ms']:6.2f} {r['total_ms']:7.2f} {r['refresh_interval']:7.2f} "
               f"{r['cut_interval']:8.2f}")
     print(f"speed-up of SMF over CG (total step time): {speed}")
-    print(f"wrote {path} and {path.with_suffix('.png')}")
     return 0

@@ -36,7 +36,6 @@ package sources that ran. ``--plot JSON`` only redraws the PNG of an existing re
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import time
@@ -45,8 +44,9 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from ..scene import load_scene, read_scene, resolve_device, resolve_path
-from . import RESULTS_DIR, write_result
+from ..paths import resolve_path
+from ..scene import load_scene, read_scene
+from .common import device_description, figure, parser, resolved_device, save_figure, write_result
 
 VARIANTS = {
     "cg": {"preconditioner": "none", "graph": False},
@@ -181,14 +181,9 @@ def source_digest() -> str:
     return h.hexdigest()[:12]
 
 
-def plot(result: dict, path: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def plot(result: dict, prefix: str) -> None:
     scenes = result["scenes"]
-    fig, axes = plt.subplots(2, len(scenes), figsize=(6.5 * len(scenes), 8.5), squeeze=False)
+    fig, axes = figure(2, len(scenes), figsize=(6.5 * len(scenes), 8.5), squeeze=False)
     for j, (sname, sc) in enumerate(scenes.items()):
         names = [k for k, v in sc["variants"].items() if "error" not in v]
         data = [sc["variants"][k]["step_ms_series"] for k in names]
@@ -212,16 +207,11 @@ def plot(result: dict, path: str) -> None:
         ax.set_yscale("log")
         ax.set(ylabel="PCG iterations per step (mean)", title=f"{sname}: iterations, preconditioner apply ms")
         ax.grid(True, alpha=0.3, which="both")
-    fig.suptitle(f"haptic step times on {result.get('device', '?')}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, prefix, f"haptic step times on {result.get('device', '?')}")
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench haptic", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--device", default=None)
+    ap = parser("haptic", __doc__)
     ap.add_argument("--steps", type=int, default=200, help="measured steps per variant")
     ap.add_argument("--cg-steps", type=int, default=None, help="measured steps of the plain CG variants (default --steps)")
     ap.add_argument("--warmup", type=int, default=20)
@@ -230,14 +220,13 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default=None, help=f"comma list of {', '.join(VARIANTS)} (default: all that apply)")
     ap.add_argument("--contact", action="store_true", help="also the brain with parked instruments (contact on)")
     ap.add_argument("--commit-note", default="", help="stored as commit_note (what code ran)")
-    ap.add_argument("--out", default=str(RESULTS_DIR))
     ap.add_argument("--plot", default=None, metavar="JSON", help="only redraw the PNG of this result file")
     args = ap.parse_args(argv)
     if args.plot:
         doc = json.load(open(args.plot))
-        plot(doc["figures"] | {"device": doc["device"]}, str(Path(args.plot).with_suffix(".png")))
+        plot(doc["figures"] | {"device": doc["device"]}, str(Path(args.plot).with_suffix("")))
         return 0
-    device = resolve_device(args.device)
+    device = resolved_device(args)
     cuda = wp.get_device(device).is_cuda
     variants = args.variants.split(",") if args.variants else [v for v in VARIANTS if cuda or v not in CUDA_ONLY]
     for v in variants:
@@ -292,9 +281,8 @@ def main(argv=None) -> int:
     figures["summary"] = summ
     figures["wall_s"] = time.perf_counter() - t_all
     path = write_result("haptic", device, figures, args.out)
-    doc = json.load(open(path))
     try:
-        plot(figures | {"device": doc["device"]}, str(path.with_suffix(".png")))
+        plot(figures | {"device": device_description(device)}, str(path.with_suffix("")))
         print(f"wrote {path} and {path.with_suffix('.png')}")
     except ImportError as exc:
         print(f"wrote {path} (no PNG: {exc}; redraw with --plot {path})")

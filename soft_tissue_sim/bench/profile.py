@@ -8,7 +8,6 @@ their count and total ms, and the host functions with the largest cumulative tim
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import pstats
 import time
@@ -17,19 +16,16 @@ from collections import defaultdict
 import numpy as np
 import warp as wp
 
-from ..scene import load_scene, resolve_device
-from . import RESULTS_DIR, write_result
+from ..scene import load_scene
+from .common import parser, publish, resolved_device
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench profile", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser("profile", __doc__)
     ap.add_argument("--scene", default="beam_2000.yaml")
     ap.add_argument("--steps", type=int, default=20)
-    ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
-    device = resolve_device(args.device)
+    device = resolved_device(args)
     sim = load_scene(args.scene, device=device)
     try:
         for _ in range(5):  # warm-up: compilation, first factorization
@@ -76,11 +72,10 @@ def main(argv=None) -> int:
         "host_top_per_step": host[:40],
         "note": "cProfile adds overhead to the host time; the device figures are CUDA event timings",
     }
-    path = write_result("profile", device, figures, args.out)
+    publish("profile", device, figures, args)
     print(f"{args.scene}: {wall:.2f} ms/step under the profilers, {figures['iterations_mean']:.2f} iterations")
     for k, v in figures["device_activity_per_step"].items():
         print(f"  device {k:<18} {v['count']:8.1f} per step {v['ms']:8.3f} ms")
     for h in host[:15]:
         print(f"  host {h['cumulative_ms']:8.2f} ms cum {h['own_ms']:8.2f} own  {h['calls'] / n:7.1f}x  {h['function']}")
-    print(f"wrote {path}")
     return 0

@@ -10,7 +10,6 @@ warm-up step. JSON and a log-log plot under benchmarks/results/.
 
 from __future__ import annotations
 
-import argparse
 import json
 import resource
 import time
@@ -20,8 +19,8 @@ import warp as wp
 
 from ..mesh import TetMesh, brain_mesh, validate_mesh
 from ..report import Progress
-from ..scene import Simulation, resolve_device
-from . import RESULTS_DIR, write_result
+from ..scene import Simulation
+from .common import figure, parser, publish, resolved_device, save_figure
 
 SOLVERS = {
     "cg": {"preconditioner": "none"},
@@ -125,13 +124,8 @@ def run(kind, mesh_spec, solver, steps, device):
 
 
 def plot(result, prefix):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rows = result["rows"]
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    fig, axes = figure(1, 3, figsize=(17, 5))
     for kind, mk in (("beam", "o-"), ("brain", "s--")):
         for solver in dict.fromkeys(r["solver"] for r in rows):
             rs = sorted([r for r in rows if r["kind"] == kind and r["solver"] == solver], key=lambda r: r["dofs"])
@@ -148,24 +142,18 @@ def plot(result, prefix):
     for ax in axes:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"scaling on {result['device']}")
-    fig.tight_layout()
-    fig.savefig(f"{prefix}.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, prefix, f"scaling on {result['device']}")
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench scaling", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser("scaling", __doc__)
     ap.add_argument("--steps", type=int, default=8)
     ap.add_argument("--max-nodes", type=int, default=200_000)
     ap.add_argument("--min-nodes", type=int, default=0, help="only bodies of at least this many nodes")
     ap.add_argument("--solvers", nargs="*", default=list(SOLVERS))
     ap.add_argument("--budget-s", type=float, default=480.0, help="stop starting new runs after this")
-    ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
-    device = resolve_device(args.device)
+    device = resolved_device(args)
     bodies = [b for b in body_configs() if args.min_nodes <= b[1] <= args.max_nodes]
     prog = Progress(len(bodies) * len(args.solvers))
     rows, t0 = [], time.perf_counter()
@@ -187,11 +175,8 @@ def main(argv=None) -> int:
     ok = [r for r in rows if "error" not in r]
     result = {"rows": ok, "failed": [r for r in rows if "error" in r], "skipped_for_time": skipped,
               "wall_s": time.perf_counter() - t0}
-    path = write_result("scaling", device, result, args.out)
-    result["device"] = json.load(open(path))["device"]
-    plot(result, str(path.with_suffix("")))
+    publish("scaling", device, result, args, plot)
     for r in ok:
         print(f"{r['kind']:<6} {r['nodes']:>7} {r['solver']:<7} {r['step_ms_median']:9.2f} ms {r['iterations']:8.1f} it "
               f"{r['memory_mb']:8.1f} MB {r['steps_per_s']:8.1f} steps/s")
-    print(f"wrote {path} and {path.with_suffix('.png')}")
     return 0

@@ -17,14 +17,13 @@ Outputs (JSON + PNG under benchmarks/results/):
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
 
 from ..report import Progress
 from ..scene import load_scene
-from . import RESULTS_DIR, write_result
+from .common import figure, parser, publish, resolved_device, save_figure
 
 METHODS = {
     "cg": {"preconditioner": "none"},
@@ -105,12 +104,7 @@ def paper_table(scenes, steps, device, methods, progress=None):
 
 
 def plot(result, path_prefix):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5))
+    fig, axes = figure(1, 3, figsize=(17, 5))
     for m in dict.fromkeys(r["method"] for r in result["sweep"]):
         rs = [r for r in result["sweep"] if r["method"] == m]
         t = [r["total_ms"] for r in rs]
@@ -126,27 +120,19 @@ def plot(result, path_prefix):
     for ax in axes:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(f"solvers on {result['device']}")
-    fig.tight_layout()
-    fig.savefig(f"{path_prefix}.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, path_prefix, f"solvers on {result['device']}")
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench solvers", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser("solvers", __doc__)
     ap.add_argument("--scene", default="beam_2000.yaml", help="scene for the tolerance sweep (a)")
     ap.add_argument("--table-scenes", nargs="*", default=["beam_1200.yaml", "beam_1600.yaml", "beam_2000.yaml"])
     ap.add_argument("--steps", type=int, default=60, help="steps per trajectory (table)")
     ap.add_argument("--sweep-steps", type=int, default=25, help="steps per trajectory (sweep)")
     ap.add_argument("--methods", nargs="*", default=list(METHODS))
     ap.add_argument("--tolerances", nargs="*", type=float, default=TOLERANCES)
-    ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
-    from ..scene import resolve_device
-
-    device = resolve_device(args.device)
+    device = resolved_device(args)
     sweep_methods = [m for m in args.methods if m != "direct"]
     prog = Progress(len(sweep_methods) * len(args.tolerances) + len(args.table_scenes) * len(args.methods))
     t0 = time.perf_counter()
@@ -159,16 +145,11 @@ def main(argv=None) -> int:
         ld = next((r for r in rows if r["nodes"] == nodes and r["method"] == "ldlt"), None)
         if cg and ld:
             result.setdefault("speedup_ldlt_vs_cg", {})[str(nodes)] = cg["total_ms"] / ld["total_ms"]
-    path = write_result("solvers", device, result, args.out)
-    import json
-
-    result["device"] = json.load(open(path))["device"]
-    plot(result, str(path.with_suffix("")))
+    publish("solvers", device, result, args, plot)
     hdr = f"{'Nodes':>6} {'Method':<11} {'Build(ms)':>9} {'Iter':>8} {'Solve(ms)':>9} {'Total(ms)':>9} {'Refresh':>7}"
     print(hdr)
     for r in rows:
         print(f"{r['nodes']:>6} {r['method']:<11} {r['build_ms']:9.2f} {r['iterations']:8.2f} {r['solve_ms']:9.2f} "
               f"{r['total_ms']:9.2f} {r['refresh_interval']:7.2f}")
     print(f"speed-up of async LDL^T over CG: {result.get('speedup_ldlt_vs_cg')}")
-    print(f"wrote {path} and {path.with_suffix('.png')}")
     return 0

@@ -18,15 +18,13 @@ heat-map PNG under benchmarks/results/.
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 
 import numpy as np
 
 from ..report import Progress
-from ..scene import load_scene, resolve_device
-from . import RESULTS_DIR, write_result
+from ..scene import load_scene
+from .common import figure, parser, publish, resolved_device, save_figure
 
 SOLVERS = {
     "cg": {"preconditioner": "none"},
@@ -116,8 +114,8 @@ def run_case(name, case, solver, steps, device, rng):
             its.append(s.iterations)
             res.append(s.residual)
             conv.append(s.converged)
-            if "max_penetration" in s.extra:
-                pen.append(s.extra["max_penetration"])
+            if s.contact is not None:
+                pen.append(s.contact.max_penetration)
             if k % 5 == 0 or k == n_steps - 1:
                 e = sim.energy()["total"]
                 if not np.isfinite(e):
@@ -139,15 +137,10 @@ def run_case(name, case, solver, steps, device, rng):
 
 
 def plot(result, prefix):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rows = result["rows"]
     cs = list(dict.fromkeys(r["case"] for r in rows))
     ss = list(dict.fromkeys(r["solver"] for r in rows))
-    fig, axes = plt.subplots(1, 2, figsize=(13, 0.45 * len(cs) + 2))
+    fig, axes = figure(1, 2, figsize=(13, 0.45 * len(cs) + 2))
     for ax, key, title in ((axes[0], "iterations_mean", "mean PCG iterations (log10)"),
                            (axes[1], "energy_growth", "energy growth / (m g L)")):
         M = np.full((len(cs), len(ss)), np.nan)
@@ -169,23 +162,17 @@ def plot(result, prefix):
         ax.set_yticks(range(len(cs)), cs)
         ax.set_title(title + ("  (* = not always converged)" if key == "iterations_mean" else ""))
         fig.colorbar(im, ax=ax)
-    fig.suptitle(f"stability on {result['device']}")
-    fig.tight_layout()
-    fig.savefig(f"{prefix}.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, prefix, f"stability on {result['device']}")
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench stability", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser("stability", __doc__)
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--n-long", type=int, default=16)
     ap.add_argument("--solvers", nargs="*", default=list(SOLVERS))
     ap.add_argument("--cases", nargs="*", default=None, help="subset of case names")
-    ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
-    device = resolve_device(args.device)
+    device = resolved_device(args)
     all_cases = cases(args.n_long)
     names = args.cases or list(all_cases)
     prog = Progress(len(names) * len(args.solvers))
@@ -197,9 +184,7 @@ def main(argv=None) -> int:
             rows.append(r)
             prog.update(len(rows), f"{name} {solver}: finite={r.get('finite')} it={r.get('iterations_mean', float('nan')):.1f}")
     result = {"rows": rows, "steps": args.steps, "wall_s": time.perf_counter() - t0}
-    path = write_result("stability", device, result, args.out)
-    result["device"] = json.load(open(path))["device"]
-    plot(result, str(path.with_suffix("")))
+    publish("stability", device, result, args, plot)
     print(f"{'case':<16} {'solver':<7} {'finite':>6} {'E growth':>9} {'it mean':>8} {'it max':>6} {'resid':>9} {'conv':>5} "
           f"{'pen':>9} {'wall s':>7}")
     for r in rows:
@@ -208,5 +193,4 @@ def main(argv=None) -> int:
               f"{r.get('iterations_mean', float('nan')):8.1f} {r.get('iterations_max', 0):6d} "
               f"{r.get('residual_final', float('nan')):9.2e} {r.get('converged_fraction', 0):5.2f} "
               f"{'' if pen is None else f'{pen:9.2e}':>9} {r['wall_s']:7.1f}" + (f"  {r['error']}" if "error" in r else ""))
-    print(f"wrote {path} and {path.with_suffix('.png')}")
     return 0

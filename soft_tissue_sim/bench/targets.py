@@ -210,13 +210,41 @@ GROUPS = {"precond": precond_rows, "cut_beam": cut_beam_rows, "beam100k": beam10
           "brain_contact": brain_contact_rows, "brain_resection": brain_resection_rows, "close": close_rows}
 
 
+def markdown(paths) -> str:
+    """The targets table (one row per target, one column per device) from targets JSON files."""
+    docs = [json.load(open(p)) for p in paths]
+    names = list(dict.fromkeys(t["name"] for d in docs for t in d["targets"]))
+    head = "| target | goal | " + " | ".join(d["device"].split(" (")[0] for d in docs) + " |"
+    lines = [head, "| --- | --- | " + " | ".join("---" for _ in docs) + " |"]
+    for n in names:
+        goal = next(f"{t['goal_relation']} {t['goal']} {t['unit']}".strip() for d in docs for t in d["targets"]
+                    if t["name"] == n)
+        cells = []
+        for d in docs:
+            t = next((t for t in d["targets"] if t["name"] == n), None)
+            if t is None or t["value"] is None:
+                cells.append("")
+                continue
+            v = t["value"]
+            vs = f"{v:.3g}" if isinstance(v, float) else str(v)
+            cells.append(f"{vs} ({'met' if t['met'] else 'not met'})")
+        lines.append(f"| `{n}` | {goal.replace('<=', 'at most').replace('>=', 'at least').replace('==', '')} | "
+                     + " | ".join(cells) + " |")
+    dates = "; ".join(f"{d['device']}: {d['date'][:10]}, commit {d['commit']}" for d in docs)
+    return "\n".join(lines) + f"\n\n({dates})"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench targets", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default=None)
     ap.add_argument("--only", default=None, help=f"comma list of {', '.join(GROUPS)} (default: all)")
     ap.add_argument("--out", default=str(RESULTS_DIR))
+    ap.add_argument("--markdown", nargs="+", metavar="JSON", help="only print the table of these result files")
     args = ap.parse_args(argv)
+    if args.markdown:
+        print(markdown(args.markdown))
+        return 0
     device = resolve_device(args.device)
     groups = args.only.split(",") if args.only else list(GROUPS)
     for g in groups:

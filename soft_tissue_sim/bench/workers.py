@@ -24,15 +24,13 @@ Writes ``workers_<cpu|gpu>.json`` and ``.png`` (step-time distributions).
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 
 import numpy as np
 
 from ..report import Progress
-from ..scene import load_scene, read_scene, resolve_device
-from . import RESULTS_DIR, write_result
+from ..scene import load_scene, read_scene
+from .common import figure, parser, publish, resolved_device, rounded, save_figure
 
 SCENES = {"brain": "brain_resection.yaml", "beam_2000": "beam_2000.yaml"}
 WORKERS = ("thread", "thread-gil", "process")
@@ -73,18 +71,13 @@ def run(name: str, worker: str, device: str, steps: int, warmup: int) -> dict:
                 "step_ms_p99": float(np.percentile(ms, 99)), "step_ms_max": float(ms.max()),
                 "iterations_mean": float(np.mean(its)), "factors_installed": int(st["factor_count"]),
                 "factorization_ms_last": float(st["factorization_ms"]), "worker_error": st.get("worker_error"),
-                "step_ms": ms.tolist()}
+                "step_ms": rounded(ms.tolist())}
 
 
 def plot(result: dict, prefix: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rows = result["runs"]
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    fig, axes = plt.subplots(1, len(scenes), figsize=(6.5 * len(scenes), 4.5), squeeze=False)
+    fig, axes = figure(1, len(scenes), figsize=(6.5 * len(scenes), 4.5), squeeze=False)
     for ax, sc in zip(axes[0], scenes):
         for r in rows:
             if r["scene"] == sc:
@@ -93,24 +86,18 @@ def plot(result: dict, prefix: str) -> None:
         ax.set(xscale="log", xlabel="step time (ms)", ylabel="fraction of steps", title=f"{sc} ({rows[0]['steps']} steps)")
         ax.grid(True, alpha=0.3)
         ax.legend()
-    fig.suptitle(f"async LDL^T factorization in a thread or in worker processes, {result['device']}")
-    fig.tight_layout()
-    fig.savefig(f"{prefix}.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, prefix, f"async LDL^T factorization in a thread or in worker processes, {result['device']}")
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.bench workers", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser("workers", __doc__, device="cpu")
     ap.add_argument("--scenes", nargs="*", default=list(SCENES), choices=list(SCENES))
     ap.add_argument("--workers", nargs="*", default=list(WORKERS), choices=list(WORKERS))
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--warmup", type=int, default=10)
     ap.add_argument("--repeat", type=int, default=2, help="runs per scene and worker (alternating)")
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--out", default=str(RESULTS_DIR))
     args = ap.parse_args(argv)
-    device = resolve_device(args.device)
+    device = resolved_device(args)
     jobs = [(sc, w) for sc in args.scenes for _ in range(args.repeat) for w in args.workers]
     prog = Progress(len(jobs))
     rows = []
@@ -120,12 +107,9 @@ def main(argv=None) -> int:
         prog.update(len(rows), f"{sc} {w}: median {r['step_ms_median']:.1f} ms, mean {r['step_ms_mean']:.1f}, "
                                f"p99 {r['step_ms_p99']:.0f}")
     result = {"runs": rows, "steps": args.steps, "warmup": args.warmup, "repeat": args.repeat}
-    path = write_result("workers", device, result, args.out)
-    result["device"] = json.load(open(path))["device"]
-    plot(result, str(path.with_suffix("")))
+    publish("workers", device, result, args, plot)
     print(f"{'scene':>10} {'worker':>10} {'median':>8} {'mean':>8} {'p99':>8} {'iter':>6} {'factors':>8}")
     for r in rows:
         print(f"{r['scene']:>10} {r['worker']:>10} {r['step_ms_median']:8.1f} {r['step_ms_mean']:8.1f} "
               f"{r['step_ms_p99']:8.1f} {r['iterations_mean']:6.2f} {r['factors_installed']:8d}")
-    print(f"wrote {path} and {path.with_suffix('.png')}")
     return 0

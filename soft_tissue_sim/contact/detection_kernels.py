@@ -1,0 +1,405 @@
+"""Warp kernels of contact detection: one thread per tissue surface node (against a plane,
+a capsule, a static triangle mesh, the tissue's own triangles) or per surface triangle
+(against a capsule). Launched by :mod:`soft_tissue_sim.contact.detection`.
+
+Every kernel writes its own output slot (``active[k]`` = 1 with gap, normal and point where
+it found a contact within ``distance``, 0 elsewhere): the normal is a unit vector pointing
+the way the tissue is pushed, the gap is < 0 for a penetration, the point lies on the other
+surface.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .geometry import (
+    F64,
+    closest_on_segment,
+    plane_bary,
+    segment_triangle_closest,
+    to_vec3f,
+    triangle_closest_bary,
+)
+
+
+@wp.func
+def emit(
+    active: wp.array(dtype=wp.int32),
+    gap: wp.array(dtype=wp.float64),
+    nrm: wp.array(dtype=wp.vec3d),
+    cpoint: wp.array(dtype=wp.vec3d),
+    k: int,
+    g: wp.float64,
+    n: wp.vec3d,
+    p: wp.vec3d,
+):
+    """Slot k holds a contact: gap g, normal n, point p on the other surface."""
+    active[k] = 1
+    gap[k] = g
+    nrm[k] = n
+    cpoint[k] = p
+
+
+@wp.kernel
+def plane_contacts_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    nodes: wp.array(dtype=wp.int32),
+    point: wp.vec3d,
+    normal: wp.vec3d,
+    distance: wp.float64,
+    active: wp.array(dtype=wp.int32),
+    gap: wp.array(dtype=wp.float64),
+    nrm: wp.array(dtype=wp.vec3d),
+    cpoint: wp.array(dtype=wp.vec3d),
+):
+    """Surface node k against the plane (point, normal): gap = n . (x - point)."""
+    k = wp.tid()
+    xp = x[nodes[k]]
+    g = wp.dot(xp - point, normal)
+    active[k] = 0
+    if g < distance:
+        emit(active, gap, nrm, cpoint, k, g, normal, xp - g * normal)
+
+
+@wp.kernel
+def capsule_contacts_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    nodes: wp.array(dtype=wp.int32),
+    a: wp.vec3d,
+    b: wp.vec3d,
+    radius: wp.float64,
+    distance: wp.float64,
+    active: wp.array(dtype=wp.int32),
+    gap: wp.array(dtype=wp.float64),
+    nrm: wp.array(dtype=wp.vec3d),
+    cpoint: wp.array(dtype=wp.vec3d),
+):
+    """Surface node k against the capsule of axis ab: gap = |x - closest axis point| - radius."""
+    k = wp.tid()
+    xp = x[nodes[k]]
+    c = closest_on_segment(xp, a, b)
+    d = xp - c
+    dist = wp.length(d)
+    g = dist - radius
+    active[k] = 0
+    if g < distance:
+        n = wp.vec3d(F64(0.0), F64(0.0), F64(-1.0))
+        if dist > F64(1e-12) * radius:
+            n = d / dist
+        else:  # on the axis: push out perpendicular to it
+            ax = b - a
+            if wp.length(ax) > F64(0.0):
+                n = wp.normalize(wp.cross(ax, wp.vec3d(F64(1.0), F64(0.0), F64(0.0))))
+                if wp.length(wp.cross(ax, wp.vec3d(F64(1.0), F64(0.0), F64(0.0)))) < F64(1e-6) * wp.length(ax):
+                    n = wp.normalize(wp.cross(ax, wp.vec3d(F64(0.0), F64(1.0), F64(0.0))))
+        emit(active, gap, nrm, cpoint, k, g, n, c + radius * n)
+
+
+
+@wp.kernel
+def capsule_faces_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    faces: wp.array(dtype=wp.vec3i),
+    edge_owner: wp.array(dtype=wp.vec3i),
+    a: wp.vec3d,
+    b: wp.vec3d,
+    radius: wp.float64,
+    distance: wp.float64,
+    blade_lo: wp.float64,
+    blade_hi: wp.float64,
+    inside: int,
+    active: wp.array(dtype=wp.int32),
+    gap: wp.array(dtype=wp.float64),
+    nrm: wp.array(dtype=wp.vec3d),
+    cpoint: wp.array(dtype=wp.vec3d),
+    bary: wp.array(dtype=wp.vec3d),
+):
+    """Surface triangle f (outward normal by the right hand) against the capsule of axis ab,
+    so that a tool thinner than the mesh spacing cannot slip between nodes.
+
+    Only where the triangle's closest point to the axis is inside it, or on an edge this face
+    owns (``edge_owner[f][k]`` = 1 for the edge from vertex k to vertex k + 1; one face per
+    edge, so each edge counts once); a vertex is the node contacts' business. Normal from the
+    axis point to the triangle point (the way the tissue is pushed, like the node contacts),
+    gap = their distance - radius, point = on the capsule's surface. Where the axis pierces
+    the triangle (or touches it), the tissue is pushed inwards (-face normal) until the part of
+    the axis above the triangle (clipped to the triangle's prism) is ``radius`` above it:
+    gap = (lowest signed height of that part) - radius, the point and barycentric weights at
+    that lowest point. Not a contact, skipped: a piercing at an axis fraction in [blade_lo,
+    blade_hi] (the instrument's blade: a cut in progress), and any piercing or touching when
+    ``inside`` (the tool was already through the surface at the step's start, e.g. in a cut:
+    the triangles around it are then only kept a radius away from the axis)."""
+    f = wp.tid()
+    active[f] = 0
+    t = faces[f]
+    va = x[t[0]]
+    vb = x[t[1]]
+    vc = x[t[2]]
+    nf = wp.cross(vb - va, vc - va)
+    area2 = wp.length(nf)
+    if area2 <= F64(0.0):
+        return
+    nf = nf / area2
+    # quick reject: bounding sphere of the triangle against the capsule
+    cen = (va + vb + vc) / F64(3.0)
+    rad = wp.max(wp.length(va - cen), wp.max(wp.length(vb - cen), wp.length(vc - cen)))
+    if wp.length(cen - closest_on_segment(cen, a, b)) > radius + distance + rad:
+        return
+    zero = F64(0.0)
+    one = F64(1.0)
+    s, w, d2, crossing = segment_triangle_closest(a, b, va, vb, vc)
+    # vertices belong to the node contacts; an edge to one of its two faces
+    tiny = F64(1e-12)
+    nz = int(0)
+    zero_at = int(-1)
+    for k in range(3):
+        if w[k] > tiny:
+            nz += 1
+        else:
+            zero_at = k
+    if nz <= 1:
+        return
+    if nz == 2 and edge_owner[f][(zero_at + 1) % 3] == 0:
+        return
+    dist = wp.sqrt(d2)
+    if crossing == 0 and dist > tiny * radius:
+        g = dist - radius
+        if g < distance:
+            p = a + s * (b - a)
+            n = (w[0] * va + w[1] * vb + w[2] * vc - p) / dist
+            emit(active, gap, nrm, cpoint, f, g, n, p + radius * n)
+            bary[f] = w
+        return
+    # pierced or touched
+    if inside != 0 or (crossing != 0 and s >= blade_lo and s <= blade_hi):
+        return
+    # the part of the axis inside the triangle's prism: s0 <= s <= s1
+    s0 = zero
+    s1 = one
+    for k in range(3):
+        u = x[t[k]]
+        m = wp.cross(nf, x[t[(k + 1) % 3]] - u)  # towards the inside of the triangle
+        h0 = wp.dot(a - u, m)
+        dh = wp.dot(b - u, m) - h0
+        if dh > zero:
+            s0 = wp.max(s0, -h0 / dh)
+        elif dh < zero:
+            s1 = wp.min(s1, -h0 / dh)
+        elif h0 < zero:
+            s1 = -one
+    da = wp.dot(a - va, nf)
+    db = wp.dot(b - va, nf)
+    sl = s  # rounding left the prism empty: the touching point
+    if s0 <= s1:
+        sl = s0
+        if da + s1 * (db - da) < da + s0 * (db - da):
+            sl = s1
+    h = wp.min(zero, da + sl * (db - da))
+    p = a + sl * (b - a)
+    wl = plane_bary(p, va, vb, vc)
+    wl = wp.vec3d(wp.max(wl[0], zero), wp.max(wl[1], zero), wp.max(wl[2], zero))
+    wl = wl / (wl[0] + wl[1] + wl[2])
+    n = -nf
+    emit(active, gap, nrm, cpoint, f, h - radius, n, p + radius * n)
+    bary[f] = wl
+
+
+@wp.kernel
+def capsule_crossings_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    faces: wp.array(dtype=wp.vec3i),
+    a: wp.vec3d,
+    b: wp.vec3d,
+    crossed: wp.array(dtype=wp.int32),
+):
+    """crossed[f] = 1 where the axis ab passes through surface triangle f."""
+    f = wp.tid()
+    crossed[f] = 0
+    t = faces[f]
+    va = x[t[0]]
+    vb = x[t[1]]
+    vc = x[t[2]]
+    if wp.length(wp.cross(vb - va, vc - va)) <= F64(0.0):
+        return
+    cen = (va + vb + vc) / F64(3.0)
+    rad = wp.max(wp.length(va - cen), wp.max(wp.length(vb - cen), wp.length(vc - cen)))
+    if wp.length(cen - closest_on_segment(cen, a, b)) > rad:
+        return
+    s, w, d2, crossing = segment_triangle_closest(a, b, va, vb, vc)
+    crossed[f] = crossing
+
+
+@wp.kernel
+def trimesh_contacts_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    nodes: wp.array(dtype=wp.int32),
+    mesh_id: wp.uint64,
+    verts: wp.array(dtype=wp.vec3d),
+    tris: wp.array(dtype=wp.vec3i),
+    distance: wp.float64,
+    search: wp.float32,
+    active: wp.array(dtype=wp.int32),
+    gap: wp.array(dtype=wp.float64),
+    nrm: wp.array(dtype=wp.vec3d),
+    cpoint: wp.array(dtype=wp.vec3d),
+):
+    """Surface node k against a static triangle mesh: the closest face from the float32 BVH
+    (inside/outside from the angle-weighted pseudo normal), then the float64 closest point."""
+    k = wp.tid()
+    xp = x[nodes[k]]
+    active[k] = 0
+    q = wp.mesh_query_point_sign_normal(mesh_id, to_vec3f(xp), search)
+    if q.result:
+        t = tris[q.face]
+        va = verts[t[0]]
+        vb = verts[t[1]]
+        vc = verts[t[2]]
+        w = triangle_closest_bary(xp, va, vb, vc)
+        qp = w[0] * va + w[1] * vb + w[2] * vc
+        d = xp - qp
+        dist = wp.length(d)
+        nf = wp.normalize(wp.cross(vb - va, vc - va))
+        # inside/outside: from the face normal in float64 where d is mostly along it (the
+        # float32 pseudo-normal sign is unreliable within rounding of the surface), else
+        # from the angle-weighted pseudo normal of the float32 query (edges and corners)
+        sf = wp.dot(d, nf)
+        sgn = F64(1.0)
+        if wp.abs(sf) >= F64(0.5) * dist:
+            if sf < F64(0.0):
+                sgn = F64(-1.0)
+        elif q.sign < wp.float32(0.0):
+            sgn = F64(-1.0)
+        g = sgn * dist
+        if g < distance:
+            n = nf
+            if dist > F64(1e-12) * wp.length(vb - va):
+                n = (sgn / dist) * d
+            emit(active, gap, nrm, cpoint, k, g, n, qp)
+
+
+@wp.kernel
+def face_normals_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    faces: wp.array(dtype=wp.vec3i),
+    node_normal: wp.array(dtype=wp.vec3d),
+):
+    """Area-weighted outward normals accumulated on the surface nodes."""
+    f = wp.tid()
+    t = faces[f]
+    n = wp.cross(x[t[1]] - x[t[0]], x[t[2]] - x[t[0]])
+    for j in range(3):
+        wp.atomic_add(node_normal, t[j], n)
+
+
+@wp.kernel
+def copy_points_f32_kernel(x: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    out[i] = to_vec3f(x[i])
+
+
+@wp.kernel
+def self_contacts_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    nodes: wp.array(dtype=wp.int32),
+    mesh_id: wp.uint64,
+    faces: wp.array(dtype=wp.vec3i),
+    face_comp: wp.array(dtype=wp.int32),
+    node_comp: wp.array(dtype=wp.int32),
+    node_normal: wp.array(dtype=wp.vec3d),
+    ring_offsets: wp.array(dtype=wp.int32),
+    ring_nodes: wp.array(dtype=wp.int32),
+    distance: wp.float64,
+    margin: wp.float32,
+    facing: wp.float64,
+    depth: wp.float64,
+    active: wp.array(dtype=wp.int32),
+    tri: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3d),
+    gap: wp.array(dtype=wp.float64),
+    nrm: wp.array(dtype=wp.vec3d),
+    cpoint: wp.array(dtype=wp.vec3d),
+):
+    """Surface node k against the tissue's surface triangles within ``distance``.
+
+    Skipped: triangles incident to the node or to its tet neighbours (the node's own
+    neighbourhood), and triangles of the same connected component unless they face the node
+    (node normal . triangle normal <= -facing, e.g. the two sides of a cut). In front of a
+    triangle the gap is the distance to it (normal from the closest point to the node);
+    behind it, a penetration counts only if the node projects inside the triangle and lies
+    at most ``depth`` behind it (gap = signed plane distance, normal = the triangle's): the
+    positions searched are the step's start, where the last correction left at most a
+    contact tolerance of penetration, so a node deeper behind a triangle is on the body's
+    far side, not in it (taking it pushes the body through itself). The candidate of
+    smallest |gap| wins.
+    """
+    k = wp.tid()
+    p = nodes[k]
+    xp = x[p]
+    active[k] = 0
+    xf = to_vec3f(xp)
+    lo = wp.vec3(xf[0] - margin, xf[1] - margin, xf[2] - margin)
+    hi = wp.vec3(xf[0] + margin, xf[1] + margin, xf[2] + margin)
+    nn = node_normal[p]
+    nlen = wp.length(nn)
+    if nlen > F64(0.0):
+        nn = nn / nlen
+    best = distance
+    best_face = int(-1)
+    best_w = wp.vec3d()
+    best_g = F64(0.0)
+    best_n = wp.vec3d()
+    best_q = wp.vec3d()
+    query = wp.mesh_query_aabb(mesh_id, lo, hi)
+    for f in query:
+        t = faces[f]
+        ok = t[0] != p and t[1] != p and t[2] != p
+        if ok:
+            for j in range(ring_offsets[p], ring_offsets[p + 1]):
+                r = ring_nodes[j]
+                if r == t[0] or r == t[1] or r == t[2]:
+                    ok = False
+        va = x[t[0]]
+        vb = x[t[1]]
+        vc = x[t[2]]
+        nt = wp.cross(vb - va, vc - va)
+        area2 = wp.length(nt)
+        if area2 <= F64(0.0):
+            ok = False
+        if ok:
+            nt = nt / area2
+            if face_comp[f] == node_comp[p]:
+                if nlen <= F64(0.0) or wp.dot(nn, nt) > -facing:
+                    ok = False
+        if ok:
+            w = triangle_closest_bary(xp, va, vb, vc)
+            q = w[0] * va + w[1] * vb + w[2] * vc
+            d = xp - q
+            s = wp.dot(d, nt)
+            g = F64(0.0)
+            n = nt
+            valid = False
+            if s >= F64(0.0):
+                dist = wp.length(d)
+                g = dist
+                if dist > F64(1e-9) * wp.sqrt(area2):
+                    n = d / dist
+                valid = True
+            else:
+                wb = plane_bary(xp, va, vb, vc)
+                if -s <= depth and wb[0] >= F64(-1e-9) and wb[1] >= F64(-1e-9) and wb[2] >= F64(-1e-9):
+                    w = wp.vec3d(wp.max(wb[0], F64(0.0)), wp.max(wb[1], F64(0.0)), wp.max(wb[2], F64(0.0)))
+                    w = w / (w[0] + w[1] + w[2])
+                    q = w[0] * va + w[1] * vb + w[2] * vc
+                    g = s
+                    valid = True
+            if valid and wp.abs(g) < best:
+                best = wp.abs(g)
+                best_face = f
+                best_w = w
+                best_g = g
+                best_n = n
+                best_q = q
+    if best_face >= 0:
+        emit(active, gap, nrm, cpoint, k, best_g, best_n, best_q)
+        tri[k] = best_face
+        bary[k] = best_w

@@ -1,0 +1,67 @@
+"""The scene's ``contact`` options: defaults and validation.
+
+Scene options (all optional)::
+
+    contact:
+      distance: 0.002        # [m] detection distance: pairs closer than this become constraints
+      friction: 0.0          # Coulomb coefficient (obstacles / instruments may set their own)
+      friction_cone: disk    # disk | pyramid
+      max_iterations: 200    # Gauss-Seidel sweeps
+      tolerance: 1.0e-8      # [m] LCP residual (largest W_rr |change of lambda_r| in a sweep)
+      self_collision: false  # tissue surface nodes against the tissue's own triangles
+      facing: 0.5            # same-component self contact only if n_node . n_triangle <= -facing
+      self_depth: null       # [m] deepest penetration behind a tissue triangle taken as real
+                             # (default 2 x distance); deeper is the far side of the body
+      compliance: preconditioner   # preconditioner | diagonal | exact (see contact.compliance)
+      max_contacts: 2048     # keep the deepest ones beyond this
+
+Invariant: :func:`parse_options` returns every key of :data:`DEFAULTS`, validated, or raises
+:class:`~soft_tissue_sim.material.ParameterError` with a message.
+"""
+
+from __future__ import annotations
+
+from ..instrument import finite_number
+from ..material import ParameterError
+
+COMPLIANCES = ("preconditioner", "diagonal", "exact")
+DEFAULTS = {
+    "distance": 0.002,
+    "friction": 0.0,
+    "friction_cone": "disk",
+    "max_iterations": 200,
+    "tolerance": 1e-8,
+    "self_collision": False,
+    "facing": 0.5,
+    "self_depth": None,
+    "compliance": "preconditioner",
+    "max_contacts": 2048,
+}
+
+
+def parse_options(cfg) -> dict:
+    """The contact options of a scene, defaults filled in."""
+    if not isinstance(cfg, dict):
+        raise ParameterError(f"scene 'contact' must be a mapping, got {cfg!r}")
+    unknown = set(cfg) - set(DEFAULTS)
+    if unknown:
+        raise ParameterError(f"contact: unknown keys {sorted(unknown)} (allowed: {sorted(DEFAULTS)})")
+    o = {**DEFAULTS, **{k: v for k, v in cfg.items() if v is not None}}
+    o["distance"] = finite_number("contact distance", o["distance"], minimum=0.0, strict=True)
+    o["friction"] = finite_number("contact friction", o["friction"], minimum=0.0)
+    o["tolerance"] = finite_number("contact tolerance", o["tolerance"], minimum=0.0, strict=True)
+    o["facing"] = finite_number("contact facing", o["facing"], minimum=-1.0)
+    if o["facing"] > 1.0:
+        raise ParameterError(f"contact facing is a cosine in [-1, 1], got {o['facing']}")
+    o["self_depth"] = (2.0 * o["distance"] if o["self_depth"] is None
+                       else finite_number("contact self_depth", o["self_depth"], minimum=0.0, strict=True))
+    for key in ("max_iterations", "max_contacts"):
+        if isinstance(o[key], bool) or not isinstance(o[key], int) or o[key] < 1:
+            raise ParameterError(f"contact {key} must be an integer >= 1, got {o[key]!r}")
+    if not isinstance(o["self_collision"], bool):
+        raise ParameterError(f"contact self_collision must be true or false, got {o['self_collision']!r}")
+    if o["friction_cone"] not in ("disk", "pyramid"):
+        raise ParameterError(f"contact friction_cone must be 'disk' or 'pyramid', got {o['friction_cone']!r}")
+    if o["compliance"] not in COMPLIANCES:
+        raise ParameterError(f"contact compliance must be one of {', '.join(COMPLIANCES)}, got {o['compliance']!r}")
+    return o

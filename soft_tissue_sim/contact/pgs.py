@@ -1,0 +1,149 @@
+"""The contact LCP (paper eq. 3) by projected Gauss-Seidel: a Warp kernel and its launch.
+
+    delta = W lambda + delta^0,   0 <= delta_n  _|_  lambda_n >= 0,
+    |lambda_t| <= mu lambda_n     (Coulomb: a disk, or a pyramid per tangent component)
+
+Contact c owns row ``row_start[c]`` (normal) and, with friction, the two tangent rows after
+it. Invariants of the result: lambda_n >= 0 and the friction force within its cone; the
+residual is the largest change one more (Jacobi) sweep would make [m], 0 exactly at a
+solution. The kernel runs on one thread (the sweeps are sequential), on the CPU.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .geometry import F64
+
+
+@wp.func
+def contact_update(
+    W: wp.array2d(dtype=wp.float64),
+    d0: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    r: int,
+    rows: int,
+    mu: wp.float64,
+    pyramid: int,
+):
+    """Projected Gauss-Seidel update of the contact whose normal row is r, from the current
+    lambda (not written). Returns (lambda_n, lambda_t1, lambda_t2, change), the change being
+    the largest W_rr |new - old| of its rows [m]; for an active normal row that is |delta_n|."""
+    zero = F64(0.0)
+    m = W.shape[0]
+    dn = d0[r]
+    for j in range(m):
+        dn += W[r, j] * lam[j]
+    ln = wp.max(zero, lam[r] - dn / W[r, r])
+    change = W[r, r] * wp.abs(ln - lam[r])
+    l1 = zero
+    l2 = zero
+    if rows == 3:
+        dln = ln - lam[r]  # the tangential gaps see the new normal force
+        t1 = d0[r + 1] + W[r + 1, r] * dln
+        t2 = d0[r + 2] + W[r + 2, r] * dln
+        for j in range(m):
+            t1 += W[r + 1, j] * lam[j]
+            t2 += W[r + 2, j] * lam[j]
+        a11 = W[r + 1, r + 1]
+        a22 = W[r + 2, r + 2]
+        a12 = F64(0.5) * (W[r + 1, r + 2] + W[r + 2, r + 1])
+        det = a11 * a22 - a12 * a12
+        l1 = lam[r + 1]
+        l2 = lam[r + 2]
+        if det > zero:  # stick: zero tangential displacement
+            l1 = l1 - (a22 * t1 - a12 * t2) / det
+            l2 = l2 - (a11 * t2 - a12 * t1) / det
+        lim = mu * ln
+        if pyramid != 0:
+            l1 = wp.clamp(l1, -lim, lim)
+            l2 = wp.clamp(l2, -lim, lim)
+        else:
+            lt = wp.sqrt(l1 * l1 + l2 * l2)
+            if lt > lim:  # slide: on the disk's rim
+                s = zero
+                if lt > zero:
+                    s = lim / lt
+                l1 = l1 * s
+                l2 = l2 * s
+        change = wp.max(change, wp.max(a11 * wp.abs(l1 - lam[r + 1]), a22 * wp.abs(l2 - lam[r + 2])))
+    return ln, l1, l2, change
+
+
+@wp.func
+def pgs_residual(
+    W: wp.array2d(dtype=wp.float64),
+    d0: wp.array(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    row_start: wp.array(dtype=wp.int32),
+    n_rows: wp.array(dtype=wp.int32),
+    mu: wp.array(dtype=wp.float64),
+    pyramid: int,
+):
+    """Largest change a (Jacobi) sweep would make: 0 exactly at a solution of the LCP [m]."""
+    res = F64(0.0)
+    for c in range(row_start.shape[0]):
+        ln, l1, l2, ch = contact_update(W, d0, lam, row_start[c], n_rows[c], mu[c], pyramid)
+        res = wp.max(res, ch)
+    return res
+
+
+@wp.kernel
+def pgs_kernel(
+    W: wp.array2d(dtype=wp.float64),
+    d0: wp.array(dtype=wp.float64),
+    row_start: wp.array(dtype=wp.int32),
+    n_rows: wp.array(dtype=wp.int32),
+    mu: wp.array(dtype=wp.float64),
+    max_iterations: int,
+    tolerance: wp.float64,
+    pyramid: int,
+    lam: wp.array(dtype=wp.float64),
+    info: wp.array(dtype=wp.float64),
+):
+    """Projected Gauss-Seidel for delta = W lambda + d0 with Signorini-Coulomb contacts.
+
+    Contact c owns row row_start[c] (normal) and, if n_rows[c] == 3, the two tangent rows
+    after it. Sweeps until the largest change (see :func:`contact_update`) of a sweep and the
+    residual (:func:`pgs_residual`) are <= tolerance. info = [sweeps, residual].
+    One thread: launched with dim 1 on the CPU.
+    """
+    nc = row_start.shape[0]
+    it = int(0)
+    res = F64(-1.0)
+    for sweep in range(max_iterations):
+        change = F64(0.0)
+        for c in range(nc):
+            r = row_start[c]
+            ln, l1, l2, ch = contact_update(W, d0, lam, r, n_rows[c], mu[c], pyramid)
+            lam[r] = ln
+            if n_rows[c] == 3:
+                lam[r + 1] = l1
+                lam[r + 2] = l2
+            change = wp.max(change, ch)
+        it = sweep + 1
+        res = F64(-1.0)
+        if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
+            res = pgs_residual(W, d0, lam, row_start, n_rows, mu, pyramid)
+            if res <= tolerance:
+                break
+    if res < F64(0.0):
+        res = pgs_residual(W, d0, lam, row_start, n_rows, mu, pyramid)
+    info[0] = F64(it)
+    info[1] = res
+
+
+
+def solve_pgs(W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, rows: np.ndarray, mu: np.ndarray,
+              max_iterations: int, tolerance: float, pyramid: bool, lam0: np.ndarray) -> tuple[np.ndarray, int, float]:
+    """Solve the LCP from the warm start ``lam0``: (lambda, sweeps, residual [m])."""
+    lam_wp = wp.array(lam0, dtype=wp.float64, device="cpu")
+    info = wp.zeros(2, dtype=wp.float64, device="cpu")
+    wp.launch(pgs_kernel, 1,
+              [wp.array(W, dtype=wp.float64, device="cpu"), wp.array(d0, dtype=wp.float64, device="cpu"),
+               wp.array(row_start, dtype=wp.int32, device="cpu"), wp.array(rows, dtype=wp.int32, device="cpu"),
+               wp.array(mu, dtype=wp.float64, device="cpu"), int(max_iterations), float(tolerance), int(pyramid),
+               lam_wp, info], device="cpu")
+    its, res = info.numpy()
+    return lam_wp.numpy().copy(), int(its), float(res)

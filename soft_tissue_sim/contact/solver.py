@@ -1,0 +1,335 @@
+"""The contact component: instruments, obstacles, detection, the LCP and the correction of
+one step (paper section 2.3, eq. 3-4; the compliance with cuts, eq. 11-12).
+
+One step after the free motion of eq. (1): detect (:mod:`.detection`), build the Jacobian H
+and delta^0, solve the LCP (:mod:`.pgs`) with W from :mod:`.compliance`, correct
+x += dt^2 P^-1 H^T lambda and v by the same over dt. Sign convention: lambda and
+:meth:`ContactSolver.contact_forces` are forces ON THE TISSUE [N], world frame; the wrench of
+an object is the force ON THAT OBJECT, F = -(sum of the contact forces on the tissue from
+it), and T = sum (p_c - o) x (-f_c) [N m] about its origin o (an instrument's tool-frame
+origin at the step's pose, a plane's point, the world origin for a mesh), p_c the contact
+point on the object's surface.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.sparse as sps
+import warp as wp
+
+from ..body import BodyView
+from ..instrument import Instrument, MeshObstacle, obstacle_from_config
+from ..material import ParameterError
+from ..stats import ContactStats
+from .compliance import compliance, positive_definite
+from .detection import SurfaceTopology, face_contacts, node_contacts, self_contacts
+from .geometry import tangent_basis
+from .options import parse_options
+from .pgs import solve_pgs
+from .records import ContactResponse, Contacts
+
+
+class ContactSolver:
+    """Instruments, obstacles, detection and the LCP response of one simulation.
+
+    Built by :class:`soft_tissue_sim.scene.Simulation` only when the scene names
+    instruments, obstacles or self-collision. See the module docstring for the method,
+    the units and the sign conventions.
+    """
+
+    def __init__(self, options: dict, instruments: list, obstacles: list, device, points: np.ndarray):
+        """``points``: the tissue's rest positions (an instrument without a pose is parked above
+        them). Raises ParameterError on bad options."""
+        self.options = parse_options(options or {})
+        o = self.options
+        self.device = device
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        self.instruments: dict[str, Instrument] = {}
+        if not isinstance(instruments, list) or not isinstance(obstacles, list):
+            raise ParameterError("scene 'instruments' and 'obstacles' must be lists")
+        for k, cfg in enumerate(instruments):
+            # default pose: shaft up (+z), tip sphere 2 detection distances above the tissue's top centre
+            r = cfg.get("radius", 0.0) if isinstance(cfg, dict) else 0.0
+            try:
+                r = float(r)
+            except (TypeError, ValueError):
+                r = 0.0
+            default = [0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), hi[2] + r + 2.0 * o["distance"]]
+            inst = Instrument.from_config(cfg, k, default)
+            if inst.name in self.instruments:
+                raise ParameterError(f"instrument name {inst.name!r} used twice")
+            self.instruments[inst.name] = inst
+        self.obstacles = {}
+        for k, cfg in enumerate(obstacles):
+            obs = obstacle_from_config(cfg, k)
+            if obs.name in self.obstacles or obs.name in self.instruments:
+                raise ParameterError(f"obstacle name {obs.name!r} used twice (names are shared with instruments)")
+            self.obstacles[obs.name] = obs
+        self.objects = list(self.instruments.values()) + list(self.obstacles.values())
+        self._topo: SurfaceTopology | None = None
+        self._warm: dict = {}
+        self.contacts = Contacts.empty(responded=True)
+        self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite
+
+    # ------------------------------------------------------------------ API
+    def instrument_names(self) -> list[str]:
+        return list(self.instruments)
+
+    def obstacle_names(self) -> list[str]:
+        return list(self.obstacles)
+
+    def instrument(self, name: str) -> Instrument:
+        try:
+            return self.instruments[name]
+        except KeyError:
+            raise ValueError(f"unknown instrument {name!r}; this scene has {self.instrument_names()}") from None
+
+    def set_instrument_pose(self, name, position, quaternion_xyzw, linear_velocity=None, angular_velocity=None):
+        """Pose for the next step (world frame, quaternion x, y, z, w). ValueError on an
+        unknown name, NaN/inf, or a non-unit quaternion; the previous pose is then kept."""
+        self.instrument(name).set_pose(position, quaternion_xyzw, linear_velocity, angular_velocity)
+
+    def instrument_wrench(self, name) -> tuple[np.ndarray, np.ndarray]:
+        """(force, torque) ON the instrument from the last step's contacts, world frame,
+        torque about the tool frame's origin [N, N m]."""
+        inst = self.instrument(name)
+        return inst.force.copy(), inst.torque.copy()
+
+    def wrench(self, name) -> tuple[np.ndarray, np.ndarray]:
+        """(force, torque) ON any named instrument or obstacle (see the module docstring)."""
+        obj = self.instruments.get(name) or self.obstacles.get(name)
+        if obj is None:
+            raise ValueError(f"unknown instrument or obstacle {name!r}; this scene has "
+                             f"{self.instrument_names() + self.obstacle_names()}")
+        return obj.force.copy(), obj.torque.copy()
+
+    def contact_points(self) -> np.ndarray:
+        """(k, 3) points (on the other surface) of the last step's contacts that carry force."""
+        c = self.contacts
+        return c.point[c.lambda_n > 0.0].copy()
+
+    def contact_forces(self) -> np.ndarray:
+        """(k, 3) forces ON THE TISSUE [N] at :meth:`contact_points`, world frame."""
+        c = self.contacts
+        return c.force[c.lambda_n > 0.0].copy()
+
+    def reset(self) -> None:
+        for inst in self.instruments.values():
+            inst.reset()
+        for obs in self.obstacles.values():
+            obs.force[:] = 0.0
+            obs.torque[:] = 0.0
+        self._topo = None
+        self._warm = {}
+        self.contacts = Contacts.empty(responded=True)
+        self.compliance_fallbacks = 0
+
+    # ------------------------------------------------------------ detection
+    def _topology(self, fem) -> SurfaceTopology:
+        if self._topo is None or not self._topo.matches(fem):
+            self._topo = SurfaceTopology(fem, self.options["self_collision"])
+        return self._topo
+
+    def _capsule_faces(self, topo: SurfaceTopology, oi: int, inst: Instrument, x: wp.array, a: np.ndarray,
+                       b: np.ndarray, x_start: wp.array | None) -> Contacts | None:
+        """Instrument ``oi`` against the surface triangles (:func:`.detection.face_contacts`)."""
+        return face_contacts(topo, oi, inst, x, a, b, x_start, self.options["distance"], self.device)
+
+    def detect(self, body, x: wp.array | None = None, x_features: wp.array | None = None, reach: float = 0.0,
+               x_start: wp.array | None = None) -> Contacts:
+        """The contacts of the tissue ``body`` (anything with ``fem`` and ``integrator``: the
+        simulation) against the objects and itself, object by object. Planes and instruments
+        are tested at positions ``x`` (default ``body.integrator.x``) within ``distance``,
+        triangle features (self-collision, mesh obstacles) at ``x_features`` (default ``x``)
+        within ``distance + reach``. ``x_start``: the tissue at the step's start, where the
+        instruments' previous poses tell which tools were already through the surface (their
+        piercings of triangles are then not contacts); without it every piercing is one."""
+        topo = self._topology(body.fem)
+        dev, dist = self.device, self.options["distance"]
+        x = body.integrator.x if x is None else x
+        xf = x if x_features is None else x_features
+        far = dist + float(reach)  # search radius of the triangle features
+        if len(topo.surface) == 0:
+            return Contacts.empty()
+        parts = []
+        for oi, obj in enumerate(self.objects):
+            parts.append(node_contacts(topo, oi, obj, x, xf, dist, far, dev))
+            if isinstance(obj, Instrument):
+                a, b = obj.segment_world()
+                parts.append(self._capsule_faces(topo, oi, obj, x, a, b, x_start))
+        parts.append(self_contacts(topo, xf, far, self.options["facing"], self.options["self_depth"], dev))
+        return Contacts.concat([p for p in parts if p is not None])
+
+    # ------------------------------------------------------------------ step
+    def step(self, body: BodyView) -> ContactResponse:
+        """Detect the contacts of the free motion (``body.integrator``'s x and v), solve the LCP
+        and update the wrenches and :attr:`contacts`. Returns the correction of x and v (the
+        caller applies it) and the statistics; ``body`` is only read."""
+        t0 = time.perf_counter()
+        o = self.options
+        for inst in self.instruments.values():
+            inst.begin_step()
+        integ = body.integrator
+        dt = integ.dt
+        x = integ.x.numpy().copy()  # free motion
+        v = integ.v.numpy().copy()
+        x_start = x - dt * v  # the step's start (x = x_start + dt v)
+        # Planes and instruments (exact half-spaces / the tool's new pose) are tested at the
+        # free-motion positions, at any depth. Triangle features are found at the step's start
+        # and their gap is linearised to the free motion; the search reaches `distance` plus
+        # how far surface nodes moved in the free motion (twice: node and triangle may close
+        # in on each other), so that nothing tunnels through a triangle in one step.
+        surf = self._topology(body.fem).surface
+        moved = float(np.sqrt(np.max(np.sum((x[surf] - x_start[surf]) ** 2, axis=1)))) if len(surf) else 0.0
+        xs_wp = wp.array(x_start, dtype=wp.vec3d, device=self.device)
+        c = self.detect(body, integ.x, xs_wp, reach=2.0 * moved, x_start=xs_wp)
+        tri_feature = c.obj < 0
+        for oi, obj in enumerate(self.objects):
+            if isinstance(obj, MeshObstacle):
+                tri_feature |= c.obj == oi
+        if tri_feature.any():
+            # The search radius is the largest motion of any surface node, so one fast fragment
+            # widens it for all. A pair can only close in by the motion of its own node and
+            # triangle: farther pairs cannot touch in this step and are dropped before the LCP.
+            mv = np.linalg.norm(x - x_start, axis=1)
+            tri_mv = np.where(c.obj < 0, mv[np.clip(c.tri, 0, None)].max(axis=1), 0.0)
+            reach_row = o["distance"] + mv[np.clip(c.node, 0, None)] + tri_mv
+            near = ~tri_feature | (c.gap <= reach_row)
+            if not near.all():
+                c = c.take(near)
+                tri_feature = tri_feature[near]
+            own = np.flatnonzero(c.obj < 0)  # tissue triangles move: their point follows the free motion
+            c.point[own] = np.einsum("ks,ksj->kj", c.bary[own], x[c.tri[own]])
+            c.gap[tri_feature] = np.einsum("kj,kj->k", c.normal[tri_feature],
+                                           x[c.node[tri_feature]] - c.point[tri_feature])
+        free = body.fem.free.numpy().copy()
+        k = len(c.node)
+        # Jacobian blocks: up to 4 nodes per contact with weights: the tissue point moves with
+        # +1 on its node, or +w_i on the triangle's nodes where it is a triangle's point
+        # (instrument against a face, node -1); a self-collision triangle is the other surface,
+        # -w_i. ws4 are these (the tissue point's relative displacement), w4 the same zeroed on
+        # fixed nodes. Contacts whose nodes are all fixed cannot be acted on: dropped.
+        nodes4 = np.concatenate([c.node[:, None], c.tri], axis=1)
+        tri_sign = np.where(c.obj < 0, -1.0, 1.0)[:, None]
+        ws4 = np.concatenate([np.ones((k, 1)), tri_sign * c.bary], axis=1) * (nodes4 >= 0)
+        w4 = ws4 * free[np.clip(nodes4, 0, None)]
+        keep = np.einsum("ij,ij->i", w4, w4) > 0.0
+        if keep.sum() > o["max_contacts"]:
+            order = np.argsort(np.where(keep, c.gap, np.inf), kind="stable")[: o["max_contacts"]]
+            keep = np.zeros(k, bool)
+            keep[order] = True
+        c = c.take(keep)
+        nodes4, w4, ws4 = nodes4[keep], w4[keep], ws4[keep]
+        k = len(c.node)
+        stats = ContactStats(contacts=k, self_contacts=int(np.sum(c.obj < 0)),
+                             face_contacts=int(np.sum((c.node < 0) & (c.obj >= 0))))
+        for obj in self.objects:
+            obj.force, obj.torque = np.zeros(3), np.zeros(3)
+        dx = None
+        if k == 0:
+            self.contacts = Contacts.empty(responded=True)
+            self._warm = {}
+        else:
+            dx = self._respond(body, c, nodes4, w4, ws4, free, x, x_start, stats)
+        # penetration left after the correction: detection again at the corrected positions
+        x_after = integ.x if dx is None else wp.array(x + dx, dtype=wp.vec3d, device=self.device)
+        after = self.detect(body, x_after, x_start=xs_wp)
+        if len(after):
+            stats.max_penetration = float(max(0.0, -after.gap.min()))
+        stats.contact_ms = 1000.0 * (time.perf_counter() - t0)
+        return ContactResponse(dx, stats)
+
+    def _respond(self, body: BodyView, c: Contacts, nodes4: np.ndarray, w4: np.ndarray, ws4: np.ndarray,
+                 free: np.ndarray, x: np.ndarray, x_start: np.ndarray, stats: ContactStats) -> np.ndarray:
+        """LCP of eq. (3) for the contacts ``c`` at the free motion ``x``; returns the correction
+        dx = dt^2 P^-1 H^T lambda of the positions. ``nodes4`` (k, 4): the contact's node and
+        triangle nodes (-1: none), ``ws4`` their weights in the tissue point's relative
+        displacement, ``w4`` the same zeroed on fixed nodes (the Jacobian's)."""
+        o = self.options
+        integ = body.integrator
+        dt = integ.dt
+        n = body.fem.n_nodes
+        k = len(c.node)
+        normal = c.normal
+        t1, t2 = tangent_basis(normal)
+        mu = np.full(k, o["friction"])
+        for oi, obj in enumerate(self.objects):
+            if obj.friction is not None:
+                mu[c.obj == oi] = obj.friction
+        rows = np.where(mu > 0.0, 3, 1).astype(np.int32)
+        row_start = np.concatenate([[0], np.cumsum(rows)[:-1]]).astype(np.int32)
+        m = int(rows.sum())
+        fr = rows == 3
+        # relative displacement during the step of the tissue point against the other surface
+        valid = nodes4 >= 0
+        disp = x - x_start
+        rel = np.einsum("ks,ksj->kj", ws4, disp[np.clip(nodes4, 0, None)])
+        for oi, obj in enumerate(self.objects):
+            sel = c.obj == oi
+            if sel.any() and fr[sel].any():
+                rel[sel] -= obj.point_displacement(c.point[sel], dt)
+        # H (m x 3n) and delta^0 (m)
+        d0 = np.zeros(m)
+        d0[row_start] = c.gap
+        d0[row_start[fr] + 1] = np.einsum("kj,kj->k", t1[fr], rel[fr])
+        d0[row_start[fr] + 2] = np.einsum("kj,kj->k", t2[fr], rel[fr])
+        ri, ci, vi = [], [], []
+        for dirs, rowidx, sel in ((normal, row_start, np.ones(k, bool)), (t1, row_start + 1, fr),
+                                  (t2, row_start + 2, fr)):
+            cc = np.flatnonzero(sel)
+            for s in range(4):
+                cs = cc[valid[cc, s]]
+                for j in range(3):
+                    ri.append(rowidx[cs])
+                    ci.append(3 * nodes4[cs, s] + j)
+                    vi.append(w4[cs, s] * dirs[cs, j])
+        H = sps.coo_matrix((np.concatenate(vi), (np.concatenate(ri), np.concatenate(ci))), shape=(m, 3 * n)).tocsr()
+        W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
+        W = dt * dt * 0.5 * (W0 + W0.T)
+        if kind != "diagonal" and not positive_definite(W):
+            # A factor corrected by many cuts, stale, with identity-padded DOFs, can stop being
+            # positive definite on the contact rows; PGS then diverges. The block diagonal of A
+            # always is: use it for this step and say so.
+            W0, apply_y, _ = compliance(H, "diagonal", body.preconditioner, integ, body.fem)
+            W = dt * dt * 0.5 * (W0 + W0.T)
+            kind = f"diagonal ({kind} not positive definite on the contacts)"
+            self.compliance_fallbacks += 1
+        stats.compliance_fallbacks = self.compliance_fallbacks
+        # warm start from last step's forces on the same (object, node) or (object, triangle)
+        # pairs; nodes are named by the simulation's node uids where it keeps them (stable
+        # across cuts), else by index
+        uids = body.node_uids
+        uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
+        node_u = uids[np.clip(c.node, 0, None)]
+        tri_u = np.sort(uids[np.clip(c.tri, 0, None)], axis=1)
+        keys = [(int(c.obj[i]), int(node_u[i])) if c.node[i] >= 0
+                else (int(c.obj[i]), *(int(u_) for u_ in tri_u[i])) for i in range(k)]
+        lam = np.zeros(m)
+        for i in range(k):
+            f = self._warm.get(keys[i])
+            if f is not None:
+                r = row_start[i]
+                lam[r] = max(0.0, float(f @ normal[i]))
+                if fr[i]:
+                    lam[r + 1], lam[r + 2] = float(f @ t1[i]), float(f @ t2[i])
+        lam, its, res = solve_pgs(W, d0, row_start, rows, mu, o["max_iterations"], o["tolerance"],
+                                  o["friction_cone"] == "pyramid", lam)
+        stats.gs_iterations, stats.lcp_residual, stats.compliance = its, res, kind
+        # correction with the same compliance: dx = dt^2 P^-1 H^T lambda, v += dx / dt
+        dx = (dt * dt) * np.asarray(apply_y(lam)).reshape(n, 3) * free[:, None]
+        # forces on the tissue, wrenches on the objects, warm start
+        ln = lam[row_start]
+        force = ln[:, None] * normal
+        force[fr] += lam[row_start[fr] + 1][:, None] * t1[fr] + lam[row_start[fr] + 2][:, None] * t2[fr]
+        for oi, obj in enumerate(self.objects):
+            sel = c.obj == oi
+            if sel.any():
+                f_obj = -force[sel]
+                obj.force = f_obj.sum(axis=0)
+                obj.torque = np.cross(c.point[sel] - obj.origin, f_obj).sum(axis=0)
+        self._warm = {keys[i]: force[i] for i in range(k) if ln[i] > 0.0}
+        self.contacts = c.responded(ln, force)
+        stats.active_contacts = int(np.sum(ln > 0.0))
+        return dx

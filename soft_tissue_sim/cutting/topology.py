@@ -1,0 +1,72 @@
+"""Node splitting: the two sides of the cut faces separate (paper section 3.1).
+
+At each node of a cut face, the node's tets are grouped into the sets that stay connected
+through uncut faces; every group beyond the first gets a copy of the node, numbered after
+the old nodes. Invariants: no tet changes shape; a node whose tets all stay connected is not
+copied; where the cut stops, the tets around its tip stay connected.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sps
+from scipy.sparse.csgraph import connected_components
+
+from ..mesh import unique_rows
+
+
+def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_faces: np.ndarray,
+                      all_pairs: np.ndarray, all_face_nodes: np.ndarray, n_nodes: int):
+    """Duplicate the nodes of the cut faces so that the two sides separate.
+
+    Returns (new_tets, source) where ``source`` (n_new,) gives, for each added node, the node it
+    copies; new nodes are numbered from ``n_nodes`` on.
+    """
+    cut_nodes = np.unique(cut_nodes_of_faces)
+    if not len(cut_nodes):
+        return tets.copy(), np.zeros(0, np.int64)
+    is_cut_node = np.zeros(n_nodes, bool)
+    is_cut_node[cut_nodes] = True
+    # incidences (node, tet) at cut nodes: vertices of a graph
+    t_idx, k_idx = np.nonzero(is_cut_node[tets])
+    inc_node = tets[t_idx, k_idx].astype(np.int64)
+    m = len(tets)
+    keys = inc_node * m + t_idx
+    order = np.argsort(keys)
+    keys_sorted = keys[order]
+    # edges: through each uncut interior face, for each of its cut nodes, (v, a) - (v, b)
+    cut_set = np.zeros(len(all_pairs), bool)
+    if len(cut_pairs):
+        # mark faces listed as cut (compare by sorted node triples)
+        fk = all_face_nodes[:, 0] * (n_nodes ** 2) + all_face_nodes[:, 1] * n_nodes + all_face_nodes[:, 2]
+        ck = cut_nodes_of_faces[:, 0] * (n_nodes ** 2) + cut_nodes_of_faces[:, 1] * n_nodes + cut_nodes_of_faces[:, 2]
+        cut_set = np.isin(fk, ck)
+    unc_pairs, unc_nodes = all_pairs[~cut_set], all_face_nodes[~cut_set]
+    ea, eb = [], []
+    for c in range(3):
+        v = unc_nodes[:, c].astype(np.int64)
+        sel = is_cut_node[v]
+        ka = v[sel] * m + unc_pairs[sel, 0]
+        kb = v[sel] * m + unc_pairs[sel, 1]
+        ea.append(order[np.searchsorted(keys_sorted, ka)])
+        eb.append(order[np.searchsorted(keys_sorted, kb)])
+    ea, eb = np.concatenate(ea), np.concatenate(eb)
+    nv = len(keys)
+    g = sps.coo_matrix((np.ones(len(ea)), (ea, eb)), shape=(nv, nv))
+    _, label = connected_components(g, directed=False)
+    # per node: its distinct groups; the first keeps the node, the others get copies
+    new_tets = tets.copy()
+    pair = unique_rows(np.stack([inc_node, label], axis=1))  # sorted by node then label
+    first_of_node = np.r_[True, pair[1:, 0] != pair[:-1, 0]]
+    extra = pair[~first_of_node]
+    source = extra[:, 0]
+    new_index = n_nodes + np.arange(len(extra))
+    # relabel incidences whose (node, label) is an extra group
+    ekey = extra[:, 0] * (label.max() + 1) + extra[:, 1]
+    ikey = inc_node * (label.max() + 1) + label
+    if not len(ekey):
+        return new_tets, source
+    pos = np.minimum(np.searchsorted(ekey, ikey), len(ekey) - 1)
+    hit = ekey[pos] == ikey
+    new_tets[t_idx[hit], k_idx[hit]] = new_index[pos[hit]]
+    return new_tets, source

@@ -1,0 +1,38 @@
+"""Where scenes and meshes are found: the source tree, then an installed share/ directory.
+
+Imports nothing of this package, so any module may use it.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+PACKAGE_ROOT = Path(__file__).resolve().parent.parent
+SCENES_DIR = PACKAGE_ROOT / "config" / "scenes"
+
+
+def share_dirs() -> list[Path]:
+    """Where scenes and meshes may live: the source tree, then an installed share/ directory."""
+    dirs = [PACKAGE_ROOT]
+    try:  # a colcon / ament install
+        from ament_index_python.packages import get_package_share_directory
+
+        dirs.append(Path(get_package_share_directory("soft_tissue_sim")))
+    except Exception:  # noqa: BLE001 - ament index absent or package not installed: source tree only
+        pass
+    return dirs
+
+
+def resolve_path(name: str | os.PathLike, base: Path | None = None) -> Path:
+    """Find a scene or mesh file: as given, relative to ``base``, then in the package's dirs."""
+    p = Path(name)
+    candidates = [p] if p.is_absolute() else [Path.cwd() / p]
+    if base is not None and not p.is_absolute():
+        candidates.append(base / p)
+    for d in share_dirs():
+        candidates += [d / p, d / "config" / "scenes" / p, d / "meshes" / p.name]
+    for c in candidates:
+        if c.is_file():
+            return c.resolve()
+    raise FileNotFoundError(f"cannot find {str(name)!r} (looked in: {', '.join(str(c) for c in candidates)})")

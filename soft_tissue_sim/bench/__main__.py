@@ -14,6 +14,7 @@ BENCHMARKS = {
     "haptic": "haptic",  # step time distribution: CG vs LDL^T host / device / device + graph
     "columns": "columns",  # A^-1 B for blocks of columns (U after a cut, contact's W): host vs device
     "workers": "workers",  # the async factorization in a thread or in worker processes
+    "node": "node",  # the ROS node driven from another process as a robot stack would (issue 21)
 }
 
 

@@ -1,9 +1,10 @@
 """The physics loop of the simulation node: one thread that steps, and runs requests between steps.
 
 One thread owns the simulation: it calls ``step()`` at ``rate_hz`` on the steady clock
-(``realtime``; absolute deadlines, so the average rate is ``rate_hz`` whenever a step takes
-less than a period; a step that ends later than the next deadline moves the schedule on
-instead of bursting to catch up), or back to back (not ``realtime``). Everything else that
+(``realtime``; absolute deadlines, so the average rate is ``rate_hz`` whenever the steps take
+less than a period on average: a late step is made up by starting the next ones at once, up to
+``CATCH_UP`` periods behind; further behind, the schedule moves on instead of bursting), or back
+to back (not ``realtime``). Everything else that
 touches the simulation (reset, cut, pause, a snapshot for display) is a request run by
 :meth:`PhysicsLoop.call` on that thread between two steps, under :attr:`PhysicsLoop.lock`,
 so the simulation is touched by one thread at a time and never in the middle of a step.
@@ -23,6 +24,8 @@ import collections
 import threading
 import time
 from typing import Callable
+
+CATCH_UP = 2.0  # periods a late realtime loop makes up by stepping at once; beyond, the schedule moves on
 
 
 class _Request:
@@ -217,7 +220,7 @@ class PhysicsLoop:
             self._record(t0, t1, advanced)
             if self.realtime:
                 deadline += self.period
-                if deadline < t1:  # behind: move the schedule on, no burst of catch-up steps
+                if deadline < t1 - CATCH_UP * self.period:  # far behind: move the schedule on, no burst
                     deadline = t1
 
     def _report(self, text: str) -> None:

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 import rclpy
 import yaml
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import Point, PoseStamped, TwistStamped, WrenchStamped
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PoseStamped, TwistStamped
 from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
 from std_srvs.srv import SetBool, Trigger

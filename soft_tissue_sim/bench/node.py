@@ -87,7 +87,8 @@ class _Window:
         rate1, input1 = c.diag(": rate")[0], c.diag(": instrument input")[0]
         d = lambda kv0, kv1, k: int(kv1.get(k, 0)) - int(kv0.get(k, 0))  # noqa: E731
         steps = d(self.rate0, rate1, "steps_total")
-        taken = d(self.input0, input1, "accepted_poses") + d(self.input0, input1, "rejected_poses")
+        taken = (d(self.input0, input1, "accepted_poses") + d(self.input0, input1, "rejected_poses")
+                 - d(self.input0, input1, "rejected_poses.invalid") - d(self.input0, input1, "rejected_poses.error"))
         lat = c.latency_summary()
         out = {
             "seconds": seconds,

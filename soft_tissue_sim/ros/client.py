@@ -242,7 +242,6 @@ class RobotClient(Node):
 
     def set_parameters(self, timeout: float = 20.0, **values):
         """Set parameters of the node; the list of (successful, reason) per parameter, or None."""
-        cli = self._client(SetParameters, "set_parameters")
         req = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
         res = self.call(SetParameters, "set_parameters", req, timeout)
         return None if res is None else [(r.successful, r.reason) for r in res.results]

@@ -76,6 +76,7 @@ import rclpy
 from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseStamped, TwistStamped, WrenchStamped
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
@@ -244,6 +245,7 @@ class SimNode(Node):
         self.sim = sim
         self.names = list(sim.instrument_names())
         self.on_step = None  # optional callable(StepStats), called on the physics thread after each step
+        self._closing = False
         self.last_stats = None
         # instrument input (executor threads) -> the physics thread
         self._in_lock = threading.Lock()
@@ -321,8 +323,6 @@ class SimNode(Node):
 
     # -------------------------------------------------------------- parameters
     def _check_parameters(self, params):
-        from rcl_interfaces.msg import SetParametersResult
-
         reason = parameters.check({p.name: p.value for p in params})
         return SetParametersResult(successful=reason is None, reason=reason or "")
 
@@ -579,6 +579,8 @@ class SimNode(Node):
         self.loop.wake()
 
     def _on_snapshot(self):
+        if self._closing:
+            return
         with self._in_lock:
             snap, self._snapshot = self._snapshot, None
         if snap is None:
@@ -784,6 +786,8 @@ class SimNode(Node):
         return st
 
     def publish_diagnostics(self):
+        if self._closing:
+            return
         try:
             msg = DiagnosticArray(status=[self.rate_status(), self.solver_status(), self.input_status()])
             msg.header.stamp = self.get_clock().now().to_msg()
@@ -793,6 +797,7 @@ class SimNode(Node):
                 self.get_logger().error(f"diagnostics failed: {type(exc).__name__}: {exc}", throttle_duration_sec=1.0)
 
     def destroy_node(self):
+        self._closing = True
         self.input_thread.stop()
         self.loop.stop()
         if self._owns_sim:

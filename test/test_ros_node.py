@@ -373,6 +373,45 @@ def test_service_bursts_are_all_answered(ros):
     assert wait_for(lambda: node.sim.step_count > 3)
 
 
+def test_requests_queued_during_a_step_are_served_together_after_it():
+    """The physics loop: requests made during a step run after it, in order; a run of the same
+    key runs once and every caller gets its answer; an exception is an answer too."""
+    import threading
+
+    from soft_tissue_sim.ros.physics_loop import PhysicsLoop
+
+    in_step, runs = threading.Event(), []
+
+    def step():
+        in_step.set()
+        time.sleep(0.3)
+        return 0.01
+
+    loop = PhysicsLoop(step, rate_hz=1.0, realtime=False)
+    loop.start()
+    try:
+        assert in_step.wait(10.0)
+        answers = [None] * 40
+
+        def ask(i):
+            if i == 39:
+                answers[i] = loop.call(lambda: 1 / 0, 10.0)
+            else:
+                answers[i] = loop.call(lambda: runs.append(i) or "reset done", 10.0, key="reset")
+        threads = [threading.Thread(target=ask, args=(i,)) for i in range(40)]
+        for t in threads:
+            t.start()
+            time.sleep(0.001)
+        for t in threads:
+            t.join(20.0)
+        assert answers[:39] == [(True, "reset done")] * 39 and len(runs) == 1
+        assert answers[39][0] is False and "ZeroDivisionError" in answers[39][1]
+        assert loop.call(lambda: loop.steps, 10.0)[0]
+    finally:
+        loop.stop()
+    assert loop.call(lambda: "stopped: runs at once", 1.0) == (True, "stopped: runs at once")
+
+
 def test_a_request_not_served_in_time_is_answered_with_the_reason(ros):
     ctx = ros[0]
     sim = load_scene("test_small.yaml", device="cpu")

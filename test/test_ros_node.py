@@ -42,9 +42,9 @@ def ros():
     spinner = Spinner(context=ctx)
     nodes = []
     yield ctx, spinner, nodes
+    spinner.close()  # first: no callback runs on an entity being destroyed
     for n in reversed(nodes):
         n.destroy_node()
-    spinner.close()
     rclpy.shutdown(context=ctx)
 
 
@@ -521,7 +521,7 @@ def test_bad_poses_are_rejected_per_reason_and_counted_in_diagnostics(ros):
 
 def test_twist_gives_the_velocity_of_the_pose_and_bad_twists_are_rejected(ros):
     ctx = ros[0]
-    node, sim = node_with_recording_instruments(ctx)
+    node, sim = node_with_recording_instruments(ctx, Parameter("pose_timeout_s", value=30.0))  # a busy CPU: twists stay fresh
     probe = rclpy.create_node("twist_source", context=ctx)
     pose_pub = probe.create_publisher(PoseStamped, "/soft_tissue_sim/instruments/probe/pose", 10)
     twist_pub = probe.create_publisher(TwistStamped, "/soft_tissue_sim/instruments/probe/twist", 10)

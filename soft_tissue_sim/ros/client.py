@@ -55,6 +55,9 @@ class Spinner:
         self.executor.add_node(node)
 
     def close(self):
+        for n in list(self.executor.get_nodes()):  # no new callbacks; those running finish first
+            self.executor.remove_node(n)
+        time.sleep(0.1)
         self.executor.shutdown(timeout_sec=5.0)
         self._thread.join(5.0)
 

@@ -7,7 +7,9 @@ holding the GIL the physics thread needs. Here the instrument subscriptions belo
 callback group no executor runs (:class:`ThreadServedGroup`), and :class:`InputThread` waits on
 just them (rclpy's wait set, the GIL released while waiting), takes each ready message and
 calls the subscription's callback, in the order the subscriptions were given. The same wait
-set and take calls as :func:`rclpy.wait_for_message.wait_for_message`.
+set and take calls as :func:`rclpy.wait_for_message.wait_for_message`. :meth:`InputThread.drain`
+takes, from the calling thread, what has arrived and not been taken yet (a request that must see
+the newest pose); takes and callbacks are serialized, so messages keep their order.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ class InputThread:
         self._on_error = on_error
         self._running = False
         self._wake = GuardCondition(None, None, context=context)
+        self._take_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def start(self) -> None:
@@ -79,15 +82,28 @@ class InputThread:
                     self._report(f"input wait failed: {type(exc).__name__}: {exc}")
                 break
             for s in self._subs:
-                if not ready or s.handle.pointer not in ready:
-                    continue
-                try:
-                    with s.handle:
-                        info = s.handle.take_message(s.msg_type, s.raw)
-                    if info is not None:
-                        s.callback(info[0])
-                except Exception as exc:  # noqa: BLE001 - one bad message never stops the input
-                    self._report(f"input callback failed: {type(exc).__name__}: {exc}")
+                if ready and s.handle.pointer in ready:
+                    self._take(s)
+
+    def drain(self) -> None:
+        """Take and handle every message that has arrived (from the calling thread)."""
+        for s in self._subs:
+            while self._take(s):
+                pass
+
+    def _take(self, s) -> bool:
+        """Take one message of subscription ``s`` and run its callback; whether there was one."""
+        with self._take_lock:
+            try:
+                with s.handle:
+                    info = s.handle.take_message(s.msg_type, s.raw)
+                if info is None:
+                    return False
+                s.callback(info[0])
+            except Exception as exc:  # noqa: BLE001 - one bad message never stops the input
+                self._report(f"input callback failed: {type(exc).__name__}: {exc}")
+                return False
+            return True
 
     def _report(self, text: str) -> None:
         if self._on_error is not None:

@@ -535,7 +535,8 @@ class SimNode(Node):
         cutter = getattr(self.sim, "cutting", None)
         if cutter is None:
             raise ValueError("this scene has no cutting")
-        self._apply_inputs()  # where the blade is now: the newest pose received
+        self.input_thread.drain()  # where the blade is now: the newest pose received
+        self._apply_inputs()
         res = cutter.cut_at_blade(self.sim)
         self._redisplay()
         if not res.changed:
@@ -543,7 +544,8 @@ class SimNode(Node):
         return f"{res.tets_changed} tets changed: {res.message}"
 
     def _do_set_cutting(self, on: bool):
-        self._apply_inputs()  # the pedal acts at the newest pose received
+        self.input_thread.drain()  # the pedal acts at the newest pose received
+        self._apply_inputs()
         self.sim.set_cutting(on)
         return f"cutting {'on' if on else 'off'}"
 

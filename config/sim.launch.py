@@ -3,15 +3,18 @@
     ros2 launch soft_tissue_sim sim.launch.py                      # the node, parameters from config/sim_node.yaml
     ros2 launch soft_tissue_sim sim.launch.py rviz:=true           # and RViz 2 with config/soft_tissue_sim.rviz
     ros2 launch soft_tissue_sim sim.launch.py scene:=beam_1200.yaml device:=cpu
+    ros2 launch soft_tissue_sim sim.launch.py rate_hz:=100 realtime:=false
 
 Arguments: rviz (false: with true, also a static transform so that the frame 'world' exists
-in TF for RViz), params_file (the installed config/sim_node.yaml), scene and device
-(empty: the parameters file's value), namespace (empty). RViz's fixed frame is 'world', the
+in TF for RViz), params_file (the installed config/sim_node.yaml), scene, device, rate_hz and
+realtime (empty: the parameters file's value), namespace (empty). A bad scene or value ends
+the node with a FATAL line and exit code 1. RViz's fixed frame is 'world', the
 node's default frame_id; with a namespace, point RViz's displays at the namespaced topics.
 """
 
 import os
 
+import yaml
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
@@ -24,10 +27,10 @@ PACKAGE = "soft_tissue_sim"
 
 def _sim_node(context, *args, **kwargs):
     overrides = {}
-    for key in ("scene", "device"):  # only what was given on the command line overrides the file
+    for key in ("scene", "device", "rate_hz", "realtime"):  # only what was given overrides the file
         value = LaunchConfiguration(key).perform(context).strip()
         if value:
-            overrides[key] = value
+            overrides[key] = value if key in ("scene", "device") else yaml.safe_load(value)  # 100 -> int, true -> bool
     return [Node(
         package=PACKAGE,
         executable="sim_node",
@@ -47,6 +50,8 @@ def generate_launch_description():
                               description="parameters file of the simulation node"),
         DeclareLaunchArgument("scene", default_value="", description="scene YAML (empty: the parameters file's)"),
         DeclareLaunchArgument("device", default_value="", description="auto | cpu | cuda | cuda:N (empty: the file's)"),
+        DeclareLaunchArgument("rate_hz", default_value="", description="physics steps per second (empty: the file's)"),
+        DeclareLaunchArgument("realtime", default_value="", description="true | false (empty: the file's)"),
         DeclareLaunchArgument("namespace", default_value="", description="namespace of the simulation node"),
         OpaqueFunction(function=_sim_node),
         # RViz needs its fixed frame in TF; nothing else may publish 'world' here (identity, harmless otherwise)

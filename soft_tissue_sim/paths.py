@@ -6,6 +6,7 @@ Imports nothing of this package, so any module may use it.
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
@@ -21,6 +22,7 @@ def share_dirs() -> list[Path]:
         dirs.append(Path(get_package_share_directory("soft_tissue_sim")))
     except Exception:  # noqa: BLE001 - ament index absent or package not installed: source tree only
         pass
+    dirs.append(Path(sys.prefix) / "share" / "soft_tissue_sim")  # a plain pip install (setup.py data_files)
     return dirs
 
 

@@ -509,6 +509,19 @@ class Simulation:
             raise ValueError("this scene has no cutting")
         return self._modify(self.cutting.cut(self.tissue(), self._instruments()))
 
+    def cut_at_blade(self):
+        """One cut where the cutting instrument's blade is now (a stab incision as wide as the
+        instrument). Returns a CutResult."""
+        if self.cutting is None:
+            raise ValueError("this scene has no cutting")
+        return self._modify(self.cutting.cut_at_blade(self.tissue(), self._instruments()))
+
+    def blade_triangles(self):
+        """The cutting blade where it is now as two triangles (2, 3, 3), world frame, or None."""
+        if self.cutting is None:
+            raise ValueError("this scene has no cutting")
+        return self.cutting.blade_triangles(self._instruments())
+
     def cut_triangles(self, triangles, frame: str = "world"):
         """Cut along blade triangles (k, 3, 3) in the world (current) or rest frame. Returns a CutResult."""
         if self.cutting is None:

@@ -1,70 +1,77 @@
-"""The node built in-process (no launch): markers, services, diagnostics, parameters, namespaces,
-instrument input hardening, the scripted instrument, and (with the contact and cutting modules)
-wrenches and cuts seen through ROS."""
+"""The node built in-process (no launch), driven by the robot-stack client of the node benchmark
+(:class:`soft_tissue_sim.ros.client.RobotClient`): the physics thread (the newest pose every
+step, a wrench every step), services (bursts all answered, failures with a reason), parameters
+(ranges, integers for doubles, run-time changes, read-only), diagnostics, namespaces, instrument
+input hardening, the pre-serialized surface, the single-call cut, the scripted instrument, and
+bad configuration ending the process with a FATAL line and exit code 1.
+
+No timing assertions: counts, values, levels and messages only."""
 
 import math
+import os
+import subprocess
+import sys
 import time
 
 import numpy as np
 import pytest
 import rclpy
 import yaml
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
-from rclpy.executors import SingleThreadedExecutor
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PoseStamped, TwistStamped
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.serialization import deserialize_message
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from soft_tissue_sim.contact.records import ContactResponse
 from soft_tissue_sim.paths import SCENES_DIR
+from soft_tissue_sim.ros.client import RobotClient, Spinner, wait_for
 from soft_tissue_sim.ros.node import SimNode
 from soft_tissue_sim.ros.scripted_instrument import Script, ScriptedInstrument, path, sample, script_over_surface
+from soft_tissue_sim.ros.surface_marker import SurfaceMarkerEncoder, surface_template
 from soft_tissue_sim.scene import load_scene
 from soft_tissue_sim.stats import ContactStats, CutStats
+
+# A DDS domain of this test process: other developers' nodes on this machine stay out of it.
+os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
 
 
 @pytest.fixture
 def ros():
+    """(context, spinner): nodes added to the spinner run in a background MultiThreadedExecutor."""
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
-    yield ctx, ex
-    ex.shutdown()
+    spinner = Spinner(context=ctx)
+    nodes = []
+    yield ctx, spinner, nodes
+    spinner.close()  # first: no callback runs on an entity being destroyed
+    for n in reversed(nodes):
+        n.destroy_node()
     rclpy.shutdown(context=ctx)
 
 
-FAST = [Parameter("device", value="cpu"), Parameter("realtime", value=False)]
+FAST = [Parameter("device", value="cpu"), Parameter("realtime", value=False),
+        Parameter("diagnostics_rate_hz", value=20.0)]
 
 
-def make_node(ctx, namespace=""):
+def add(ros_fixture, *new):
+    _ctx, spinner, nodes = ros_fixture
+    for n in new:
+        nodes.append(n)
+        spinner.add(n)
+    return new[0] if len(new) == 1 else new
+
+
+def make_node(ctx, namespace="", params=(), **kw):
     return SimNode(context=ctx, namespace=namespace,
-                   parameter_overrides=[Parameter("scene", value="test_small.yaml")] + FAST)
+                   parameter_overrides=[Parameter("scene", value="test_small.yaml")] + FAST + list(params), **kw)
 
 
-def spin_until(ex, cond, timeout=20.0):
-    end = time.time() + timeout
-    while time.time() < end and not cond():
-        ex.spin_once(timeout_sec=0.05)
-    return cond()
-
-
-def call(ex, node, srv_type, name, req):
-    cli = node.create_client(srv_type, name)
-    assert spin_until(ex, cli.service_is_ready)
-    fut = cli.call_async(req)
-    assert spin_until(ex, fut.done)
-    return fut.result()
-
-
-def status(diag_msgs, suffix):
+def status(client, suffix):
     """The key/value dict and level of the newest status whose name ends with ``suffix``."""
-    for msg in reversed(diag_msgs):
-        for st in msg.status:
-            if st.name.endswith(suffix):
-                return {v.key: v.value for v in st.values}, st.level
-    return None, None
+    d = client.diag(suffix)
+    return (d[0], d[1]) if d is not None else (None, None)
 
 
 class RecordingInstruments:
@@ -122,10 +129,10 @@ class RecordingBlade:
         self.active = False
 
 
-def node_with_recording_instruments(ctx, *params):
+def node_with_recording_instruments(ctx, *params, **kw):
     sim = load_scene("test_small.yaml", device="cpu")
     sim.contact = RecordingInstruments()
-    return SimNode(context=ctx, sim=sim, parameter_overrides=FAST + list(params)), sim
+    return SimNode(context=ctx, sim=sim, parameter_overrides=FAST + list(params), **kw), sim
 
 
 def pose_msg(node, pos, quat=(0.0, 0.0, 0.0, 1.0), frame="world", age_s=0.0, zero_stamp=False):
@@ -147,108 +154,315 @@ def twist_msg(node, lin, ang=(0.0, 0.0, 0.0), frame="world"):
     return m
 
 
-def send(ex, node, pub, msg, kind="pose"):
-    """Publish one message and spin until the node has accepted or rejected it."""
+def send(node, pub, msg, kind="pose", applied=True):
+    """Publish one message and wait until the node accepted or rejected it and, when it was
+    accepted (and ``applied``), until a step handed it to the simulation (or it refused it)."""
     seen = lambda: node.accepted[kind] + sum(node.rejected[kind].values())  # noqa: E731
-    before = seen()
+    before, acc = seen(), node.accepted[kind]
+    rej_sim = node.rejected["pose"]["invalid"] + node.rejected["pose"]["error"]
     pub.publish(msg)
-    assert spin_until(ex, lambda: seen() > before, timeout=30.0), f"{kind} never arrived"
+    assert wait_for(lambda: seen() > before, 30.0), f"{kind} never arrived"
+    if applied and node.accepted[kind] > acc:
+        steps = node.loop.steps
+        assert wait_for(lambda: node.loop.steps >= steps + 2 or node.loop.paused, 30.0)
+        assert wait_for(lambda: node._inputs["probe"].pose is None or (
+            node._inputs["probe"].used_pose_seq == node._inputs["probe"].pose_seq
+            and node._inputs["probe"].used_twist_seq == node._inputs["probe"].twist_seq)
+            or node.rejected["pose"]["invalid"] + node.rejected["pose"]["error"] > rej_sim, 30.0)
+
+
+# --------------------------------------------------------------------------- surface marker
+def test_pre_serialized_surface_marker_reads_back_as_the_marker():
+    enc = SurfaceMarkerEncoder(surface_template("world"))
+    rng = np.random.default_rng(0)
+    for k in (0, 3, 3 * 517):
+        v = rng.normal(size=(k, 3))
+        m = deserialize_message(enc.encode(v, 1_234_567_890_123), Marker)
+        assert [(p.x, p.y, p.z) for p in m.points] == [tuple(r) for r in v.tolist()]
+        assert (m.header.stamp.sec, m.header.stamp.nanosec) == (1234, 567_890_123)
+        assert (m.header.frame_id, m.ns, m.id, m.type) == ("world", "tissue", 0, Marker.TRIANGLE_LIST)
+        assert m.color.a == pytest.approx(1.0) and m.pose.orientation.w == 1.0 and m.colors == [] and m.text == ""
+    other = SurfaceMarkerEncoder(surface_template("a_much_longer_frame_name"))  # other string lengths, alignment
+    m = deserialize_message(other.encode(np.ones((6, 3)), 0), Marker)
+    assert m.header.frame_id == "a_much_longer_frame_name" and [p.z for p in m.points] == [1.0] * 6
+    with pytest.raises(ValueError, match="vertices"):
+        enc.encode(np.zeros((4, 2)))
 
 
 # --------------------------------------------------------------------------- node basics
 def test_markers_reset_pause_diagnostics_and_graceful_failures(ros):
-    ctx, ex = ros
+    ctx = ros[0]
     sim_node = make_node(ctx)
-    probe = rclpy.create_node("probe", context=ctx)
-    ex.add_node(sim_node)
-    ex.add_node(probe)
-    markers, diags, arrays = [], [], []
+    probe = RobotClient(context=ctx, node_name="probe")
+    markers, arrays = [], []
     probe.create_subscription(Marker, "/soft_tissue_sim/surface", markers.append, 10)
-    probe.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
     probe.create_subscription(MarkerArray, "/soft_tissue_sim/markers", arrays.append, 10)
-    assert spin_until(ex, lambda: len(markers) >= 3 and len(diags) >= 2)
+    add(ros, sim_node, probe)
+    assert wait_for(lambda: len(markers) >= 3 and probe.diag(": solver") and probe.diag(": rate"))
     n_tri = len(sim_node.sim.surface_triangles())
     assert markers[-1].type == Marker.TRIANGLE_LIST and len(markers[-1].points) == 3 * n_tri
     first_z = markers[0].points[-1].z
-    assert spin_until(ex, lambda: sim_node.sim.step_count > 20)
+    assert wait_for(lambda: sim_node.sim.step_count > 20)
+    k = len(markers)
+    assert wait_for(lambda: len(markers) > k)
     assert abs(markers[-1].points[-1].z - first_z) > 0  # the beam sags under gravity
-    kv, level = status(diags, ": solver")
-    assert int(kv["step"]) > 0 and float(kv["residual"]) <= 1e-7 and kv["rejected_poses"] == "0"
+    assert wait_for(lambda: int(probe.diag(": solver")[0].get("step", 0)) > 0)
+    kv, level = status(probe, ": solver")
+    assert float(kv["residual"]) <= 1e-7 and kv["rejected_poses"] == "0"
     assert level == DiagnosticStatus.OK and int(kv["surface_triangles"]) == n_tri
-    kv, level = status(diags, ": instrument input")
+    kv, level = status(probe, ": instrument input")
     assert kv["instruments"] == "" and kv["rejected_poses"] == "0" and level == DiagnosticStatus.OK
+    kv, level = status(probe, ": rate")
+    assert kv["realtime"] == "false" and level == DiagnosticStatus.OK and int(kv["steps_total"]) > 0
     assert arrays == []  # no instruments, no contact: nothing to draw
 
-    assert call(ex, probe, SetBool, "/soft_tissue_sim/pause", SetBool.Request(data=True)).success
-    steps = sim_node.sim.step_count
-    spin_until(ex, lambda: False, timeout=0.5)
+    assert probe.call(SetBool, "pause", SetBool.Request(data=True)).success
+    steps = sim_node.sim.step_count  # answered after it took effect: no step from now on
+    time.sleep(0.5)
     assert sim_node.sim.step_count == steps
+    assert wait_for(lambda: probe.diag(": rate")[2] == "paused")
 
-    markers.clear()
-    r = call(ex, probe, Trigger, "/soft_tissue_sim/reset", Trigger.Request())
+    rest_z = float(sim_node.sim.mesh.points[sim_node.sim.surface_triangles().reshape(-1)[-1], 2])
+    assert markers[-1].points[-1].z != pytest.approx(rest_z)  # sagged
+    r = probe.call(Trigger, "reset")
     assert r.success and sim_node.sim.step_count == 0
-    assert spin_until(ex, lambda: markers)
-    assert markers[0].points[-1].z == pytest.approx(float(sim_node.sim.mesh.points[
-        sim_node.sim.surface_triangles().reshape(-1)[-1], 2]))
+    assert wait_for(lambda: markers[-1].points[-1].z == pytest.approx(rest_z))  # paused: the reset state stays
 
-    # a scene without cutting answers the cut services with a failure, and the node lives on
-    r = call(ex, probe, Trigger, "/soft_tissue_sim/cut", Trigger.Request())
+    # a scene without cutting answers the cut services with a failure and the reason; the node lives on
+    r = probe.call(Trigger, "cut")
     assert not r.success and "no cutting" in r.message
-    r = call(ex, probe, SetBool, "/soft_tissue_sim/set_cutting", SetBool.Request(data=True))
-    assert not r.success
-    assert call(ex, probe, SetBool, "/soft_tissue_sim/pause", SetBool.Request(data=False)).success
-    assert spin_until(ex, lambda: sim_node.sim.step_count > 3)
-    sim_node.destroy_node()
-    probe.destroy_node()
+    r = probe.call(SetBool, "set_cutting", SetBool.Request(data=True))
+    assert not r.success and "no cutting" in r.message
+    assert probe.call(SetBool, "pause", SetBool.Request(data=False)).success
+    assert wait_for(lambda: sim_node.sim.step_count > 3)
 
 
 def test_two_nodes_in_two_namespaces_run_side_by_side(ros):
-    ctx, ex = ros
+    ctx = ros[0]
     a, b = make_node(ctx, "left"), make_node(ctx, "right")
     probe = rclpy.create_node("probe2", context=ctx)
-    for n in (a, b, probe):
-        ex.add_node(n)
     seen = {"left": 0, "right": 0}
     for ns in seen:
         probe.create_subscription(Marker, f"/{ns}/soft_tissue_sim/surface",
                                   lambda m, ns=ns: seen.__setitem__(ns, seen[ns] + 1), 10)
-    assert spin_until(ex, lambda: min(seen.values()) >= 2)
-    assert call(ex, probe, Trigger, "/left/soft_tissue_sim/reset", Trigger.Request()).success
-    assert a.sim.step_count == 0 or a.sim.step_count < b.sim.step_count
-    for n in (a, b, probe):
-        n.destroy_node()
+    client = RobotClient("/left/soft_tissue_sim", context=ctx, node_name="left_client")
+    add(ros, a, b, probe, client)
+    assert wait_for(lambda: min(seen.values()) >= 2)
+    assert wait_for(lambda: b.sim.step_count > 5)
+    assert client.call(Trigger, "reset").success
+    assert a.sim.step_count < b.sim.step_count
 
 
 def test_parameters_load_from_the_yaml_file(ros, tmp_path):
-    ctx, ex = ros
+    ctx = ros[0]
     params = tmp_path / "p.yaml"
     text = open("config/sim_node.yaml").read().replace("rate_hz: 50.0", "rate_hz: 25.0")
     params.write_text(text.replace("scene: default.yaml", "scene: test_small.yaml"))
-    node = SimNode(context=ctx, cli_args=["--ros-args", "--params-file", str(params)])
-    assert node.get_parameter("rate_hz").value == 25.0
+    node = SimNode(context=ctx, cli_args=["--ros-args", "--params-file", str(params)], start=False)
+    assert node.get_parameter("rate_hz").value == 25.0 and node.loop.rate_hz == 25.0
     assert node.get_parameter("scene").value == "test_small.yaml"
     assert node.sim.name == "test_small" and node.get_parameter("frame_id").value == "world"
     assert node.get_parameter("pose_timeout_s").value == 0.5
+    assert node.get_parameter("display_rate_hz").value == 30.0
     assert node.get_parameter("publish_clock").value is False
     node.destroy_node()
     # the file's key matches the node in any namespace (sim.launch.py's namespace argument)
-    node = SimNode(context=ctx, namespace="left", cli_args=["--ros-args", "--params-file", str(params)])
+    node = SimNode(context=ctx, namespace="left", cli_args=["--ros-args", "--params-file", str(params)], start=False)
     assert node.get_parameter("rate_hz").value == 25.0 and node.sim.name == "test_small"
     node.destroy_node()
 
 
+def test_parameters_ranges_integers_and_changes_at_run_time(ros):
+    ctx = ros[0]
+    node = make_node(ctx, params=[Parameter("rate_hz", value=100)])  # an integer where a double is meant
+    assert node.get_parameter("rate_hz").value == 100.0 and node.loop.rate_hz == 100.0
+    client = RobotClient(context=ctx)
+    add(ros, node, client)
+    assert client.set_parameters(rate_hz=20, realtime=True) == [(True, "")] * 2
+    assert node.loop.rate_hz == 20.0 and node.loop.realtime and node.get_parameter("rate_hz").value == 20.0
+    for bad in (0.0, -10, 1e9, float("nan")):
+        (ok, reason), = client.set_parameters(rate_hz=bad)
+        assert not ok and "rate_hz" in reason
+    assert node.loop.rate_hz == 20.0
+    assert client.set_parameters(realtime=False) == [(True, "")] and not node.loop.realtime
+    assert client.set_parameters(display_rate_hz=5) == [(True, "")]
+    assert node.display_timer.timer_period_ns == 200_000_000
+    assert client.set_parameters(display_rate_hz=0.0) == [(True, "")] and node.display_timer is None
+    assert client.set_parameters(display_rate_hz=40.0) == [(True, "")] and node.display_timer is not None
+    assert client.set_parameters(diagnostics_rate_hz=4) == [(True, "")]
+    assert node.diag_timer.timer_period_ns == 250_000_000
+    assert client.set_parameters(pose_timeout_s=2, workspace_radius=0.5, max_speed=3) == [(True, "")] * 3
+    assert node._settings["pose_timeout_s"] == 2.0 and node._workspace() == ((0.0, 0.0, 0.0), 0.5)
+    assert client.set_parameters(workspace_center=[1, 2, 3]) == [(True, "")]  # integers again
+    assert node._workspace()[0] == (1.0, 2.0, 3.0)
+    (ok, reason), = client.set_parameters(workspace_center=[1.0, 2.0])
+    assert not ok and "workspace_center" in reason
+    for name, value in (("scene", "beam_2000.yaml"), ("device", "cuda"), ("frame_id", "map"),
+                        ("publish_clock", True)):
+        (ok, reason), = client.set_parameters(**{name: value})
+        assert not ok and "read-only" in reason and name in reason
+    assert node.frame_id == "world"
+    # bad values at start-up: the node does not start
+    with pytest.raises(Exception, match="rate_hz"):
+        make_node(ctx, params=[Parameter("rate_hz", value=0.0)])
+    with pytest.raises(ValueError, match="workspace_center"):
+        make_node(ctx, params=[Parameter("workspace_center", value=[0.0])])
+
+
+def test_bad_configuration_ends_with_a_fatal_line_and_exit_code_1(tmp_path):
+    bad_scene = tmp_path / "bad.yaml"
+    bad_scene.write_text("name: bad\nmesh: {generator: beam, n_long: 4, n_cross: 2, spacing: 0.01}\nfloor: 3\n")
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    cases = {"no such scene": ["-p", "scene:=no_such_scene.yaml"], "unknown scene keys": ["-p", f"scene:={bad_scene}"],
+             "rate_hz": ["-p", "rate_hz:=0"], "frame_id": ["-p", "frame_id:=3"]}
+    procs = {k: subprocess.Popen([sys.executable, "-m", "soft_tissue_sim.ros", "--ros-args", "-p", "device:=cpu"] + a,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+             for k, a in cases.items()}
+    for what, p in procs.items():
+        out, err = p.communicate(timeout=120)
+        assert p.returncode == 1, (what, out, err)
+        fatal = [line for line in (out + err).splitlines() if "[FATAL]" in line]
+        assert len(fatal) == 1 and "Traceback" not in out + err, (what, out, err)
+        assert (what if what != "no such scene" else "no_such_scene.yaml") in fatal[0], fatal
+
+
+# ------------------------------------------------------------------ the physics thread
+def test_each_step_uses_the_newest_pose_and_publishes_a_wrench(ros):
+    ctx = ros[0]
+    node, sim = node_with_recording_instruments(ctx, start=False)
+    client = RobotClient(instrument="probe", context=ctx)
+    add(ros, node, client)
+    assert wait_for(lambda: client.pose_pub.get_subscription_count() > 0
+                    and node.wrench_pubs["probe"].get_subscription_count() > 0)
+    node.loop.set_paused(True)
+    node.start()
+    stamps = []
+    for k in range(1, 6):  # one at a time, so that the node receives all five
+        stamps.append(client.publish_pose((0.01 * k, 0.0, 0.03)))
+        assert wait_for(lambda: node.accepted["pose"] == k)
+    assert node.superseded == 4 and sim.contact.calls == []  # paused: kept, not applied
+    assert client.call(SetBool, "pause", SetBool.Request(data=False)).success
+    assert wait_for(lambda: node.loop.steps >= 5)
+    # the first step took the newest pose only, and no step took it again
+    assert [c["position"][0] for c in sim.contact.calls] == [0.05]
+    assert client.call(SetBool, "pause", SetBool.Request(data=True)).success
+    steps = node.loop.steps
+    assert wait_for(lambda: client.wrenches == steps)  # one wrench per step, all received
+    assert node.wrenches_published == steps
+    assert client.stamps_used == 1 and client.latency_summary()["count"] == 1  # stamped with the pose used
+    assert stamps[-1] in client._sent_stamps
+    assert client.last_force == pytest.approx((0.0, 0.0, 0.5))
+    # a stream of poses faster than the steps: each step takes the newest, in order, none twice
+    assert client.call(SetBool, "pause", SetBool.Request(data=False)).success
+    client.reset_counters()
+    n0 = len(sim.contact.calls)
+    client.start_stream(lambda t: (0.01 + 0.01 * t, 0.0, 0.03), rate_hz=400.0)
+    assert wait_for(lambda: client.stamps_used >= 10)
+    client.stop_stream()
+    xs = [c["position"][0] for c in sim.contact.calls[n0:]]
+    assert len(xs) >= 10 and all(b > a for a, b in zip(xs, xs[1:]))
+    assert node.superseded > 4 and node.rejected_poses == 0
+
+
+def test_service_bursts_are_all_answered(ros):
+    ctx = ros[0]
+    node = make_node(ctx)
+    client = RobotClient(context=ctx)
+    add(ros, node, client)
+    for name, data in (("pause", True), ("pause", False), ("reset", None), ("set_cutting", True), ("cut", None)):
+        r = client.burst(name, 100, data=data)
+        assert r["answered"] == 100, r
+        expect = 0 if name in ("set_cutting", "cut") else 100  # no cutting in this scene: refused, with why
+        assert r["succeeded"] == expect, r
+        if not expect:
+            assert all("no cutting" in m for m in r["messages"]), r
+    assert wait_for(lambda: node.sim.step_count > 3)
+
+
+def test_requests_queued_during_a_step_are_served_together_after_it():
+    """The physics loop: requests made during a step run after it, in order; a run of the same
+    key runs once and every caller gets its answer; an exception is an answer too."""
+    import threading
+
+    from soft_tissue_sim.ros.physics_loop import PhysicsLoop
+
+    in_step, runs = threading.Event(), []
+
+    def step():
+        in_step.set()
+        time.sleep(0.3)
+        return 0.01
+
+    loop = PhysicsLoop(step, rate_hz=1.0, realtime=False)
+    loop.start()
+    try:
+        assert in_step.wait(10.0)
+        answers = [None] * 40
+
+        def ask(i):
+            if i == 39:
+                answers[i] = loop.call(lambda: 1 / 0, 10.0)
+            else:
+                answers[i] = loop.call(lambda: runs.append(i) or "reset done", 10.0, key="reset")
+        threads = [threading.Thread(target=ask, args=(i,)) for i in range(40)]
+        for t in threads:
+            t.start()
+            time.sleep(0.001)
+        for t in threads:
+            t.join(20.0)
+        assert answers[:39] == [(True, "reset done")] * 39 and len(runs) == 1
+        assert answers[39][0] is False and "ZeroDivisionError" in answers[39][1]
+        assert loop.call(lambda: loop.steps, 10.0)[0]
+    finally:
+        loop.stop()
+    assert loop.call(lambda: "stopped: runs at once", 1.0) == (True, "stopped: runs at once")
+
+
+def test_a_request_not_served_in_time_is_answered_with_the_reason(ros):
+    ctx = ros[0]
+    sim = load_scene("test_small.yaml", device="cpu")
+    step = sim.step
+    sim.step = lambda: (time.sleep(0.3), step())[1]  # a step far longer than the service timeout
+    node = SimNode(context=ctx, sim=sim, parameter_overrides=FAST + [Parameter("service_timeout_s", value=0.02)])
+    client = RobotClient(context=ctx)
+    add(ros, node, client)
+    assert wait_for(lambda: node.loop.steps >= 1)
+    answers = [client.call(Trigger, "reset") for _ in range(3)]
+    assert all(r is not None for r in answers)
+    assert any(not r.success and "not served within" in r.message for r in answers), answers
+    assert client.set_parameters(service_timeout_s=5.0) == [(True, "")]
+    assert client.call(Trigger, "reset").success
+
+
+def test_rate_diagnostics_warn_when_the_rate_is_not_reached(ros):
+    ctx = ros[0]
+    node = make_node(ctx, params=[Parameter("realtime", value=True), Parameter("rate_hz", value=10000.0)])
+    client = RobotClient(context=ctx)
+    add(ros, node, client)
+    t = time.monotonic()
+    assert wait_for(lambda: client.diag(": rate", newer_than=t + 1.0) is not None)
+    kv, level, message = client.diag(": rate")
+    assert level == DiagnosticStatus.WARN and "achieved" in message and "10000" in message
+    assert 0.0 < float(kv["achieved_rate_hz"]) < 10000.0 and float(kv["real_time_factor"]) > 0.0
+    assert int(kv["wrenches_published"]) == 0  # no instruments
+    assert client.set_parameters(realtime=False) == [(True, "")]
+    t = time.monotonic()
+    assert wait_for(lambda: client.diag(": rate", newer_than=t + 0.5) is not None)
+    _kv, level, message = client.diag(": rate")
+    assert level == DiagnosticStatus.OK and "as fast as possible" in message
+
+
 # ------------------------------------------------------------------ instrument input hardening
 def test_bad_poses_are_rejected_per_reason_and_counted_in_diagnostics(ros):
-    ctx, ex = ros
-    node, sim = node_with_recording_instruments(ctx, Parameter("pose_timeout_s", value=0.5))
-    probe = rclpy.create_node("pose_source", context=ctx)
-    ex.add_node(node)
-    ex.add_node(probe)
-    diags, arrays = [], []
-    probe.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    ctx = ros[0]
+    node, sim = node_with_recording_instruments(ctx, Parameter("pose_timeout_s", value=0.5),
+                                                Parameter("workspace_radius", value=10.0))
+    probe = RobotClient(context=ctx, node_name="pose_source")
+    arrays = []
     probe.create_subscription(MarkerArray, "/soft_tissue_sim/markers", arrays.append, 10)
-    pub = probe.create_publisher(PoseStamped, "/soft_tissue_sim/instruments/probe/pose", qos_profile_sensor_data)
-    assert spin_until(ex, lambda: pub.get_subscription_count() > 0)
+    pub = probe.create_publisher(PoseStamped, "/soft_tissue_sim/instruments/probe/pose", 10)
+    add(ros, node, probe)
+    assert wait_for(lambda: pub.get_subscription_count() > 0)
     rec = sim.contact
     nan, inf = float("nan"), float("inf")
     s2 = math.sqrt(0.5)
@@ -263,28 +477,35 @@ def test_bad_poses_are_rejected_per_reason_and_counted_in_diagnostics(ros):
         (lambda: pose_msg(probe, (0.05, 0.0, 0.03), age_s=-2.0), False),  # stale (from the future)
         (lambda: pose_msg(probe, (0.06, 0.0, 0.03), frame=""), True),  # empty frame = the node's frame
         (lambda: pose_msg(probe, (0.07, 0.0, 0.03), zero_stamp=True), True),  # zero stamp = now
+        (lambda: pose_msg(probe, (1e6, 0.0, 0.03)), False),  # outside_workspace
+        (lambda: pose_msg(probe, (0.0, 1e300, 0.0)), False),  # outside_workspace
         (lambda: pose_msg(probe, (1.5, 0.0, 0.03)), False),  # invalid: the simulation's ValueError
         (lambda: pose_msg(probe, (2.5, 0.0, 0.03)), False),  # error: any other exception of the simulation
     ]
     for msg, _ok in cases:
-        send(ex, node, pub, msg())
+        send(node, pub, msg())
     assert len(rec.calls) == sum(ok for _m, ok in cases) == 3, (node.rejected, node.last_rejection)
     # only finite, unit quaternions reach the simulation; the near-unit one is normalised
     np.testing.assert_allclose(rec.calls[0]["quaternion"], [0.0, s2, 0.0, s2], atol=1e-12)
     assert [c["position"][0] for c in rec.calls] == [0.05, 0.06, 0.07]
     assert all(c["linear"] is None for c in rec.calls)  # no twist sent: no velocity
 
-    assert spin_until(ex, lambda: status(diags, ": instrument input")[0]["rejected_poses"] == "9")
-    kv, level = status(diags, ": instrument input")
+    assert wait_for(lambda: probe.diag(": instrument input") and
+                    probe.diag(": instrument input")[0]["rejected_poses"] == "11")
+    kv, level = status(probe, ": instrument input")
     assert level == DiagnosticStatus.WARN and "error" in kv["last_rejection"]
-    assert kv["instruments"] == "probe" and kv["accepted_poses"] == "3" and kv["rejected_poses"] == "9"
-    expect = {"non_finite": 2, "bad_quaternion": 2, "unknown_frame": 1, "stale": 2, "invalid": 1, "error": 1}
+    assert kv["instruments"] == "probe" and kv["accepted_poses"] == "5" and kv["rejected_poses"] == "11"
+    expect = {"non_finite": 2, "bad_quaternion": 2, "unknown_frame": 1, "stale": 2, "outside_workspace": 2,
+              "invalid": 1, "error": 1}
     assert {r: int(kv[f"rejected_poses.{r}"]) for r in expect} == expect
-    assert status(diags, ": solver")[0]["rejected_poses"] == "9"
-    assert float(status(diags, ": solver")[0]["force_N.probe"]) == pytest.approx(0.5)
+    assert float(kv["pose_to_step_ms.max"]) >= 0.0
+    assert wait_for(lambda: probe.diag(": solver")[0]["rejected_poses"] == "11")
+    assert float(status(probe, ": solver")[0]["force_N.probe"]) == pytest.approx(0.5)
 
-    # markers: the capsule at the last accepted pose (identity: shaft along +z from the tip), contacts
-    assert spin_until(ex, lambda: arrays and any(m.ns == "contacts" for m in arrays[-1].markers))
+    # markers: the capsule at the last applied pose (identity: shaft along +z from the tip), contacts
+    assert wait_for(lambda: arrays and any(m.ns == "contacts" for m in arrays[-1].markers))
+    assert wait_for(lambda: {(m.ns, m.type): m for m in arrays[-1].markers}[
+        ("instrument/probe", Marker.CYLINDER)].pose.position.x == pytest.approx(0.07))
     by = {(m.ns, m.type): m for m in arrays[-1].markers}
     shaft = by[("instrument/probe", Marker.CYLINDER)]
     caps = by[("instrument/probe", Marker.SPHERE_LIST)]
@@ -295,48 +516,45 @@ def test_bad_poses_are_rejected_per_reason_and_counted_in_diagnostics(ros):
         pytest.approx((0.05, 0.01)), pytest.approx((0.06, 0.01))]
 
     # the pose turned +z onto +x: the shaft lies along x
-    send(ex, node, pub, pose_msg(probe, (0.05, 0.0, 0.03), (0.0, s2, 0.0, s2)))
+    send(node, pub, pose_msg(probe, (0.05, 0.0, 0.03), (0.0, s2, 0.0, s2)))
     shaft = lambda: {(m.ns, m.type): m for m in arrays[-1].markers}[("instrument/probe", Marker.CYLINDER)]  # noqa
-    assert spin_until(ex, lambda: shaft().pose.position.x != 0.07)
+    assert wait_for(lambda: shaft().pose.position.x != pytest.approx(0.07))
     assert (shaft().pose.position.x, shaft().pose.position.y, shaft().pose.position.z) == pytest.approx(
         (0.075, 0.0, 0.03))
     o = shaft().pose.orientation
     assert abs(o.x * 0 + o.y * s2 + o.z * 0 + o.w * s2) == pytest.approx(1.0)  # the pose's own rotation
-    node.destroy_node()
-    probe.destroy_node()
 
 
 def test_twist_gives_the_velocity_of_the_pose_and_bad_twists_are_rejected(ros):
-    ctx, ex = ros
-    node, sim = node_with_recording_instruments(ctx)
+    ctx = ros[0]
+    node, sim = node_with_recording_instruments(ctx, Parameter("pose_timeout_s", value=30.0))  # a busy CPU: twists stay fresh
     probe = rclpy.create_node("twist_source", context=ctx)
-    ex.add_node(node)
-    ex.add_node(probe)
-    pose_pub = probe.create_publisher(PoseStamped, "/soft_tissue_sim/instruments/probe/pose",
-                                      qos_profile_sensor_data)
-    twist_pub = probe.create_publisher(TwistStamped, "/soft_tissue_sim/instruments/probe/twist",
-                                       qos_profile_sensor_data)
-    assert spin_until(ex, lambda: pose_pub.get_subscription_count() > 0 and twist_pub.get_subscription_count() > 0)
+    pose_pub = probe.create_publisher(PoseStamped, "/soft_tissue_sim/instruments/probe/pose", 10)
+    twist_pub = probe.create_publisher(TwistStamped, "/soft_tissue_sim/instruments/probe/twist", 10)
+    add(ros, node, probe)
+    assert wait_for(lambda: pose_pub.get_subscription_count() > 0 and twist_pub.get_subscription_count() > 0)
     rec = sim.contact
-    send(ex, node, twist_pub, twist_msg(probe, (0.0, 0.0, -0.02), (0.0, 0.1, 0.0)), "twist")
+    send(node, twist_pub, twist_msg(probe, (0.0, 0.0, -0.02), (0.0, 0.1, 0.0)), "twist")
+    steps = node.loop.steps
+    assert wait_for(lambda: node.loop.steps > steps + 3)
     assert rec.calls == []  # no pose yet: the velocity waits for one
-    send(ex, node, pose_pub, pose_msg(probe, (0.05, 0.0, 0.03)))
+    send(node, pose_pub, pose_msg(probe, (0.05, 0.0, 0.03)))
     assert len(rec.calls) == 1
     np.testing.assert_allclose(rec.calls[0]["linear"], [0.0, 0.0, -0.02])
     np.testing.assert_allclose(rec.calls[0]["angular"], [0.0, 0.1, 0.0])
     # a twist after the pose: the same pose again, with the new velocity
-    send(ex, node, twist_pub, twist_msg(probe, (0.01, 0.0, 0.0)), "twist")
+    send(node, twist_pub, twist_msg(probe, (0.01, 0.0, 0.0)), "twist")
     assert len(rec.calls) == 2
     np.testing.assert_allclose(rec.calls[1]["position"], [0.05, 0.0, 0.03])
     np.testing.assert_allclose(rec.calls[1]["linear"], [0.01, 0.0, 0.0])
-    send(ex, node, twist_pub, twist_msg(probe, (float("nan"), 0.0, 0.0)), "twist")
-    send(ex, node, twist_pub, twist_msg(probe, (0.0, 0.0, 1.0), frame="tool0"), "twist")
+    send(node, twist_pub, twist_msg(probe, (float("nan"), 0.0, 0.0)), "twist")
+    send(node, twist_pub, twist_msg(probe, (0.0, 0.0, 1.0), frame="tool0"), "twist")
+    send(node, twist_pub, twist_msg(probe, (0.0, 0.0, -20.0)), "twist")  # over max_speed (10 m/s)
+    send(node, twist_pub, twist_msg(probe, (0.0, 0.0, 0.0), (500.0, 0.0, 0.0)), "twist")  # over max_angular_speed
     assert len(rec.calls) == 2 and node.accepted["twist"] == 2
-    assert dict(node.rejected["twist"]) == {"non_finite": 1, "unknown_frame": 1}
-    send(ex, node, pose_pub, pose_msg(probe, (0.06, 0.0, 0.03)))  # keeps the last good twist
+    assert dict(node.rejected["twist"]) == {"non_finite": 1, "unknown_frame": 1, "too_fast": 2}
+    send(node, pose_pub, pose_msg(probe, (0.06, 0.0, 0.03)))  # keeps the last good twist
     np.testing.assert_allclose(rec.calls[2]["linear"], [0.01, 0.0, 0.0])
-    node.destroy_node()
-    probe.destroy_node()
 
 
 # --------------------------------------------------------------------------- scripted instrument
@@ -378,19 +596,19 @@ def test_scripted_trajectory_is_continuous_presses_sweeps_and_retracts():
 
 
 def test_scripted_instrument_drives_the_node_on_simulation_time(ros):
-    ctx, ex = ros
+    ctx = ros[0]
     node, sim = node_with_recording_instruments(ctx, Parameter("publish_clock", value=True),
-                                                Parameter("use_sim_time", value=True))
+                                                Parameter("use_sim_time", value=True),
+                                                Parameter("realtime", value=True), Parameter("rate_hz", value=100.0))
     sim.cutting = RecordingBlade(sim.contact)
     sc = dict(start=[0.06, 0.0, 0.01], end=[0.09, 0.0, 0.01], approach_height=0.02, press_depth=0.003,
               approach_s=0.08, press_s=0.06, sweep_s=0.16, retract_s=0.2)
     scripted = ScriptedInstrument(context=ctx, parameter_overrides=[
         Parameter("use_sim_time", value=True), Parameter("instrument", value="probe")] + [
         Parameter(k, value=v) for k, v in sc.items()])
-    ex.add_node(node)
-    ex.add_node(scripted)
-    retracted = lambda: abs(sim.contact.calls[-1]["position"][2] - 0.03) < 1e-12  # noqa: E731
-    assert spin_until(ex, lambda: scripted.finished and len(sim.cutting.switches) >= 3 and retracted(), timeout=30.0)
+    add(ros, node, scripted)
+    retracted = lambda: sim.contact.calls and abs(sim.contact.calls[-1]["position"][2] - 0.03) < 1e-12  # noqa
+    assert wait_for(lambda: scripted.finished and len(sim.cutting.switches) >= 3 and retracted(), timeout=30.0)
     # poses follow the script in simulation time: from above the start to retracted above the end
     first, last = sim.contact.calls[0]["position"], sim.contact.calls[-1]["position"]
     assert first[2] > 0.025 and abs(first[0] - 0.06) < 1e-6
@@ -404,9 +622,7 @@ def test_scripted_instrument_drives_the_node_on_simulation_time(ros):
     assert p_on[2] == pytest.approx(0.007, abs=1e-12) and 0.06 <= p_on[0] < 0.075  # pressed, early in the sweep
     assert p_off[0] == pytest.approx(0.09, abs=1e-3) and p_off[2] < 0.012  # at the end, before it has retracted
     assert scripted.blade_state is False and scripted.cutting_error == ""
-    assert sim.time < 1.0  # the script took 0.5 s of simulation time, not of wall time
-    scripted.destroy_node()
-    node.destroy_node()
+    assert scripted.get_clock().ros_time_is_active and sim.time >= 0.5  # the script ran on simulation time
 
 
 # ------------------------------------------------ with the real contact and cutting components
@@ -419,34 +635,32 @@ def probe_scene():
 
 
 def test_wrench_responds_to_pressing_the_tissue(ros):
-    ctx, ex = ros
+    ctx = ros[0]
     node = SimNode(context=ctx, sim=load_scene(probe_scene(), device="cpu"), parameter_overrides=FAST)
-    probe = rclpy.create_node("presser", context=ctx)
-    ex.add_node(node)
-    ex.add_node(probe)
-    wrenches, arrays = [], []
-    probe.create_subscription(WrenchStamped, "/soft_tissue_sim/instruments/probe/wrench", wrenches.append, 50)
-    probe.create_subscription(MarkerArray, "/soft_tissue_sim/markers", arrays.append, 10)
-    pub = probe.create_publisher(PoseStamped, "/soft_tissue_sim/instruments/probe/pose", qos_profile_sensor_data)
-    assert spin_until(ex, lambda: pub.get_subscription_count() > 0)
+    client = RobotClient(instrument="probe", context=ctx, node_name="presser")
+    arrays = []
+    client.create_subscription(MarkerArray, "/soft_tissue_sim/markers", arrays.append, 10)
+    add(ros, node, client)
+    assert wait_for(lambda: client.pose_pub.get_subscription_count() > 0)
 
     def hold(z, steps):
-        send(ex, node, pub, pose_msg(probe, (0.08, 0.0, z)))
+        client.publish_pose((0.08, 0.0, z))
+        used = client.stamps_used
+        assert wait_for(lambda: client.stamps_used > used)  # a wrench answers this pose
         n = node.sim.step_count
-        assert spin_until(ex, lambda: node.sim.step_count >= n + steps)
-        k = len(wrenches)
-        assert spin_until(ex, lambda: len(wrenches) > k)
-        return np.array([wrenches[-1].wrench.force.x, wrenches[-1].wrench.force.y, wrenches[-1].wrench.force.z])
+        assert wait_for(lambda: node.sim.step_count >= n + steps)
+        k = client.wrenches
+        assert wait_for(lambda: client.wrenches > k)
+        return np.array(client.last_force)
 
     top = float(node.sim.positions()[:, 2].max())  # a surface node right below the tip at (0.08, 0)
     free = hold(top + 0.04, 2)
     assert np.linalg.norm(free) == 0.0  # 4 cm above the tissue: no contact
     pressed = hold(top + 0.004 - 0.003, 4)  # the tip sphere (r = 4 mm) 3 mm into the surface
     assert pressed[2] > 1e-3 and pressed[2] > 3 * np.hypot(pressed[0], pressed[1])  # the tissue pushes it up
-    assert wrenches[-1].header.frame_id == "world"
     # the markers: the contact component's capsule at the pressed pose, its blade, the contact points
     tip = top + 0.001
-    assert spin_until(ex, lambda: arrays and any(m.ns == "contacts" and m.points for m in arrays[-1].markers))
+    assert wait_for(lambda: arrays and any(m.ns == "contacts" and m.points for m in arrays[-1].markers))
     by = {(m.ns, m.type): m for m in arrays[-1].markers}
     shaft = by[("instrument/probe", Marker.CYLINDER)]
     assert (shaft.pose.position.x, shaft.pose.position.z, shaft.scale.z) == pytest.approx((0.08, tip + 0.025, 0.05))
@@ -454,35 +668,56 @@ def test_wrench_responds_to_pressing_the_tissue(ros):
     assert [(p.x, p.z) for p in blade.points] == [pytest.approx((0.08, tip)), pytest.approx((0.08, tip + 0.03))]
     contacts = by[("contacts", Marker.SPHERE_LIST)].points
     assert all(abs(p.x - 0.08) < 0.01 and abs(p.z - tip) < 0.005 for p in contacts)
-    node.destroy_node()
-    probe.destroy_node()
 
 
-def test_cut_service_changes_the_surface_markers_triangle_count(ros):
-    ctx, ex = ros
+def test_blade_triangles_and_a_cut_where_the_blade_is(ros):
+    """The cutter's single cut (library): the blade's segment widened by the radius along the
+    tool's x axis; a cut there separates tets when the blade is in the tissue, none when not."""
+    cfg = probe_scene()
+    cfg["cutting"] = {"instrument": "probe"}
+    sim = load_scene(cfg, device="cpu")
+    bottom = float(sim.positions()[:, 2].min())
+    sim.set_instrument_pose("probe", [0.035, 0.0, bottom - 0.005], [0.0, 0.0, 0.0, 1.0])
+    tris = sim.blade_triangles()
+    corners = np.unique(tris.reshape(-1, 3).round(12), axis=0)
+    np.testing.assert_allclose(corners[:, 1], 0.0)  # the flat of the blade: the tool's x-z plane
+    assert sorted(set(corners[:, 0].round(9))) == [0.031, 0.039]  # +- the radius along x
+    assert sorted(set(corners[:, 2].round(9))) == [round(bottom - 0.005, 9), round(bottom + 0.025, 9)]
+    c, s = math.cos(math.pi / 4), math.sin(math.pi / 4)  # a quarter turn about z: the blade's flat along y
+    sim.set_instrument_pose("probe", [0.035, 0.0, bottom - 0.005], [0.0, 0.0, s, c])
+    corners = sim.blade_triangles().reshape(-1, 3)
+    np.testing.assert_allclose(corners[:, 0], 0.035, atol=1e-12)
+    n_tri = len(sim.surface_triangles())
+    res = sim.cut_at_blade()
+    assert res.changed and res.tets_changed > 0 and len(sim.surface_triangles()) > n_tri
+    sim.set_instrument_pose("probe", [0.035, 0.0, bottom + 0.2], [0.0, 0.0, 0.0, 1.0])  # far above the beam
+    assert not sim.cut_at_blade().changed
+    sim.close()
+
+
+def test_one_cut_call_cuts_where_the_blade_is(ros):
+    ctx = ros[0]
     cfg = probe_scene()
     cfg["cutting"] = {"instrument": "probe"}
     node = SimNode(context=ctx, sim=load_scene(cfg, device="cpu"), parameter_overrides=FAST)
-    probe = rclpy.create_node("cutter", context=ctx)
-    ex.add_node(node)
-    ex.add_node(probe)
+    client = RobotClient(instrument="probe", context=ctx, node_name="cutter")
     markers = []
-    probe.create_subscription(Marker, "/soft_tissue_sim/surface", markers.append, 10)
-    pub = probe.create_publisher(PoseStamped, "/soft_tissue_sim/instruments/probe/pose", qos_profile_sensor_data)
-    assert spin_until(ex, lambda: pub.get_subscription_count() > 0 and markers)
+    client.create_subscription(Marker, "/soft_tissue_sim/surface", markers.append, 10)
+    add(ros, node, client)
+    assert wait_for(lambda: client.pose_pub.get_subscription_count() > 0 and markers)
     n_before = len(markers[-1].points) // 3
-    assert call(ex, probe, SetBool, "/soft_tissue_sim/pause", SetBool.Request(data=True)).success
+    assert client.call(SetBool, "pause", SetBool.Request(data=True)).success
     bottom = float(node.sim.positions()[:, 2].min())
-    send(ex, node, pub, pose_msg(probe, (0.035, -0.03, bottom - 0.005)))  # beside the beam, blade spanning it
-    r = call(ex, probe, Trigger, "/soft_tissue_sim/cut", Trigger.Request())
-    assert r.success and r.message.startswith("0 tets changed")  # the first cut only records the blade
-    send(ex, node, pub, pose_msg(probe, (0.035, 0.03, bottom - 0.005)))  # to the other side: across the beam
+    c, s = math.cos(math.pi / 4), math.sin(math.pi / 4)  # a quarter turn about z: across the beam
+    client.publish_pose((0.035, 0.0, bottom - 0.005), (0.0, 0.0, s, c))  # the blade upright through the beam
+    assert wait_for(lambda: node.accepted["pose"] == 1)
     markers.clear()
-    r = call(ex, probe, Trigger, "/soft_tissue_sim/cut", Trigger.Request())
+    r = client.call(Trigger, "cut")  # one call: the cut where the blade is now (the newest pose)
     assert r.success and int(r.message.split()[0]) > 0, r.message
-    assert spin_until(ex, lambda: markers)
+    assert wait_for(lambda: markers)
     n_after = len(markers[-1].points) // 3
     assert n_after > n_before and n_after == len(node.sim.surface_triangles())
-    node.destroy_node()
-    probe.destroy_node()
-
+    client.publish_pose((0.035, 0.0, bottom + 0.2))  # far above the tissue
+    assert wait_for(lambda: node.accepted["pose"] == 2)
+    r = client.call(Trigger, "cut")
+    assert not r.success and "nothing cut" in r.message

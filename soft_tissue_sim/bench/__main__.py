@@ -11,10 +11,11 @@ BENCHMARKS = {
     "brain": "brain",  # brain tumour resection end to end
     "profile": "profile",  # where the time of one step goes (kernels, copies, host)
     "scaling": "scaling",  # cost against mesh size
-    "haptic": "haptic",  # step time distribution: CG vs LDL^T host / device / device + graph
-    "workers": "workers",
+    "haptic": "haptic",  # step time distribution: CG, CG in a graph, CHOLMOD, dense, cuDSS
+    "workers": "workers",  # the async factorization in a thread or in worker processes
     "backends": "backends",  # the factor backends (cholmod, dense, cudss) against body size
-    "targets": "targets",  # every target row, one table and targets_<cpu|gpu>.json  # the async factorization in a thread or in worker processes
+    "targets": "targets",  # every target row, one table and targets_<cpu|gpu>.json
+    "node": "node",  # the ROS node driven from another process as a robot stack would
 }
 
 

@@ -212,6 +212,32 @@ class Cutter:
             q0, q1 = q0 + lead * d / dn, q1 + lead * d / dn
         return self.cut_triangles(tissue, sweep_triangles(prev[0], prev[1], q0, q1), frame="world", stroke="blade")
 
+    def blade_triangles(self, instruments) -> np.ndarray | None:
+        """The blade where it is now, as two triangles (2, 3, 3), world frame, or None without a
+        blade: its segment widened by the instrument's radius to both sides along the tool's x
+        axis (the flat of the blade is the tool's x-z plane; the tool's y axis for a blade along x)."""
+        found = self._instrument(instruments)
+        if found is None:
+            return None
+        inst, (p0, p1) = found
+        axis = p1 - p0
+        axis = axis / np.linalg.norm(axis)
+        pose = getattr(inst, "pose", None)
+        R = np.eye(3) if pose is None else np.asarray(pose.R, dtype=np.float64)
+        side = R[:, 0] - (R[:, 0] @ axis) * axis
+        if np.linalg.norm(side) < 1e-6:  # blade along the tool's x axis
+            side = R[:, 1] - (R[:, 1] @ axis) * axis
+        side *= float(getattr(inst, "radius", 0.0)) / np.linalg.norm(side)
+        return sweep_triangles(p0 - side, p1 - side, p0 + side, p1 + side)
+
+    def cut_at_blade(self, tissue: Tissue, instruments) -> CutPlan:
+        """One cut where the blade is now (:meth:`blade_triangles`), not a sweep: a stab incision
+        as wide as the instrument, through the tissue the blade is in."""
+        tris = self.blade_triangles(instruments)
+        if tris is None:
+            return CutPlan(CutResult(False, "no instrument with a blade in this scene: nothing to cut with"))
+        return self.cut_triangles(tissue, tris, frame="world")
+
     def step(self, step_count: int, instruments) -> list:
         """The modifications due at step ``step_count``, in order: the scripted cut due now, then
         the blade's sweep while cutting is active. Each is a function of the tissue (planned on

@@ -1,17 +1,20 @@
 """The main job of ``make run``: a scene inside the ROS 2 node, headless.
 
-Spins the simulation node in-process as fast as it steps and, when the scene has instruments,
-the scripted instrument node (:mod:`soft_tissue_sim.ros.scripted_instrument`) in the same
-executor: approach, press, blade on and sweep, blade off, retract. Both run on simulation
-time (the simulation node publishes /clock), so the script takes the same number of steps on
-any machine. A live line shows steps/s, solver iterations, contacts, cuts and the instrument
-force; a summary table closes the run.
+Runs the simulation node in-process (its physics thread stepping as fast as it can) and, when
+the scene has instruments, the scripted instrument node
+(:mod:`soft_tissue_sim.ros.scripted_instrument`) in an executor beside it: approach, press,
+blade on and sweep, blade off, retract. The script runs on simulation time (the simulation
+node publishes /clock), so it takes about the same number of steps on any machine (it follows
+the clock it receives: a pose may reach the simulation a step later on a busy machine). A live
+line shows steps/s, solver iterations, contacts, cuts and the instrument force; a summary table
+closes the run.
 
 Discovery is kept on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE is set to LOCALHOST here if
 unset; the node itself never sets it).
 """
 
 import argparse
+import collections
 import os
 import sys
 import time
@@ -41,8 +44,10 @@ def main(argv=None) -> int:
         node = SimNode(parameter_overrides=[
             Parameter("scene", value=args.scene), Parameter("device", value=args.device),
             Parameter("realtime", value=False), Parameter("publish_clock", value=True),
-            Parameter("use_sim_time", value=True)])
+            Parameter("use_sim_time", value=True)], start=False)
         sim = node.sim
+        done = collections.deque()  # step statistics, appended by the node's physics thread
+        node.on_step = done.append
         ex = SingleThreadedExecutor()
         ex.add_node(node)
         print(f"node /{node.get_name()}: scene {sim.name}, {sim.mesh.n_nodes} nodes, {sim.mesh.n_tets} tets, "
@@ -63,15 +68,15 @@ def main(argv=None) -> int:
                   f"{np.round(script.end, 4).tolist()}, press {script.press_depth * 1000:.1f} mm, "
                   f"{script.total_s:.2f} s of simulation time ({script.total_s / sim.dt:.0f} steps)", flush=True)
         tri0 = len(sim.surface_triangles())
-        prog, stats, last = Progress(args.steps), [], None
+        prog, stats = Progress(args.steps), []
         window = []  # wall times of recent steps, for steps/s
         force_max, phases = 0.0, []
+        node.start()
         while len(stats) < args.steps:
-            ex.spin_once(timeout_sec=0.1)
-            s = node.last_stats
-            if s is None or s is last:
+            ex.spin_once(timeout_sec=0.02)
+            if not done:
                 continue
-            last = s
+            s = done.popleft()
             d = s.as_dict()
             stats.append(d)
             now = time.perf_counter()

@@ -4,8 +4,9 @@ For the bodies of the paper (a few thousand nodes) the inverse of A = M + dt^2 K
 device memory (8 n3^2 bytes: 216 MB for the 1,734-node brain), and what the method needs of
 its factor becomes dense linear algebra that a GPU does at memory speed:
 
-* the factor is cuSOLVER's Cholesky factorization and the inverse from it (``potrf``,
-  ``potri``, through nvmath-python's bindings; SciPy's LAPACK on the CPU);
+* the factor is cuSOLVER's Cholesky factorization and the inverse from it (``potrf``, then
+  ``potrs`` with the identity as right-hand side, through nvmath-python's bindings; SciPy's
+  LAPACK ``potrf`` and ``potri`` on the CPU);
 * an application of eq. (2), z = dR A^-1 dR^T r, is one matrix-vector product between two
   rotations (:func:`dense_apply_kernel`: a block of threads per node, its three rows against
   the rotated vector);
@@ -31,6 +32,7 @@ import warp as wp
 from .cg import _block_sum
 
 BLOCK = 256  # threads per node in the matrix-vector product on CUDA
+INVERSE = "potrs"  # the GPU's inverse: potrs (A X = I with the factor) or potri (docs/benchmarks.md compares them)
 
 
 @wp.kernel
@@ -54,6 +56,12 @@ def symmetrize_kernel(A: wp.array2d(dtype=wp.float64)):
     i, j = wp.tid()
     if i > j:
         A[i, j] = A[j, i]
+
+
+@wp.kernel
+def identity_matrix_kernel(A: wp.array2d(dtype=wp.float64)):
+    i, j = wp.tid()
+    A[i, j] = wp.where(i == j, wp.float64(1.0), wp.float64(0.0))
 
 
 @wp.kernel
@@ -167,6 +175,8 @@ class DenseInverse:
         self._s: wp.array | None = None
         self._info = wp.zeros(2, dtype=wp.int32, device=self.device)
         self._handle = None  # cuSOLVER
+        self._rhs = None  # the identity, then the inverse (INVERSE == "potrs")
+        self._result = None  # the buffer holding the finished inverse
         self._lwork = 0
         self._workspace = None
 
@@ -213,7 +223,15 @@ class DenseInverse:
                 self._lwork = lwork
             ws, info = self._workspace.ptr, self._info.ptr
             cusolverDn.dpotrf(self._handle, lower, n, ptr, n, ws, lwork, info)
+            if INVERSE == "potrs":  # A^-1 = the solve of A X = I with the Cholesky factor
+                if self._rhs is None or self._rhs.shape[0] != n:
+                    self._rhs = wp.empty((n, n), dtype=wp.float64, device=self.device)
+                wp.launch(identity_matrix_kernel, (n, n), [self._rhs], device=self.device, stream=stream)
+                cusolverDn.dpotrs(self._handle, lower, n, n, ptr, n, self._rhs.ptr, n, info + 4)
+                self._result = self._rhs
+                return
             cusolverDn.dpotri(self._handle, lower, n, ptr, n, ws, lwork, info + 4)
+        self._result = self.work
         wp.launch(symmetrize_kernel, (n, n), [self.work], device=self.device, stream=stream)
 
     def install(self, stream=None) -> str | None:
@@ -226,7 +244,7 @@ class DenseInverse:
         if self.inv is None or self.inv.shape[0] != n:
             self.inv = wp.empty((n, n), dtype=wp.float64, device=self.device)
             self._s = wp.zeros(n, dtype=wp.float64, device=self.device)
-        wp.copy(self.inv, self.work, stream=stream)
+        wp.copy(self.inv, self._result, stream=stream)
         return None
 
     # ------------------------------------------------------------- using it
@@ -301,4 +319,4 @@ class DenseInverse:
 
             cusolverDn.destroy(self._handle)
             self._handle = None
-        self.inv = self.work = self._workspace = None
+        self.inv = self.work = self._workspace = self._rhs = self._result = None

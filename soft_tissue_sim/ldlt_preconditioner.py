@@ -156,7 +156,9 @@ def _stop(state):
         state["cv"].notify_all()
     t = state.get("thread")
     if t is not None and t.is_alive() and t is not threading.current_thread():
-        t.join(timeout=10.0)
+        # a factorization under way cannot be interrupted: the daemon thread ends after it,
+        # its result dropped; close() does not wait for it
+        t.join(timeout=0.2)
 
 
 class _Thread:
@@ -296,8 +298,8 @@ class _Worker:
             self.conn.send(("stop",))
         except (OSError, ValueError):
             pass
-        try:
-            self.proc.wait(timeout=5.0)
+        try:  # a process busy factorizing reads no message until it has finished: end it
+            self.proc.wait(timeout=0.2)
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait(timeout=5.0)

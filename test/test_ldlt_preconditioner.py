@@ -236,3 +236,26 @@ def test_worker_option_is_checked():
         load_scene(beam(worker="fiber"))
     with pytest.raises(ParameterError, match="retired"):  # the level-scheduled device solves are gone
         load_scene(beam(worker="process", apply_on="device"))
+
+
+def test_close_returns_within_a_second_while_a_factorization_runs():
+    """Simulation.close() does not wait for a CHOLMOD factorization under way (thread: the
+    daemon ends after it; process: the busy worker is ended)."""
+    import time
+
+    for worker in ("thread", "process"):
+        cfg = {"mesh": {"generator": "beam", "n_long": 110, "n_cross": 11, "spacing": 0.01},
+               "materials": [{"id": 0, "young": 5e4, "poisson": 0.3, "density": 1000.0}],
+               "fixed": {"axis": "x", "below": 0.0}, "time": {"dt": 0.01},
+               "solver": {"preconditioner": "async_ldlt", "tolerance": 1e-6,
+                          "ldlt": {"backend": "cholmod", "refresh_every": 1, "worker": worker}}}
+        sim = load_scene(cfg, device="cpu")
+        t0 = time.perf_counter()
+        sim.step()  # the first factor, made in the step: how long one takes here
+        one = time.perf_counter() - t0
+        sim.step()  # requests the next one, now under way
+        t0 = time.perf_counter()
+        sim.close()
+        took = time.perf_counter() - t0
+        assert took < 1.0, (worker, took, one)
+        assert one > took  # the factorization would have taken longer than the close did

@@ -9,6 +9,8 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
     device: auto                  # auto (CUDA if present, else CPU) | cpu | cuda | cuda:N
     mesh: {file: meshes/beam_2000.vtu}            # path relative to the scene file or the package
       # or {generator: beam, n_long: 80, n_cross: 5, spacing: 0.01} / {generator: brain}
+      #   / {generator: grid, x: [..], y: [..], z: [..]} (node coordinates of a box grid);
+      #   generators take split: mirrored (default, symmetric) | uniform (see mesh.py)
       # optional: scale: 1.0, translate: [x, y, z],
       #   regions: [{box: {min: [..], max: [..]}, material: 1}]  (material id by tet centroid)
     materials: [{id: 0, young: 1.0e5, poisson: 0.3, density: 1000}]
@@ -135,12 +137,16 @@ def build_mesh(spec, base: Path | None) -> mesh_mod.TetMesh:
     if "file" in spec:
         m = mesh_mod.load_mesh(resolve_path(spec["file"], base), material_key=spec.get("material_key"))
     elif spec.get("generator") == "beam":
-        kw = {k: spec[k] for k in ("n_long", "n_cross", "length", "width", "spacing") if k in spec}
+        kw = {k: spec[k] for k in ("n_long", "n_cross", "length", "width", "spacing", "split") if k in spec}
         m = mesh_mod.beam_mesh(**kw)
     elif spec.get("generator") == "brain":
-        m = mesh_mod.brain_mesh()
+        m = mesh_mod.brain_mesh(**{k: spec[k] for k in ("split",) if k in spec})
+    elif spec.get("generator") == "grid":
+        if not all(k in spec for k in "xyz"):
+            raise ParameterError(f"mesh generator 'grid' needs node coordinates x, y and z, got {spec!r}")
+        m = mesh_mod.grid_mesh(spec["x"], spec["y"], spec["z"], **{k: spec[k] for k in ("split",) if k in spec})
     else:
-        raise ParameterError(f"scene 'mesh' needs 'file' or generator 'beam'/'brain', got {spec!r}")
+        raise ParameterError(f"scene 'mesh' needs 'file' or generator 'beam'/'brain'/'grid', got {spec!r}")
     regions = spec.get("regions") or []
     if regions:  # material ids by region: [{box: {min: [..], max: [..]}, material: 1}, ...] (tet centroids)
         ids = m.material_ids.copy()

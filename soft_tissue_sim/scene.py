@@ -20,6 +20,9 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
     fixed: {axis: x, below: 0.0}  # or {box: {min: [..], max: [..]}} or {nodes: [..]}, or a list of these
     time: {dt: 0.01}
     solver: {tolerance: 1.0e-7, max_iterations: 1000,
+             newton_iterations: 1,                # linearisations of eq. (1) per step (1: the paper's);
+             newton_tolerance: null,              #   or until ||g|| / ||b|| is within this (then up to 20)
+                                                  #   (see implicit_integration.py)
              preconditioner: async_ldlt,          # none | jacobi | async_ldlt | direct
              ldlt: {rotate: true, refresh_every: 1, deterministic: false,
                     lag: 0,                       # with deterministic: install each factor this many
@@ -321,6 +324,7 @@ class Simulation:
         self.integrator = BackwardEuler(
             self.fem, dt, self.damping, config.get("gravity", [0.0, 0.0, -9.81]), self.preconditioner,
             tolerance=float(tol), max_iterations=int(max_it),
+            newton_iterations=solver.get("newton_iterations"), newton_tolerance=solver.get("newton_tolerance"),
         )
         device_ldlt = isinstance(self.preconditioner, DeviceLDLTPreconditioner)
         use_graph = graph == "true" or (graph == "auto" and device_ldlt and wp.get_device(self.device).is_cuda)

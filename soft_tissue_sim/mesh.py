@@ -229,18 +229,73 @@ def validate_mesh(points, tets, material_ids=None, *, min_quality: float = 1e-6)
     return TetMesh(points.copy(), tets.astype(np.int32), mat)
 
 
+def _empty_vtk_xml(path: Path) -> str | None:
+    """'NumberOfPoints=0 ...' where a VTK XML file declares no points or no cells, else None."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16).decode("latin-1")
+    except OSError:
+        return None
+    import re
+
+    pts = [int(v) for v in re.findall(r'NumberOfPoints="(\d+)"', head)]
+    cells = [int(v) for v in re.findall(r'NumberOfCells="(\d+)"', head)]
+    if (pts and sum(pts) == 0) or (cells and sum(cells) == 0):
+        return f"NumberOfPoints={sum(pts)}, NumberOfCells={sum(cells)}"
+    return None
+
+
+def _read_error(path: Path, exc: BaseException, printed: str) -> MeshError:
+    """A clear MeshError for a file meshio could not read: empty file, empty mesh, or meshio's
+    own reasons per format it tried (which it prints, then exits)."""
+    import meshio
+
+    formats = meshio.extension_to_filetypes.get("".join(path.suffixes[-1:]).lower(), [])
+    what = " or ".join(formats) if formats else "any format meshio knows (unknown suffix)"
+    size = path.stat().st_size
+    if size == 0:
+        return MeshError(f"cannot read mesh file {path}: the file is empty (0 bytes)")
+    empty = _empty_vtk_xml(path)
+    if empty is not None:
+        return MeshError(f"cannot read mesh file {path}: it holds an empty mesh ({empty}); a mesh needs "
+                         f"points and tetrahedra")
+    printed = printed.split("Error: Couldn't read")[0]  # meshio's own summary (wrapped by rich): dropped
+    reasons = "; ".join(line.strip() for line in printed.splitlines() if line.strip())
+    if isinstance(exc, SystemExit):
+        with open(path, "rb") as fh:
+            start = fh.read(32)
+        detail = (f"meshio could not parse it as {what}" + (f" ({reasons})" if reasons else "")
+                  + f"; it starts with {start!r}")
+    else:
+        detail = f"meshio failed reading it as {what}: {type(exc).__name__}: {exc}"
+    return MeshError(f"cannot read mesh file {path} ({size} bytes): {detail}")
+
+
 def load_mesh(path, material_key: str | None = None) -> TetMesh:
-    """Read any meshio format; keep the 'tetra' blocks; material ids from cell data; validate."""
+    """Read any meshio format; keep the 'tetra' blocks; material ids from cell data; validate.
+
+    Raises FileNotFoundError for a missing file and :class:`MeshError` for one that cannot be
+    read (empty file, empty mesh, not the format its suffix says), that holds no linear
+    tetrahedra, or whose mesh fails :func:`validate_mesh`.
+    """
+    import contextlib
+    import io
+
     import meshio
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
-    try:
-        raw = meshio.read(str(path))
+    printed = io.StringIO()
+    try:  # meshio prints why each format failed, then calls sys.exit(1): keep both for the message
+        with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+            raw = meshio.read(str(path))
     except (Exception, SystemExit) as e:  # meshio raises ReadError, ValueError..., or sys.exit(1)
-        raise MeshError(f"cannot read mesh file {path}: {type(e).__name__}: {e}") from None
+        raise _read_error(path, e, printed.getvalue()) from None
 
+    if len(raw.points) == 0 or sum(len(b.data) for b in raw.cells) == 0:
+        raise MeshError(f"{path}: empty mesh ({len(raw.points)} points, "
+                        f"{sum(len(b.data) for b in raw.cells)} cells); a mesh needs points and tetrahedra")
     types = [b.type for b in raw.cells]
     counts = {t: sum(len(b.data) for b in raw.cells if b.type == t) for t in dict.fromkeys(types)}
     have = ", ".join(f"{t} ({n})" for t, n in counts.items()) or "no cells"

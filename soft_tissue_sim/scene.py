@@ -126,10 +126,14 @@ def read_scene(scene) -> tuple[dict, Path | None]:
     if isinstance(scene, dict):
         return copy.deepcopy(scene), None
     path = resolve_path(scene)
-    with open(path) as fh:
-        cfg = yaml.safe_load(fh)
+    try:
+        with open(path) as fh:
+            cfg = yaml.safe_load(fh)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ParameterError(f"cannot read scene file {path}: {type(exc).__name__}: {exc}") from None
     if not isinstance(cfg, dict):
-        raise ParameterError(f"scene file {path} does not hold a mapping")
+        raise ParameterError(f"scene file {path} does not hold a mapping"
+                             + (" (it is empty)" if cfg is None else f" (it holds a {type(cfg).__name__})"))
     cfg.setdefault("name", path.stem)
     return cfg, path.parent
 
@@ -519,10 +523,43 @@ class Simulation:
         self.last_stats = None
 
     def positions(self) -> np.ndarray:
+        """(n, 3) current node positions [m] (a copy)."""
         return self.integrator.x.numpy().copy()
 
     def velocities(self) -> np.ndarray:
+        """(n, 3) current node velocities [m/s] (a copy)."""
         return self.integrator.v.numpy().copy()
+
+    def set_state(self, positions, velocities=None) -> None:
+        """Replace the current positions and velocities (world frame, one row per node of the
+        current mesh); ``velocities`` None means at rest. :meth:`positions` and
+        :meth:`velocities` read them back exactly.
+
+        Fixed nodes take the positions given (a prescribed displacement: they stay there) and
+        zero velocity. The rest shape, the mesh, the step count and the time are unchanged; the
+        preconditioner keeps its factor (the next solve corrects for the jump).
+        Raises ``ValueError`` on a wrong shape or a non-finite value; the simulation then keeps
+        its state.
+        """
+        if self._closed:
+            raise RuntimeError("simulation is closed")
+        n = self.fem.n_nodes
+        arrays = []
+        for name, a in (("positions", positions), ("velocities", np.zeros((n, 3)) if velocities is None else velocities)):
+            try:
+                a = np.array(a, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"set_state: {name} must be numeric, shape ({n}, 3)") from None
+            if a.shape != (n, 3):
+                raise ValueError(f"set_state: {name} must have shape ({n}, 3) (one row per node), got {a.shape}")
+            bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+            if bad.size:
+                raise ValueError(f"set_state: non-finite {name} at nodes {bad[:10].tolist()}"
+                                 + (f" and {bad.size - 10} more" if bad.size > 10 else ""))
+            arrays.append(a)
+        x, v = arrays
+        v[self.fem.free.numpy() == 0.0] = 0.0
+        self.integrator.set_state(x, v)
 
     def surface_triangles(self) -> np.ndarray:
         return self.mesh.boundary_faces()

@@ -3,17 +3,15 @@ plane, an optional re-linearised (Newton) step that creates no energy, convergen
 the true residual, the state round trip, clear errors for empty or unreadable mesh files, and
 a rigid sphere indenting a block against Hertz, frictionless and fully stuck."""
 
-import sys
-
 import meshio
 import numpy as np
 import pytest
-import warp as wp
 
 from soft_tissue_sim import ParameterError, load_scene
 from soft_tissue_sim.bench.stability import beam as stability_beam
 from soft_tissue_sim.cg import DevicePCG
 from soft_tissue_sim.mesh import MeshError, beam_mesh, brain_mesh, load_mesh, save_mesh, validate_mesh
+from test_contact import inside_any_tet, scene
 
 G = 9.81
 
@@ -318,9 +316,6 @@ def test_sphere_indenting_a_block_matches_hertz_frictionless_and_stuck(friction)
 @pytest.mark.xfail(strict=True, reason="face contacts of a capsule parallel to a face alternate between two "
                                        "sets every step (contact detection); see test_contact's wrench test")
 def test_capsule_parallel_to_a_face_comes_to_rest():
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
-    from test_contact import scene
-
     cfg = scene(mesh={"generator": "beam", "n_long": 5, "n_cross": 5, "spacing": 0.005},
                 materials=[{"id": 0, "young": 2.0e4, "poisson": 0.3, "density": 1000.0}],
                 damping={"mass": 2.0, "stiffness": 0.01}, fixed={"axis": "z", "below": -0.01},
@@ -340,9 +335,6 @@ def test_capsule_parallel_to_a_face_comes_to_rest():
 @pytest.mark.xfail(strict=True, reason="a node falling level with a corner edge of the other side gets a "
                                        "horizontal self-contact normal, which misses the fall (contact detection)")
 def test_a_corner_node_falling_past_a_corner_edge_is_caught(tmp_path):
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
-    from test_contact import inside_any_tet, scene
-
     m = beam_mesh(6, 4, spacing=0.01)  # mirrored split
     cen = m.centroids()
     slot = (np.abs(cen[:, 2]) < 0.005) & (cen[:, 0] > 0.01)

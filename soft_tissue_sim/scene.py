@@ -537,7 +537,8 @@ class Simulation:
 
         Fixed nodes take the positions given (a prescribed displacement: they stay there) and
         zero velocity. The rest shape, the mesh, the step count and the time are unchanged; the
-        preconditioner keeps its factor (the next solve corrects for the jump).
+        preconditioner keeps its factor (PCG converges with it; a factor far from the new state
+        costs iterations until its next refresh).
         Raises ``ValueError`` on a wrong shape or a non-finite value; the simulation then keeps
         its state.
         """

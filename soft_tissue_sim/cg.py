@@ -4,7 +4,14 @@ We keep our own PCG rather than ``warp.optim.linear.cg``: Warp's variant applies
 preconditioner twice per iteration (to r and to A p), and with the LDL^T preconditioner
 of the paper the triangular solves are the dominant cost, so that would double it. Ours is
 the textbook PCG: one product with A and one preconditioner application per iteration,
-stopping on the true relative residual ||b - A x|| / ||b|| of the recursion.
+iterating until the recursively updated residual r ~ b - A x is below the tolerance
+(||r|| / ||b||). In floating point that recursion drifts from the true residual (far, on
+stiff, badly conditioned systems), so the solve ends with one more product: convergence is
+judged on the true relative residual ||b - A x|| / ||b||, which is what ``residual`` reports.
+Float64 cannot make that residual much smaller than eps ||A|| ||x|| / ||b|| (the rounding of
+the product itself); ``residual_floor`` is that estimate (||A|| by a few power iterations,
+cached while the operator's key holds) and ``tolerance_unreachable`` says when the tolerance
+asked is below it.
 
 Vectors are ``wp.array(dtype=wp.vec3d)`` (node-major). The operator is a callable
 ``matvec(p, out)`` computing ``out = A p``; a preconditioner has
@@ -67,9 +74,28 @@ def _invert_blocks_kernel(D: wp.array(dtype=wp.mat33d), free: wp.array(dtype=wp.
 @dataclass
 class CGResult:
     iterations: int
-    residual: float  # final relative residual ||b - A x|| / ||b|| (recursive)
-    converged: bool
+    residual: float  # final true relative residual ||b - A x|| / ||b|| (one product after the loop)
+    converged: bool  # residual <= tolerance
     precond_ms: float
+    recursive_residual: float = float("nan")  # ||r|| / ||b|| of the recursion where the loop stopped
+    residual_floor: float = 0.0  # eps ||A|| ||x|| / ||b||: about the smallest residual float64 reaches
+    tolerance_unreachable: bool = False  # the tolerance asked is below residual_floor
+
+
+_EPS = float(np.finfo(np.float64).eps)
+_POWER_ITERATIONS = 12  # power iterations of the ||A|| estimate (a lower bound, within tens of percent)
+
+
+@wp.kernel
+def _residual_kernel(b: wp.array(dtype=wp.vec3d), Ax: wp.array(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    r[i] = b[i] - Ax[i]
+
+
+@wp.kernel
+def _scale_kernel(a: wp.array(dtype=wp.vec3d), s: wp.float64, out: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    out[i] = s * a[i]
 
 
 class IdentityPreconditioner:
@@ -145,6 +171,8 @@ class PCG:
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
         self.device = wp.get_device(device)
+        self._norm_key = None  # what the cached ||A|| estimate was made for (kept across resizes)
+        self.norm_estimate = float("nan")
         self.resize(n)
 
     def resize(self, n: int) -> None:
@@ -160,17 +188,53 @@ class PCG:
         wp.utils.array_inner(a, b, out=self._dot)
         return float(self._dot.numpy()[0])
 
+    def operator_norm(self, matvec) -> float:
+        """Estimate of ||A||_2 (a lower bound) by power iterations from a fixed start vector,
+        cached while the operator's ``norm_key()`` (found on a bound method's owner: the
+        integrator's coefficients, as ||A|| hardly moves with the state or a cut) holds; an
+        operator without one is estimated at every call. Uses ``p`` and ``Ap`` as scratch and
+        reads scalars on the host: call it outside a solve (and outside a graph capture)."""
+        owner = getattr(matvec, "__self__", None)
+        mk = getattr(owner, "norm_key", None)
+        key = mk() if mk is not None else None
+        if key is not None and key == self._norm_key:
+            return self.norm_estimate
+        start = np.random.default_rng(12345).standard_normal((self.n, 3))
+        self.p.assign(start / np.linalg.norm(start))
+        est = 0.0
+        for _ in range(_POWER_ITERATIONS):
+            matvec(self.p, self.Ap)
+            est = float(np.sqrt(self._inner(self.Ap, self.Ap)))
+            if not (est > 0.0 and np.isfinite(est)):
+                break
+            wp.launch(_scale_kernel, self.n, [self.Ap, 1.0 / est, self.p], device=self.device)
+        self.norm_estimate, self._norm_key = est, key
+        return est
+
+    def _finish(self, matvec, b, x, b_norm, it, recursive, t_pre, norm_a) -> CGResult:
+        """The true residual ||b - A x|| / ||b|| (one product), the float64 floor, the result."""
+        matvec(x, self.Ap)
+        wp.launch(_residual_kernel, self.n, [b, self.Ap, self.r], device=self.device)
+        rel = float(np.sqrt(self._inner(self.r, self.r)) / b_norm)
+        floor = _EPS * norm_a * float(np.sqrt(self._inner(x, x))) / b_norm
+        return CGResult(it, rel, bool(rel <= self.tolerance), 1000.0 * t_pre, float(recursive), float(floor),
+                        bool(self.tolerance < floor))
+
     def solve(self, matvec, b: wp.array, x: wp.array, preconditioner) -> CGResult:
-        """Solve A x = b from x = 0. Returns iterations and the final relative residual."""
+        """Solve A x = b from x = 0. Returns iterations, the final true relative residual
+        (converged when it is within the tolerance) and the float64 floor estimate."""
         if b.shape[0] != self.n:
             self.resize(b.shape[0])
         dev = self.device
         r, z, p, Ap = self.r, self.z, self.p, self.Ap
-        x.zero_()
-        wp.copy(r, b)
         b_norm = np.sqrt(self._inner(b, b))
         if b_norm == 0.0 or not np.isfinite(b_norm):
-            return CGResult(0, 0.0 if b_norm == 0.0 else float("nan"), b_norm == 0.0, 0.0)
+            x.zero_()
+            nan = float("nan")
+            return CGResult(0, 0.0 if b_norm == 0.0 else nan, b_norm == 0.0, 0.0, 0.0 if b_norm == 0.0 else nan)
+        norm_a = self.operator_norm(matvec)
+        x.zero_()
+        wp.copy(r, b)
         t_pre = 0.0
         t0 = time.perf_counter()
         preconditioner.apply(r, z)
@@ -199,12 +263,12 @@ class PCG:
             beta = rz_new / rz
             rz = rz_new
             wp.launch(_xpby_kernel, n, [z, beta, p], device=dev)
-        return CGResult(it, float(rel), bool(rel <= self.tolerance), 1000.0 * t_pre)
+        return self._finish(matvec, b, x, b_norm, it, rel, t_pre, norm_a)
 
 
 # Device scalars of DevicePCG (one float64 array, read once at the end of a solve).
-_BB, _RZ, _RZN, _PAP, _ALPHA, _BETA, _RR, _REL, _BROKE, _IT = range(10)
-_NSCAL = 10
+_BB, _RZ, _RZN, _PAP, _ALPHA, _BETA, _RR, _REL, _BROKE, _IT, _RTRUE, _XX = range(12)
+_NSCAL = 12
 _RED_BLOCK = 256  # threads per block of the dot-product kernels on CUDA
 
 
@@ -346,10 +410,13 @@ class DevicePCG(PCG):
 
     Same iteration and stopping test as :meth:`PCG.solve` (the first iteration is peeled so
     that the loop body starts with the preconditioner: no application is wasted after
-    convergence). ``graph=True`` captures the whole solve (CUDA graph with a conditional
-    while node; Warp's API capture on the CPU) on the second solve with the same key -- vector
-    size, array addresses, the operator's ``graph_key()`` (found on a bound method's owner)
-    and the preconditioner's -- and replays it afterwards; a new key (a cut, a new factor
+    convergence), and the same end: after the loop one product A x, the true residual and
+    ||x|| by device reductions (still no host read until the solve is over; the ||A||
+    estimate is made before, outside any capture). ``graph=True`` captures the whole solve
+    (CUDA graph with a conditional while node; Warp's API capture on the CPU) on the second
+    solve with the same key -- vector size, array addresses, the operator's ``graph_key()``
+    (found on a bound method's owner) and the preconditioner's -- and replays it afterwards;
+    a new key (a cut, a new factor
     pattern, a changed dt) runs uncaptured once, then is captured again. Without a graph the
     loop still needs no host read of dot products: on CUDA ``capture_while`` reads the flag
     (one small copy per iteration), on the CPU it reads it in place.
@@ -424,6 +491,13 @@ class DevicePCG(PCG):
             self._tail(matvec, x)
 
         wp.capture_while(self._flag, body)
+        # the true residual b - A x and ||x|| (convergence is judged on them)
+        matvec(x, self.Ap)
+        wp.launch(_residual_kernel, n, [b, self.Ap, self.r], device=dev)
+        self._ddot(self.r, self.r)
+        self._scalar(_pcg_store_kernel, [self._s, _RTRUE])
+        self._ddot(x, x)
+        self._scalar(_pcg_store_kernel, [self._s, _XX])
 
     def _key(self, matvec, b, x, preconditioner):
         owner = getattr(matvec, "__self__", None)
@@ -443,6 +517,7 @@ class DevicePCG(PCG):
             return super().solve(matvec, b, x, preconditioner)
         if b.shape[0] != self.n:
             self.resize(b.shape[0])
+        norm_a = self.operator_norm(matvec)  # cached; host reads, so before any capture
         key = self._key(matvec, b, x, preconditioner) if self.graph else None
         if key is not None and self._graph is not None and key == self._graph_key:
             wp.capture_launch(self._graph)
@@ -467,5 +542,11 @@ class DevicePCG(PCG):
             self._run(matvec, b, x, preconditioner)
             self._seen_key = key
         s = self._s.numpy()
-        rel = float(s[_REL])
-        return CGResult(int(s[_IT]), rel, bool(rel <= self.tolerance), float("nan"))
+        bb = float(s[_BB])
+        if bb == 0.0 or not np.isfinite(bb):
+            rel = 0.0 if bb == 0.0 else float("nan")
+            return CGResult(0, rel, bb == 0.0, float("nan"), rel)
+        rel = float(np.sqrt(s[_RTRUE] / bb))
+        floor = _EPS * norm_a * float(np.sqrt(s[_XX] / bb))
+        return CGResult(int(s[_IT]), rel, bool(rel <= self.tolerance), float("nan"), float(s[_REL]), floor,
+                        bool(self.tolerance < floor))

@@ -10,6 +10,19 @@ B = -(alpha M + beta K) this reads
 
 A is solved matrix-free by PCG (:mod:`soft_tissue_sim.cg`); fixed nodes are filtered out
 of the system (zero right-hand side, identity rows) and keep zero velocity.
+
+That single linearisation (the paper's, the default) solves backward Euler exactly only where
+f is linear over the step. On stiff bodies and large steps it is not, and the step can create
+energy. ``newton_iterations`` N > 1 re-linearises: from the first solution v_1, each further
+iteration k evaluates the nonlinear residual of backward Euler at x_k = x_t + dt v_k,
+
+    g(v_k) = M (v_k - v_t) - dt (f_elastic(x_k) + f_gravity + f_external - alpha M v_k - beta K_k v_k),
+
+with the rotations (and K_k) of x_k, and solves A_k dv = -g(v_k) with the same preconditioner
+(A_k is A with the rotations of x_k), v_{k+1} = v_k + dv, x_{k+1} = x_k + dt dv. It stops after
+N linearisations, or earlier where ``newton_tolerance`` is given and ||g|| / ||b|| (b the first
+right-hand side) is within it. Invariants: N = 1 is exactly the paper's step; the fixed nodes
+keep zero velocity in every iteration.
 """
 
 from __future__ import annotations
@@ -63,6 +76,44 @@ def _update_kernel(
 
 
 @wp.kernel
+def _newton_rhs_kernel(
+    f: wp.array(dtype=wp.vec3d),
+    Mdv: wp.array(dtype=wp.vec3d),
+    Mv: wp.array(dtype=wp.vec3d),
+    Kv: wp.array(dtype=wp.vec3d),
+    free: wp.array(dtype=wp.float64),
+    dt: wp.float64,
+    c_m: wp.float64,
+    c_k: wp.float64,
+    b: wp.array(dtype=wp.vec3d),
+):
+    """b = -g(v_k) = dt f(x_k) - M (v_k - v_t) - dt alpha M v_k - dt beta K_k v_k (free nodes)."""
+    i = wp.tid()
+    b[i] = free[i] * (dt * f[i] - Mdv[i] - c_m * Mv[i] - c_k * Kv[i])
+
+
+@wp.kernel
+def _difference_kernel(a: wp.array(dtype=wp.vec3d), c: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    out[i] = a[i] - c[i]
+
+
+@wp.kernel
+def _newton_update_kernel(
+    dv: wp.array(dtype=wp.vec3d),
+    free: wp.array(dtype=wp.float64),
+    dt: wp.float64,
+    v: wp.array(dtype=wp.vec3d),
+    x: wp.array(dtype=wp.vec3d),
+):
+    """v_{k+1} = v_k + dv, x_{k+1} = x_k + dt dv (= x_t + dt v_{k+1}); fixed nodes unchanged."""
+    i = wp.tid()
+    d = free[i] * dv[i]
+    v[i] = v[i] + d
+    x[i] = x[i] + dt * d
+
+
+@wp.kernel
 def _energy_kernel(
     x: wp.array(dtype=wp.vec3d),
     v: wp.array(dtype=wp.vec3d),
@@ -93,9 +144,14 @@ class StepStats:
 
     step: int = 0
     time: float = 0.0
-    iterations: int = 0
-    residual: float = 0.0
-    converged: bool = True
+    iterations: int = 0  # PCG iterations, summed over the step's linearisations
+    residual: float = 0.0  # true relative residual ||b - A x|| / ||b|| of the last linear solve
+    converged: bool = True  # every solve within its tolerance (and the nonlinear one, if asked)
+    recursive_residual: float = 0.0  # where the recursion of the last solve stopped (may drift)
+    residual_floor: float = 0.0  # eps ||A|| ||x|| / ||b||: about the least residual float64 reaches
+    tolerance_unreachable: bool = False  # a solve was asked a tolerance below its floor
+    newton_iterations: int = 1  # linearisations of eq. (1) in this step
+    nonlinear_residual: float | None = None  # with Newton on: ||g|| / ||b|| after the last linearisation
     build_ms: float = 0.0
     solve_ms: float = 0.0
     total_ms: float = 0.0
@@ -129,10 +185,27 @@ class BackwardEuler:
     """State (positions, velocities) and the linearised backward Euler step of one body."""
 
     def __init__(self, fem: CorotationalFEM, dt: float, damping: Damping, gravity, preconditioner,
-                 tolerance: float = 1e-7, max_iterations: int = 1000):
+                 tolerance: float = 1e-7, max_iterations: int = 1000, newton_iterations: int | None = None,
+                 newton_tolerance: float | None = None):
         dt = float(dt)
         if not np.isfinite(dt) or dt <= 0.0:
             raise ParameterError(f"time step dt must be > 0 and finite, got {dt}")
+        if newton_tolerance is not None:
+            if isinstance(newton_tolerance, bool):
+                raise ParameterError(f"solver newton_tolerance must be a number in (0, 1), got {newton_tolerance!r}")
+            try:
+                newton_tolerance = float(newton_tolerance)
+            except (TypeError, ValueError):
+                raise ParameterError(f"solver newton_tolerance must be a number in (0, 1), got {newton_tolerance!r}") from None
+            if not 0.0 < newton_tolerance < 1.0:
+                raise ParameterError(f"solver newton_tolerance must be in (0, 1), got {newton_tolerance!r}")
+        if newton_iterations is None:
+            newton_iterations = 1 if newton_tolerance is None else 20
+        if isinstance(newton_iterations, bool) or not isinstance(newton_iterations, (int, np.integer)) \
+                or newton_iterations < 1:
+            raise ParameterError(f"solver newton_iterations must be an integer >= 1, got {newton_iterations!r}")
+        self.newton_iterations = int(newton_iterations)
+        self.newton_tolerance = newton_tolerance
         g = np.asarray(gravity, dtype=np.float64)
         if g.shape != (3,) or not np.all(np.isfinite(g)):
             raise ParameterError(f"gravity must be 3 finite numbers, got {gravity!r}")
@@ -167,6 +240,9 @@ class BackwardEuler:
         self._Mv = wp.zeros(n, dtype=wp.vec3d, device=d)
         self._Kv = wp.zeros(n, dtype=wp.vec3d, device=d)
         self._energy = wp.zeros(2, dtype=wp.float64, device=d)
+        self._v_t = wp.zeros(n, dtype=wp.vec3d, device=d)  # the step's start velocity (Newton)
+        self._dvel = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self._Mdv = wp.zeros(n, dtype=wp.vec3d, device=d)
 
     def set_state(self, x: np.ndarray, v: np.ndarray) -> None:
         """Replace positions and velocities (e.g. after a topology change or a rollback)."""
@@ -180,6 +256,11 @@ class BackwardEuler:
 
     def matvec(self, p: wp.array, out: wp.array) -> None:
         self.fem.system_product(p, p, out, 1.0, 0.0, self.m_coef, self.k_coef)
+
+    def norm_key(self) -> tuple:
+        """What the PCG's cached ||A|| estimate depends on: the coefficients of A (the state
+        and cuts change ||A|| little; it sets only the order of the float64 floor)."""
+        return (float(self.m_coef), float(self.k_coef))
 
     def graph_key(self) -> tuple:
         """What a captured ``matvec`` depends on (array addresses and sizes, coefficients): a
@@ -205,36 +286,95 @@ class BackwardEuler:
                   [self.f, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass, self.k_coef, self.b],
                   device=self.device)
 
+    def _norm(self, a: wp.array) -> float:
+        return float(np.sqrt(self.cg._inner(a, a)))
+
+    def newton_residual(self) -> None:
+        """b = -g(v_k) at the current state x_k = x_t + dt v_k (rotations updated to x_k)."""
+        fem, dt = self.fem, self.dt
+        fem.update_rotations(self.x)
+        wp.launch(_gravity_kernel, fem.n_nodes, [fem.lumped_mass, wp.vec3d(*self.gravity), self.f_ext, self.f],
+                  device=self.device)
+        fem.add_elastic_forces(self.x, self.f)
+        wp.launch(_difference_kernel, fem.n_nodes, [self.v, self._v_t, self._dvel], device=self.device)
+        fem.mass_product(self._dvel, self._Mdv)
+        if self.damping.stiffness > 0.0:
+            fem.stiffness_product(self.v, self._Kv)
+        else:
+            self._Kv.zero_()
+        if self.damping.mass > 0.0:
+            fem.mass_product(self.v, self._Mv)
+        else:
+            self._Mv.zero_()
+        wp.launch(_newton_rhs_kernel, fem.n_nodes,
+                  [self.f, self._Mdv, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass,
+                   dt * self.damping.stiffness, self.b], device=self.device)
+
     def step(self) -> StepStats:
         t0 = time.perf_counter()
+        newton = self.newton_iterations > 1 or self.newton_tolerance is not None
+        if newton:
+            wp.copy(self._v_t, self.v)
         self.build()
         self.preconditioner.begin_step(self)
         t1 = time.perf_counter()
         res = self.cg.solve(self.matvec, self.b, self.dv, self.preconditioner)
         t2 = time.perf_counter()
+        solve_s = t2 - t1
         wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
                   device=self.device)
+        iterations, precond_ms, converged = res.iterations, res.precond_ms, res.converged
+        unreachable = res.tolerance_unreachable
+        linearisations, nonlinear = 1, float("nan")
+        if newton:
+            b0 = self._norm(self.b)  # the first right-hand side: the scale of the nonlinear residual
+            scale = b0 if b0 > 0.0 else 1.0
+            while True:
+                self.newton_residual()
+                nonlinear = self._norm(self.b) / scale
+                if (self.newton_tolerance is not None and nonlinear <= self.newton_tolerance) \
+                        or linearisations >= self.newton_iterations or not np.isfinite(nonlinear):
+                    break
+                ts = time.perf_counter()
+                res = self.cg.solve(self.matvec, self.b, self.dv, self.preconditioner)
+                solve_s += time.perf_counter() - ts
+                wp.launch(_newton_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
+                          device=self.device)
+                linearisations += 1
+                iterations += res.iterations
+                precond_ms += res.precond_ms
+                converged = converged and res.converged
+                unreachable = unreachable or res.tolerance_unreachable
+            if self.newton_tolerance is not None:
+                converged = converged and nonlinear <= self.newton_tolerance
         wp.synchronize_device(self.device)
         t3 = time.perf_counter()
         self.step_index += 1
         self.time += self.dt
         ps = self.preconditioner.stats()
-        return StepStats(
+        stats = StepStats(
             step=self.step_index,
             time=self.time,
-            iterations=res.iterations,
+            iterations=iterations,
             residual=res.residual,
-            converged=res.converged,
+            converged=converged,
+            recursive_residual=res.recursive_residual,
+            residual_floor=res.residual_floor,
+            tolerance_unreachable=unreachable,
+            newton_iterations=linearisations,
             build_ms=1000.0 * (t1 - t0),
-            solve_ms=1000.0 * (t2 - t1),
+            solve_ms=1000.0 * solve_s,
             total_ms=1000.0 * (t3 - t0),
-            precond_ms=res.precond_ms,
+            precond_ms=precond_ms,
             preconditioner=self.preconditioner.name,
             factor_age=int(ps.get("factor_age", -1)),
             factorization_ms=float(ps.get("factorization_ms", 0.0)),
             refresh_interval=float(ps.get("refresh_interval", 0.0)),
             worker_error=ps.get("worker_error"),
         )
+        if newton:
+            stats.nonlinear_residual = nonlinear
+        return stats
 
     def energy(self) -> tuple[float, float, float]:
         """(kinetic, gravitational potential, elastic) energy at the current state."""

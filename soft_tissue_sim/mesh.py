@@ -23,6 +23,7 @@ __all__ = [
     "validate_mesh",
     "load_mesh",
     "save_mesh",
+    "grid_mesh",
     "beam_mesh",
     "brain_mesh",
     "cli",
@@ -228,18 +229,73 @@ def validate_mesh(points, tets, material_ids=None, *, min_quality: float = 1e-6)
     return TetMesh(points.copy(), tets.astype(np.int32), mat)
 
 
+def _empty_vtk_xml(path: Path) -> str | None:
+    """'NumberOfPoints=0 ...' where a VTK XML file declares no points or no cells, else None."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16).decode("latin-1")
+    except OSError:
+        return None
+    import re
+
+    pts = [int(v) for v in re.findall(r'NumberOfPoints="(\d+)"', head)]
+    cells = [int(v) for v in re.findall(r'NumberOfCells="(\d+)"', head)]
+    if (pts and sum(pts) == 0) or (cells and sum(cells) == 0):
+        return f"NumberOfPoints={sum(pts)}, NumberOfCells={sum(cells)}"
+    return None
+
+
+def _read_error(path: Path, exc: BaseException, printed: str) -> MeshError:
+    """A clear MeshError for a file meshio could not read: empty file, empty mesh, or meshio's
+    own reasons per format it tried (which it prints, then exits)."""
+    import meshio
+
+    formats = meshio.extension_to_filetypes.get("".join(path.suffixes[-1:]).lower(), [])
+    what = " or ".join(formats) if formats else "any format meshio knows (unknown suffix)"
+    size = path.stat().st_size
+    if size == 0:
+        return MeshError(f"cannot read mesh file {path}: the file is empty (0 bytes)")
+    empty = _empty_vtk_xml(path)
+    if empty is not None:
+        return MeshError(f"cannot read mesh file {path}: it holds an empty mesh ({empty}); a mesh needs "
+                         f"points and tetrahedra")
+    printed = printed.split("Error: Couldn't read")[0]  # meshio's own summary (wrapped by rich): dropped
+    reasons = "; ".join(line.strip() for line in printed.splitlines() if line.strip())
+    if isinstance(exc, SystemExit):
+        with open(path, "rb") as fh:
+            start = fh.read(32)
+        detail = (f"meshio could not parse it as {what}" + (f" ({reasons})" if reasons else "")
+                  + f"; it starts with {start!r}")
+    else:
+        detail = f"meshio failed reading it as {what}: {type(exc).__name__}: {exc}"
+    return MeshError(f"cannot read mesh file {path} ({size} bytes): {detail}")
+
+
 def load_mesh(path, material_key: str | None = None) -> TetMesh:
-    """Read any meshio format; keep the 'tetra' blocks; material ids from cell data; validate."""
+    """Read any meshio format; keep the 'tetra' blocks; material ids from cell data; validate.
+
+    Raises FileNotFoundError for a missing file and :class:`MeshError` for one that cannot be
+    read (empty file, empty mesh, not the format its suffix says), that holds no linear
+    tetrahedra, or whose mesh fails :func:`validate_mesh`.
+    """
+    import contextlib
+    import io
+
     import meshio
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
-    try:
-        raw = meshio.read(str(path))
+    printed = io.StringIO()
+    try:  # meshio prints why each format failed, then calls sys.exit(1): keep both for the message
+        with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+            raw = meshio.read(str(path))
     except (Exception, SystemExit) as e:  # meshio raises ReadError, ValueError..., or sys.exit(1)
-        raise MeshError(f"cannot read mesh file {path}: {type(e).__name__}: {e}") from None
+        raise _read_error(path, e, printed.getvalue()) from None
 
+    if len(raw.points) == 0 or sum(len(b.data) for b in raw.cells) == 0:
+        raise MeshError(f"{path}: empty mesh ({len(raw.points)} points, "
+                        f"{sum(len(b.data) for b in raw.cells)} cells); a mesh needs points and tetrahedra")
     types = [b.type for b in raw.cells]
     counts = {t: sum(len(b.data) for b in raw.cells if b.type == t) for t in dict.fromkeys(types)}
     have = ", ".join(f"{t} ({n})" for t, n in counts.items()) or "no cells"
@@ -297,25 +353,48 @@ def save_mesh(mesh: TetMesh, path, file_format: str | None = None) -> None:
 # ---------------------------------------------------------------------------- generators
 
 
-def _grid_tets(shape: tuple[int, int, int]) -> np.ndarray:
-    """Kuhn split of an (a, b, c)-node grid (node id = (i*b + j)*c + k): 6 tets per cell, all
-    along the (0,0,0)-(1,1,1) diagonal, so the split is conforming; positive for a
-    right-handed grid mapping."""
-    a, b, c = shape
-    ii, jj, kk = np.meshgrid(np.arange(a - 1), np.arange(b - 1), np.arange(c - 1), indexing="ij")
-    base = ((ii * b + jj) * c + kk).ravel()
-    step = np.array([b * c, c, 1])
+SPLITS = ("mirrored", "uniform")
+
+
+def _kuhn_corners() -> np.ndarray:
+    """(6, 4, 3) corner bits of the Kuhn split of the unit cell: the tets (0, e_p0, e_p0 + e_p1,
+    111) for the 6 axis permutations p, each ordered to be positively oriented."""
     tets = []
     for perm in itertools.permutations(range(3)):
-        o1 = step[perm[0]]
-        o2 = o1 + step[perm[1]]
-        o3 = step.sum()
-        # parity of the permutation decides the orientation of (0, e_p0, e_p0+e_p1, 111)
+        e0, e1 = np.eye(3, dtype=np.int64)[perm[0]], np.eye(3, dtype=np.int64)[perm[1]]
+        c = [np.zeros(3, np.int64), e0, e0 + e1, np.ones(3, np.int64)]
+        # the parity of the permutation decides the orientation of (0, e_p0, e_p0+e_p1, 111)
         odd = sum(perm[i] > perm[j] for i in range(3) for j in range(i + 1, 3)) % 2
-        offs = (0, o1, o3, o2) if odd else (0, o1, o2, o3)
-        tets.append(np.stack([base + o for o in offs], axis=1))
-    # cell-major order: the 6 tets of one cell are consecutive
-    return np.stack(tets, axis=1).reshape(-1, 4).astype(np.int32)
+        tets.append([c[0], c[1], c[3], c[2]] if odd else c)
+    return np.array(tets)
+
+
+def _grid_tets(shape: tuple[int, int, int], split: str = "mirrored") -> np.ndarray:
+    """6 tets per cell of an (a, b, c)-node grid (node id = (i*b + j)*c + k), positively
+    oriented for a right-handed grid mapping, cell-major (a cell's 6 tets are consecutive).
+
+    ``uniform``: every cell split along its (0,0,0)-(1,1,1) diagonal (Kuhn). The same diagonal
+    everywhere makes the mesh, and its stiffness, lean along (1,1,1): a beam loaded in a
+    symmetry plane bends out of it.
+    ``mirrored``: the Kuhn split of cell (i, j, k) mirrored along each axis whose cell index is
+    odd. Neighbour cells are mirror images across their shared face, so the split is
+    conforming (a face's diagonal is the same seen from both cells), and the whole mesh is
+    symmetric under the mirror through the grid's mid-plane of any axis with an even number
+    of cells (an odd number leaves a middle layer that no Kuhn split makes symmetric).
+    """
+    if split not in SPLITS:
+        raise MeshError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
+    a, b, c = shape
+    ii, jj, kk = (g.ravel() for g in np.meshgrid(np.arange(a - 1), np.arange(b - 1), np.arange(c - 1), indexing="ij"))
+    cell = np.stack([ii, jj, kk], axis=1).astype(np.int64)  # (cells, 3)
+    corners = _kuhn_corners()  # (6, 4, 3)
+    flip = (cell & 1) if split == "mirrored" else np.zeros_like(cell)
+    bits = corners[None, :, :, :] ^ flip[:, None, None, :]  # mirrored corner bits per cell
+    ijk = cell[:, None, None, :] + bits  # (cells, 6, 4, 3) grid indices of the corners
+    tets = (ijk[..., 0] * b + ijk[..., 1]) * c + ijk[..., 2]
+    odd = flip.sum(axis=1) % 2 == 1  # an odd number of mirrors reverses the orientation
+    tets[odd] = tets[odd][:, :, [0, 2, 1, 3]]
+    return tets.reshape(-1, 4).astype(np.int32)
 
 
 def _positive(name: str, value) -> float:
@@ -332,22 +411,39 @@ def _count(name: str, value, low: int = 2) -> int:
 
 
 def beam_mesh(n_long: int, n_cross: int = 5, length: float | None = None, width: float | None = None,
-              spacing: float = 0.01) -> TetMesh:
+              spacing: float = 0.01, split: str = "mirrored") -> TetMesh:
     """Square beam, long axis x from 0 (clamped end) to ``length``, section centred on y = z = 0.
 
     ``n_long`` nodes along x, ``n_cross`` x ``n_cross`` in the section; ``length`` defaults to
-    (n_long-1)*spacing, ``width`` to (n_cross-1)*spacing. Each hex cell is split into 6 tets.
+    (n_long-1)*spacing, ``width`` to (n_cross-1)*spacing. Each hex cell is split into 6 tets
+    (``split``: see :func:`_grid_tets`). With an odd ``n_cross`` (an even number of cells
+    across) and the default mirrored split the mesh is symmetric under y -> -y and z -> -z, so a
+    load in either plane bends the beam in that plane.
     Paper beams: n_long 48 / 64 / 80 -> 1,200 / 1,600 / 2,000 nodes.
     """
     n_long, n_cross = _count("n_long", n_long), _count("n_cross", n_cross)
     spacing = _positive("spacing", spacing)
     length = _positive("length", (n_long - 1) * spacing if length is None else length)
     width = _positive("width", (n_cross - 1) * spacing if width is None else width)
-    x = np.linspace(0.0, length, n_long)
     y = np.linspace(-0.5 * width, 0.5 * width, n_cross)
-    X, Y, Z = np.meshgrid(x, y, y, indexing="ij")
+    return grid_mesh(np.linspace(0.0, length, n_long), y, y, split)
+
+
+def grid_mesh(x, y, z, split: str = "mirrored") -> TetMesh:
+    """The box of a tensor-product grid with node coordinates ``x``, ``y``, ``z`` (each
+    strictly increasing, at least 2), every cell split into 6 tets (see :func:`_grid_tets`);
+    node id (i * len(y) + j) * len(z) + k. Graded spacings give a mesh fine where it is needed.
+    Coordinates symmetric about their middle, with an even number of cells, make the default
+    mirrored mesh symmetric under that axis's mirror."""
+    axes = []
+    for name, c in (("x", x), ("y", y), ("z", z)):
+        c = np.asarray(c, dtype=np.float64).reshape(-1)
+        if c.size < 2 or not np.all(np.isfinite(c)) or np.any(np.diff(c) <= 0.0):
+            raise MeshError(f"grid {name} coordinates must be at least 2 finite, strictly increasing numbers")
+        axes.append(c)
+    X, Y, Z = np.meshgrid(*axes, indexing="ij")
     points = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
-    return validate_mesh(points, _grid_tets((n_long, n_cross, n_cross)))
+    return validate_mesh(points, _grid_tets(tuple(len(c) for c in axes), split))
 
 
 # Brain-like dome: footprint semi-axes, centre height, rim height fraction, tumour.
@@ -359,13 +455,14 @@ BRAIN_TUMOUR_RADIUS = 0.014
 _DISK_BLEND = 0.75  # < 1 keeps the square-to-disk map regular at the corners
 
 
-def brain_mesh() -> TetMesh:
+def brain_mesh(split: str = "mirrored") -> TetMesh:
     """Brain-like dome (1,734 nodes, 7,680 tets) on a flat base z = 0; tumour tets have id 1.
 
     A 17 x 17 x 6 node grid mapped to a rounded footprint (square blended 3:1 towards the
     elliptical square-to-disk map, semi-axes 0.07 x 0.055 m) and a height 0.05 m at the
     centre falling smoothly to 35 % at the rim. Material 1: tets whose centroid lies within
-    0.014 m of (0.01, 0, 0.03); the rest 0.
+    0.014 m of (0.01, 0, 0.03); the rest 0. With the default mirrored split (16 x 16 cells in
+    the footprint) the mesh is symmetric under y -> -y and x -> -x, the tumour under y -> -y.
     """
     nu, nv, nw = 17, 17, 6
     u, v, w = np.meshgrid(np.linspace(-1, 1, nu), np.linspace(-1, 1, nv), np.linspace(0, 1, nw), indexing="ij")
@@ -376,7 +473,7 @@ def brain_mesh() -> TetMesh:
     bump = (1.0 - u**2) * (1.0 - v**2)  # 1 at the centre, 0 on the rim
     h = BRAIN_HEIGHT * (BRAIN_RIM + (1.0 - BRAIN_RIM) * bump)
     points = np.stack([BRAIN_SEMI_AXES[0] * xf.ravel(), BRAIN_SEMI_AXES[1] * yf.ravel(), (w * h).ravel()], axis=1)
-    tets = _grid_tets((nu, nv, nw))
+    tets = _grid_tets((nu, nv, nw), split)
     c = points[tets].mean(axis=1)
     inside = np.linalg.norm(c - np.asarray(BRAIN_TUMOUR_CENTRE), axis=1) < BRAIN_TUMOUR_RADIUS
     return validate_mesh(points, tets, inside.astype(np.int32), min_quality=0.05)
@@ -412,8 +509,11 @@ def cli(argv=None) -> int:
     b.add_argument("--spacing", type=float, default=0.01, help="node spacing [m]")
     b.add_argument("--length", type=float, default=None, help="beam length [m] (default (long-1)*spacing)")
     b.add_argument("--width", type=float, default=None, help="section width [m] (default (cross-1)*spacing)")
+    b.add_argument("--split", choices=SPLITS, default="mirrored",
+                   help="cell split: mirrored per cell parity (symmetric) or uniform (one diagonal)")
     b.add_argument("--out", required=True, help="output file (any meshio format, e.g. .vtu)")
     r = sub.add_parser("brain", help="brain-like dome with a tumour (material 1)")
+    r.add_argument("--split", choices=SPLITS, default="mirrored", help="cell split (see beam)")
     r.add_argument("--out", required=True)
     i = sub.add_parser("info", help="print nodes, tets, materials, bbox, quality of a mesh file")
     i.add_argument("file")
@@ -424,9 +524,9 @@ def cli(argv=None) -> int:
             print(_info(load_mesh(args.file, args.material_key), args.file))
             return 0
         if args.cmd == "beam":
-            mesh = beam_mesh(args.long, args.cross, args.length, args.width, args.spacing)
+            mesh = beam_mesh(args.long, args.cross, args.length, args.width, args.spacing, args.split)
         else:
-            mesh = brain_mesh()
+            mesh = brain_mesh(args.split)
     except (MeshError, FileNotFoundError) as e:
         ap.exit(2, f"error: {e}\n")
     out = Path(args.out)

@@ -9,6 +9,8 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
     device: auto                  # auto (CUDA if present, else CPU) | cpu | cuda | cuda:N
     mesh: {file: meshes/beam_2000.vtu}            # path relative to the scene file or the package
       # or {generator: beam, n_long: 80, n_cross: 5, spacing: 0.01} / {generator: brain}
+      #   / {generator: grid, x: [..], y: [..], z: [..]} (node coordinates of a box grid);
+      #   generators take split: mirrored (default, symmetric) | uniform (see mesh.py)
       # optional: scale: 1.0, translate: [x, y, z],
       #   regions: [{box: {min: [..], max: [..]}, material: 1}]  (material id by tet centroid)
     materials: [{id: 0, young: 1.0e5, poisson: 0.3, density: 1000}]
@@ -18,6 +20,9 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
     fixed: {axis: x, below: 0.0}  # or {box: {min: [..], max: [..]}} or {nodes: [..]}, or a list of these
     time: {dt: 0.01}
     solver: {tolerance: 1.0e-7, max_iterations: 1000,
+             newton_iterations: 1,                # linearisations of eq. (1) per step (1: the paper's);
+             newton_tolerance: null,              #   or until ||g|| / ||b|| is within this (then up to 20)
+                                                  #   (see implicit_integration.py)
              preconditioner: async_ldlt,          # none | jacobi | async_ldlt | direct
              ldlt: {backend: auto,                # auto | cholmod | dense | cudss (soft_tissue_sim.preconditioner)
                     rotate: true, refresh_every: 1, deterministic: false,
@@ -86,10 +91,14 @@ def read_scene(scene) -> tuple[dict, Path | None]:
     if isinstance(scene, dict):
         return copy.deepcopy(scene), None
     path = resolve_path(scene)
-    with open(path) as fh:
-        cfg = yaml.safe_load(fh)
+    try:
+        with open(path) as fh:
+            cfg = yaml.safe_load(fh)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ParameterError(f"cannot read scene file {path}: {type(exc).__name__}: {exc}") from None
     if not isinstance(cfg, dict):
-        raise ParameterError(f"scene file {path} does not hold a mapping")
+        raise ParameterError(f"scene file {path} does not hold a mapping"
+                             + (" (it is empty)" if cfg is None else f" (it holds a {type(cfg).__name__})"))
     cfg.setdefault("name", path.stem)
     return cfg, path.parent
 
@@ -100,12 +109,16 @@ def build_mesh(spec, base: Path | None) -> mesh_mod.TetMesh:
     if "file" in spec:
         m = mesh_mod.load_mesh(resolve_path(spec["file"], base), material_key=spec.get("material_key"))
     elif spec.get("generator") == "beam":
-        kw = {k: spec[k] for k in ("n_long", "n_cross", "length", "width", "spacing") if k in spec}
+        kw = {k: spec[k] for k in ("n_long", "n_cross", "length", "width", "spacing", "split") if k in spec}
         m = mesh_mod.beam_mesh(**kw)
     elif spec.get("generator") == "brain":
-        m = mesh_mod.brain_mesh()
+        m = mesh_mod.brain_mesh(**{k: spec[k] for k in ("split",) if k in spec})
+    elif spec.get("generator") == "grid":
+        if not all(k in spec for k in "xyz"):
+            raise ParameterError(f"mesh generator 'grid' needs node coordinates x, y and z, got {spec!r}")
+        m = mesh_mod.grid_mesh(spec["x"], spec["y"], spec["z"], **{k: spec[k] for k in ("split",) if k in spec})
     else:
-        raise ParameterError(f"scene 'mesh' needs 'file' or generator 'beam'/'brain', got {spec!r}")
+        raise ParameterError(f"scene 'mesh' needs 'file' or generator 'beam'/'brain'/'grid', got {spec!r}")
     regions = spec.get("regions") or []
     if regions:  # material ids by region: [{box: {min: [..], max: [..]}, material: 1}, ...] (tet centroids)
         ids = m.material_ids.copy()
@@ -231,6 +244,7 @@ class Simulation:
         self.integrator = BackwardEuler(
             self.fem, dt, self.damping, config.get("gravity", [0.0, 0.0, -9.81]), self.preconditioner,
             tolerance=float(tol), max_iterations=int(max_it),
+            newton_iterations=solver.get("newton_iterations"), newton_tolerance=solver.get("newton_tolerance"),
         )
         device_factor = hasattr(self.preconditioner, "backend")  # a factor that applies on the device
         use_graph = graph == "true" or (graph == "auto" and device_factor and wp.get_device(self.device).is_cuda)
@@ -475,10 +489,44 @@ class Simulation:
         self.last_stats = None
 
     def positions(self) -> np.ndarray:
+        """(n, 3) current node positions [m] (a copy)."""
         return self.integrator.x.numpy().copy()
 
     def velocities(self) -> np.ndarray:
+        """(n, 3) current node velocities [m/s] (a copy)."""
         return self.integrator.v.numpy().copy()
+
+    def set_state(self, positions, velocities=None) -> None:
+        """Replace the current positions and velocities (world frame, one row per node of the
+        current mesh); ``velocities`` None means at rest. :meth:`positions` and
+        :meth:`velocities` read them back exactly.
+
+        Fixed nodes take the positions given (a prescribed displacement: they stay there) and
+        zero velocity. The rest shape, the mesh, the step count and the time are unchanged; the
+        preconditioner keeps its factor (PCG converges with it; a factor far from the new state
+        costs iterations until its next refresh).
+        Raises ``ValueError`` on a wrong shape or a non-finite value; the simulation then keeps
+        its state.
+        """
+        if self._closed:
+            raise RuntimeError("simulation is closed")
+        n = self.fem.n_nodes
+        arrays = []
+        for name, a in (("positions", positions), ("velocities", np.zeros((n, 3)) if velocities is None else velocities)):
+            try:
+                a = np.array(a, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"set_state: {name} must be numeric, shape ({n}, 3)") from None
+            if a.shape != (n, 3):
+                raise ValueError(f"set_state: {name} must have shape ({n}, 3) (one row per node), got {a.shape}")
+            bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+            if bad.size:
+                raise ValueError(f"set_state: non-finite {name} at nodes {bad[:10].tolist()}"
+                                 + (f" and {bad.size - 10} more" if bad.size > 10 else ""))
+            arrays.append(a)
+        x, v = arrays
+        v[self.fem.free.numpy() == 0.0] = 0.0
+        self.integrator.set_state(x, v)
 
     def surface_triangles(self) -> np.ndarray:
         return self.mesh.boundary_faces()

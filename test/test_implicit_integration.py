@@ -41,8 +41,10 @@ def test_cantilever_tip_deflection_converges_to_euler_bernoulli():
     w_eb = q * L**4 / (8 * E * a**4 / 12)
     ratios = []
     for n_cross, n_long in ((3, 21), (5, 41), (9, 81)):
+        # 1e-8: with dt = 100 s float64 reaches about 1e-9 on the finest beam's first step (the
+        # true residual of a 1e-10 solve is 1.4e-10, its recursion claims 1e-20)
         cfg = beam_scene(n_long, n_cross, preconditioner="direct", dt=100.0, young=E, poisson=0.0,
-                         damping=(0.0, 0.0), tolerance=1e-10, length=L, width=a)
+                         damping=(0.0, 0.0), tolerance=1e-8, length=L, width=a)
         with load_scene(cfg) as sim:
             for _ in range(3):
                 s = sim.step()

@@ -4,14 +4,23 @@ Cases (a beam of 3 x 3 x 16 nodes, 1.5 cm x 2 cm x 2 cm... scaled by ``--n-long`
 
 * ``ratio_R``: the far half of the beam R times stiffer than the near half (R = 1, 20, 1e3, 1e6);
 * ``dt_T``: time step T from 1e-3 to 0.1 s;
+* ``undamped_dt_0.1``: a soft beam (E = 1e5 Pa) without damping at dt = 0.1 s, where the
+  single linearisation of eq. (1) creates energy;
 * ``poisson_P``: Poisson ratio up to 0.499 (near incompressible);
 * ``twist_360``: the beam twisted by 360 degrees about its axis, then released;
 * ``instrument_1ms``: a capsule driven at 1 m/s into a block resting on its fixed base (contact);
 * ``cuts_1000``: 1,000 successive random cuts, one per step (cutting + SMF where the solver has a factor).
 
+Solvers: plain CG, block-Jacobi PCG, the asynchronous LDL^T and a direct factorization per
+step, all with the paper's single linearisation per step; ``ldlt_newton`` and
+``direct_newton`` are the same with ``solver: {newton_iterations: 3}`` (re-linearised twice,
+see :mod:`soft_tissue_sim.implicit_integration`; ``--newton`` sets the count).
+
 Each case and solver reports: finite or not, energy growth (max over the run of E(t) - E(0),
 over the energy scale m g L; E includes the elastic energy, so the strain a once-linearized
-step stores in a stiff body that rotates counts as growth) and the same at the end, mean and max PCG iterations, final residual, converged fraction,
+step stores in a stiff body that rotates counts as growth) and the drift at the end (E(end) -
+E(0) over m g L), mean and max PCG iterations (summed over a step's linearisations), final
+residual (the true one), converged fraction, steps whose tolerance was below float64's floor,
 max penetration (contact case), rollbacks of the divergence guard, wall time. JSON and a
 heat-map PNG under benchmarks/results/.
 """
@@ -31,6 +40,8 @@ SOLVERS = {
     "jacobi": {"preconditioner": "jacobi"},
     "ldlt": {"preconditioner": "async_ldlt", "ldlt": {"rotate": True, "refresh_every": 4}},
     "direct": {"preconditioner": "direct"},
+    "ldlt_newton": {"preconditioner": "async_ldlt", "ldlt": {"rotate": True, "refresh_every": 4}, "newton_iterations": 3},
+    "direct_newton": {"preconditioner": "direct", "newton_iterations": 3},
 }
 
 
@@ -55,6 +66,9 @@ def cases(n_long):
         out[f"ratio_{r:g}"] = {"scene": beam(n_long, ratio=r)}
     for dt in (1e-3, 1e-2, 0.05, 0.1):
         out[f"dt_{dt:g}"] = {"scene": beam(n_long, dt=dt)}
+    soft = beam(n_long, young=1e5, dt=0.1)
+    soft["damping"] = {"mass": 0.0, "stiffness": 0.0}
+    out["undamped_dt_0.1"] = {"scene": soft}
     for nu in (0.3, 0.45, 0.49, 0.499):
         out[f"poisson_{nu:g}"] = {"scene": beam(n_long, poisson=nu)}
     out["twist_360"] = {"scene": beam(n_long, young=3e5), "twist": 2 * np.pi}
@@ -82,9 +96,11 @@ def twist_positions(points, angle):
     return out
 
 
-def run_case(name, case, solver, steps, device, rng):
+def run_case(name, case, solver, steps, device, rng, newton=3):
     cfg = dict(case["scene"])
     cfg["solver"] = {**cfg["solver"], **SOLVERS[solver]}
+    if "newton_iterations" in cfg["solver"]:
+        cfg["solver"]["newton_iterations"] = newton
     n_steps = case.get("cuts", steps)
     row = {"case": name, "solver": solver, "steps": n_steps}
     t0 = time.perf_counter()
@@ -92,7 +108,7 @@ def run_case(name, case, solver, steps, device, rng):
         sim = load_scene(cfg, device=device)
     except Exception as exc:  # noqa: BLE001 - a case a solver cannot even build is a result
         return {**row, "finite": False, "error": f"{type(exc).__name__}: {exc}"}
-    its, res, conv, pen = [], [], [], []
+    its, res, conv, pen, floor = [], [], [], [], []
     try:
         if "twist" in case:
             sim.integrator.set_state(twist_positions(sim.mesh.points, case["twist"]), np.zeros_like(sim.mesh.points))
@@ -114,6 +130,7 @@ def run_case(name, case, solver, steps, device, rng):
             its.append(s.iterations)
             res.append(s.residual)
             conv.append(s.converged)
+            floor.append(s.tolerance_unreachable)
             if s.contact is not None:
                 pen.append(s.contact.max_penetration)
             if k % 5 == 0 or k == n_steps - 1:
@@ -126,7 +143,8 @@ def run_case(name, case, solver, steps, device, rng):
         e_end = sim.energy()["total"]
         row.update(finite=finite, energy_growth=growth, energy_final=float((e_end - e0) / scale), iterations_mean=float(np.mean(its)),
                    iterations_max=int(np.max(its)), residual_final=float(res[-1]),
-                   converged_fraction=float(np.mean(conv)), rollbacks=sim.rollbacks,
+                   converged_fraction=float(np.mean(conv)), below_floor_steps=int(np.sum(floor)),
+                   rollbacks=sim.rollbacks,
                    max_penetration=float(max(pen)) if pen else None, nodes=sim.mesh.n_nodes)
     except Exception as exc:  # noqa: BLE001
         row.update(finite=False, error=f"{type(exc).__name__}: {exc}")
@@ -171,6 +189,7 @@ def main(argv=None) -> int:
     ap.add_argument("--n-long", type=int, default=16)
     ap.add_argument("--solvers", nargs="*", default=list(SOLVERS))
     ap.add_argument("--cases", nargs="*", default=None, help="subset of case names")
+    ap.add_argument("--newton", type=int, default=3, help="linearisations per step of the *_newton solvers")
     args = ap.parse_args(argv)
     device = resolved_device(args)
     all_cases = cases(args.n_long)
@@ -180,17 +199,19 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     for name in names:
         for solver in args.solvers:
-            r = run_case(name, all_cases[name], solver, args.steps, device, np.random.default_rng(7))
+            r = run_case(name, all_cases[name], solver, args.steps, device, np.random.default_rng(7), args.newton)
             rows.append(r)
             prog.update(len(rows), f"{name} {solver}: finite={r.get('finite')} it={r.get('iterations_mean', float('nan')):.1f}")
-    result = {"rows": rows, "steps": args.steps, "wall_s": time.perf_counter() - t0}
+    result = {"rows": rows, "steps": args.steps, "newton_iterations": args.newton, "wall_s": time.perf_counter() - t0}
     publish("stability", device, result, args, plot)
-    print(f"{'case':<16} {'solver':<7} {'finite':>6} {'E growth':>9} {'it mean':>8} {'it max':>6} {'resid':>9} {'conv':>5} "
-          f"{'pen':>9} {'wall s':>7}")
+    print(f"{'case':<16} {'solver':<13} {'finite':>6} {'E growth':>9} {'E drift':>9} {'it mean':>8} {'it max':>6} "
+          f"{'resid':>9} {'conv':>5} {'floor':>5} {'pen':>9} {'wall s':>7}")
     for r in rows:
         pen = r.get("max_penetration")
-        print(f"{r['case']:<16} {r['solver']:<7} {str(r.get('finite')):>6} {r.get('energy_growth', float('nan')):9.3g} "
+        print(f"{r['case']:<16} {r['solver']:<13} {str(r.get('finite')):>6} {r.get('energy_growth', float('nan')):9.3g} "
+              f"{r.get('energy_final', float('nan')):9.3g} "
               f"{r.get('iterations_mean', float('nan')):8.1f} {r.get('iterations_max', 0):6d} "
               f"{r.get('residual_final', float('nan')):9.2e} {r.get('converged_fraction', 0):5.2f} "
+              f"{r.get('below_floor_steps', 0):5d} "
               f"{'' if pen is None else f'{pen:9.2e}':>9} {r['wall_s']:7.1f}" + (f"  {r['error']}" if "error" in r else ""))
     return 0

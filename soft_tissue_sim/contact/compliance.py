@@ -74,13 +74,16 @@ def compliance(H: sps.csr_matrix, mode: str, preconditioner, integrator, fem):
 
 def positive_definite(W: np.ndarray, dense_check_up_to: int = 1500) -> bool:
     """Is the symmetric compliance W usable by Gauss-Seidel: finite, positive diagonal and, for
-    sizes up to ``dense_check_up_to``, a Cholesky factorization that succeeds."""
+    sizes up to ``dense_check_up_to``, no negative eigenvalue beyond rounding (a Cholesky
+    factorization of W + 1e-10 max(diag W) I that succeeds). Singular is usable: rows that
+    repeat a constraint (a node contact and a face contact at that node, each with its two
+    tangent rows) make W singular, not indefinite."""
     if not np.all(np.isfinite(W)) or np.any(np.diag(W) <= 0.0):
         return False
     if len(W) > dense_check_up_to:
         return True
     try:
-        np.linalg.cholesky(W)
+        np.linalg.cholesky(W + (1e-10 * float(np.max(np.diag(W)))) * np.eye(len(W)))
     except np.linalg.LinAlgError:
         return False
     return True

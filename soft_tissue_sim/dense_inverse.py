@@ -25,6 +25,7 @@ without copies for the library calls (``xp``).
 from __future__ import annotations
 
 import contextlib
+import sys
 
 import numpy as np
 import warp as wp
@@ -175,6 +176,8 @@ class DenseInverse:
         self._s: wp.array | None = None
         self._info = wp.zeros(2, dtype=wp.int32, device=self.device)
         self._handle = None  # cuSOLVER
+        if self.device.is_cuda:  # loaded here, not first in the thread that enqueues factorizations
+            wp.load_module(sys.modules[__name__], device=self.device)
         self._rhs = None  # the identity, then the inverse (INVERSE == "potrs")
         self._result = None  # the buffer holding the finished inverse
         self._lwork = 0

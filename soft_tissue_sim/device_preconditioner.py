@@ -31,6 +31,7 @@ Contact. W = H P^-1 H^T (eq. 4, 11-12) is gathered from the inverse by the backe
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.sparse as sps
@@ -53,20 +54,31 @@ def identity_kernel(dR: wp.array(dtype=wp.mat33d)):
 
 
 class _Ticket:
-    """One factorization in flight: what it was made from and the events that time it."""
+    """One factorization in flight: what it was made from and the events that time it (or the
+    future of the background thread that enqueues it and returns those events)."""
 
-    def __init__(self, step, gen, uids, version, R, start=None, done=None, cpu_ms=None):
+    def __init__(self, step, gen, uids, version, R, start=None, done=None, cpu_ms=None, future=None):
         self.step, self.gen, self.uids, self.version, self.R = step, gen, uids, version, R
-        self.start, self.done, self.cpu_ms = start, done, cpu_ms
+        self.start, self.done, self.cpu_ms, self.future = start, done, cpu_ms, future
         self.requested = time.perf_counter()
 
+    def events(self):
+        """(start, done) events, waiting for the background enqueue if there is one."""
+        if self.future is not None and self.done is None:
+            self.start, self.done = self.future.result()
+        return self.start, self.done
+
     def ready(self) -> bool:
-        return self.done is None or self.done.is_complete
+        if self.future is not None and not self.future.done():
+            return False
+        _, done = self.events()
+        return done is None or done.is_complete
 
     def ms(self) -> float:
-        if self.done is None:
+        start, done = self.events()
+        if done is None:
             return float(self.cpu_ms)
-        return float(wp.get_event_elapsed_time(self.start, self.done))
+        return float(wp.get_event_elapsed_time(start, done))
 
 
 class FoldedCorrection:
@@ -150,7 +162,8 @@ class AsyncDevicePreconditioner:
         self._side = wp.Stream(self.device) if self.device.is_cuda else None
         self.correction: FoldedCorrection | None = None
         self.mods: list[Modification] = []
-        self._busy = None  # end event of the last factorization enqueued (its work buffer is in use)
+        self._busy = None  # the last factorization enqueued (its work buffer is in use until it ends)
+        self._pool = None  # the background thread that enqueues factorizations (CUDA, asynchronous)
         self._gen = 0
         self.worker_error = None
         self._reset_counters()
@@ -184,12 +197,22 @@ class AsyncDevicePreconditioner:
         self.failures = 0
 
     # ------------------------------------------------------------ schedule
-    def _request(self, system) -> _Ticket:
+    def _enqueue(self, side, ready):
+        """The factorization on ``side`` behind the event ``ready``: (start, done) events."""
+        with wp.ScopedDevice(self.device):
+            if ready is not None:
+                side.wait_event(ready)
+            start = side.record_event(wp.Event(self.device, enable_timing=True))
+            self.backend.factorize(stream=side)
+            done = side.record_event(wp.Event(self.device, enable_timing=True))
+        return start, done
+
+    def _request(self, system, background: bool = False) -> _Ticket:
         fem = system.fem
         meta = dict(self.meta_fn() or {})
         uids = np.asarray(meta.get("uids", np.arange(fem.n_nodes)), np.int64).copy()
         if self._main is not None and self._busy is not None:
-            self._main.wait_event(self._busy)  # the work buffer is free once the last one ended
+            self._main.wait_event(self._busy.events()[1])  # the work buffer is free once the last one ended
         triplets = fem.assemble_triplets(system.m_coef, system.k_coef)
         self.backend.assemble(triplets, 3 * fem.n_nodes, stream=self._main, topology=meta.get("version"))
         R = wp.clone(fem._node_rot)
@@ -202,21 +225,30 @@ class AsyncDevicePreconditioner:
             # the factor's own stream, or the simulation's for a backend that must factorize and
             # solve on one stream (cuDSS)
             side = self._main if getattr(self.backend, "one_stream", False) else self._side
-            if side is not self._main:
-                side.wait_event(self._main.record_event())
-            start = side.record_event(wp.Event(self.device, enable_timing=True))
-            self.backend.factorize(stream=side)
-            done = side.record_event(wp.Event(self.device, enable_timing=True))
-            ticket = _Ticket(self.step, self._gen, uids, int(meta.get("version", -1)), R, start, done)
-            self._busy = done
+            ready = self._main.record_event() if side is not self._main else None
+            args = (self.step, self._gen, uids, int(meta.get("version", -1)), R)
+            if background and side is not self._main:  # cuSOLVER's calls may block the host: a thread makes them
+                if self._pool is None:
+                    self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="factor-enqueue")
+                ticket = _Ticket(*args, future=self._pool.submit(self._enqueue, side, ready))
+            else:
+                ticket = _Ticket(*args, *self._enqueue(side, ready))
+            self._busy = ticket
         self.last_request_step = self.step
         return ticket
 
     def _install(self, t: _Ticket) -> bool:
         if t.gen != self._gen:
             return False
-        if t.done is not None:
-            self._main.wait_event(t.done)
+        try:
+            _, done = t.events()
+        except Exception as exc:  # noqa: BLE001 - the enqueue failed in the thread: keep the factor in use
+            self.worker_error = f"{type(exc).__name__}: {exc}"
+            self.failures += 1
+            self._busy = None
+            return False
+        if done is not None:
+            self._main.wait_event(done)
         err = self.backend.install(stream=self._main)
         if err is not None:  # keep the factor in use (if any) and say why
             self.worker_error = err
@@ -247,7 +279,7 @@ class AsyncDevicePreconditioner:
 
     def _refresh_now(self, system) -> None:
         t = self._request(system)
-        if t.done is not None:
+        if t.events()[1] is not None:
             wp.synchronize_event(t.done)
         self._install(t)
 
@@ -275,7 +307,7 @@ class AsyncDevicePreconditioner:
                 self._pending = None
                 self._install(t)
             if self._pending is None and self.step - self.last_request_step >= self.refresh_every:
-                self._pending = self._request(system)
+                self._pending = self._request(system, background=True)
         if self.backend.n3 != 3 * fem.n_nodes:  # a size change no modification announced
             self._refresh_now(system)
         n = fem.n_nodes
@@ -406,4 +438,11 @@ class AsyncDevicePreconditioner:
     def close(self) -> None:
         """Returns at once: a factorization in flight is abandoned with the buffers."""
         self._pending = self._held = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)  # the enqueue, not the factorization: short
+        if self._busy is not None and self._main is not None:
+            try:  # the buffers are freed on the simulation's stream: after the factorization ends there
+                self._main.wait_event(self._busy.events()[1])
+            except Exception:  # noqa: BLE001 - a failed enqueue left nothing running
+                pass
         self.backend.close()

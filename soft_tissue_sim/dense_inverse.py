@@ -33,7 +33,6 @@ import warp as wp
 from .cg import _block_sum
 
 BLOCK = 256  # threads per node in the matrix-vector product on CUDA
-INVERSE = "potrs"  # the GPU's inverse: potrs (A X = I with the factor) or potri (docs/benchmarks.md compares them)
 
 
 @wp.kernel
@@ -178,7 +177,7 @@ class DenseInverse:
         self._handle = None  # cuSOLVER
         if self.device.is_cuda:  # loaded here, not first in the thread that enqueues factorizations
             wp.load_module(sys.modules[__name__], device=self.device)
-        self._rhs = None  # the identity, then the inverse (INVERSE == "potrs")
+        self._rhs = None  # GPU: the identity, then the inverse
         self._result = None  # the buffer holding the finished inverse
         self._lwork = 0
         self._workspace = None
@@ -197,9 +196,30 @@ class DenseInverse:
             self.work.zero_()
         wp.launch(scatter_dense_kernel, rows.shape[0], [rows, cols, vals, self.work], device=self.device,
                   stream=stream)
+        if self.device.is_cuda:
+            self._prepare_gpu(n3, stream)
+
+    def _prepare_gpu(self, n: int, stream) -> None:
+        """What the GPU factorization needs, made on the caller's thread and stream before it is
+        enqueued (possibly by another thread, which then allocates and launches nothing): the
+        cuSOLVER handle, its workspace, and the identity as the right-hand side of ``potrs``."""
+        from nvmath.bindings import cusolverDn
+
+        if self._handle is None:
+            self._handle = cusolverDn.create()
+        lower = 0  # CUBLAS_FILL_MODE_LOWER
+        lwork = cusolverDn.dpotrf_buffer_size(self._handle, lower, n, self.work.ptr, n)
+        if self._workspace is None or self._lwork < lwork:
+            self._workspace = wp.empty(lwork, dtype=wp.float64, device=self.device)
+            self._lwork = lwork
+        if self._rhs is None or self._rhs.shape[0] != n:
+            self._rhs = wp.empty((n, n), dtype=wp.float64, device=self.device)
+        wp.launch(identity_matrix_kernel, (n, n), [self._rhs], device=self.device, stream=stream)
 
     def factorize(self, stream=None) -> None:
-        """Work buffer A -> A^-1 in place: Cholesky, inverse, mirrored triangle; on ``stream``."""
+        """Work buffer A -> A^-1, on ``stream``. GPU: Cholesky (``potrf``), then ``potrs``
+        against the identity into a second buffer; only cuSOLVER calls (see :meth:`assemble`).
+        CPU: LAPACK's ``potrf`` and ``potri`` in place, the missing triangle mirrored."""
         n = self.work.shape[0]
         if self.xp is np:
             from scipy.linalg import lapack
@@ -211,37 +231,23 @@ class DenseInverse:
             if not np.shares_memory(c, At):
                 At[...] = c
             self._info.assign(np.array([info, 0], dtype=np.int32))
-        else:
-            from nvmath.bindings import cusolverDn
+            wp.launch(symmetrize_kernel, (n, n), [self.work], device=self.device, stream=stream)
+            self._result = self.work
+            return
+        from nvmath.bindings import cusolverDn
 
-            if self._handle is None:
-                self._handle = cusolverDn.create()
-            cusolverDn.set_stream(self._handle, stream.cuda_stream if stream is not None else 0)
-            lower = 0  # CUBLAS_FILL_MODE_LOWER
-            ptr = self.work.ptr
-            lwork = max(cusolverDn.dpotrf_buffer_size(self._handle, lower, n, ptr, n),
-                        cusolverDn.dpotri_buffer_size(self._handle, lower, n, ptr, n))
-            if self._workspace is None or self._lwork < lwork:
-                self._workspace = wp.empty(lwork, dtype=wp.float64, device=self.device)
-                self._lwork = lwork
-            ws, info = self._workspace.ptr, self._info.ptr
-            cusolverDn.dpotrf(self._handle, lower, n, ptr, n, ws, lwork, info)
-            if INVERSE == "potrs":  # A^-1 = the solve of A X = I with the Cholesky factor
-                if self._rhs is None or self._rhs.shape[0] != n:
-                    self._rhs = wp.empty((n, n), dtype=wp.float64, device=self.device)
-                wp.launch(identity_matrix_kernel, (n, n), [self._rhs], device=self.device, stream=stream)
-                cusolverDn.dpotrs(self._handle, lower, n, n, ptr, n, self._rhs.ptr, n, info + 4)
-                self._result = self._rhs
-                return
-            cusolverDn.dpotri(self._handle, lower, n, ptr, n, ws, lwork, info + 4)
-        self._result = self.work
-        wp.launch(symmetrize_kernel, (n, n), [self.work], device=self.device, stream=stream)
+        cusolverDn.set_stream(self._handle, stream.cuda_stream if stream is not None else 0)
+        lower = 0  # CUBLAS_FILL_MODE_LOWER
+        info = self._info.ptr
+        cusolverDn.dpotrf(self._handle, lower, n, self.work.ptr, n, self._workspace.ptr, self._lwork, info)
+        cusolverDn.dpotrs(self._handle, lower, n, n, self.work.ptr, n, self._rhs.ptr, n, info + 4)
+        self._result = self._rhs
 
     def install(self, stream=None) -> str | None:
         """The finished work buffer becomes the inverse in use; returns why not, or None."""
         info = self._info.numpy()
         if info[0] != 0 or info[1] != 0:
-            return (f"dense factorization failed (potrf info {info[0]}, potri info {info[1]}): "
+            return (f"dense factorization failed (potrf info {info[0]}, inverse info {info[1]}): "
                     "A is not positive definite")
         n = self.work.shape[0]
         if self.inv is None or self.inv.shape[0] != n:

@@ -197,15 +197,22 @@ class AsyncDevicePreconditioner:
         self.failures = 0
 
     # ------------------------------------------------------------ schedule
-    def _enqueue(self, side, ready):
-        """The factorization on ``side`` behind the event ``ready``: (start, done) events."""
-        with wp.ScopedDevice(self.device):
-            if ready is not None:
-                side.wait_event(ready)
-            start = side.record_event(wp.Event(self.device, enable_timing=True))
-            self.backend.factorize(stream=side)
-            done = side.record_event(wp.Event(self.device, enable_timing=True))
+    def _enqueue(self, side, ready, start, done):
+        """The factorization on ``side`` behind the event ``ready``, timed by the events
+        ``start`` and ``done`` (made by the caller): (start, done). Allocates and launches
+        nothing of Warp's, so that a background thread may run it."""
+        if ready is not None:
+            side.wait_event(ready)
+        side.record_event(start)
+        self.backend.factorize(stream=side)
+        side.record_event(done)
         return start, done
+
+    def _thread_init(self):
+        """The enqueueing thread uses the device's primary context (the one Warp uses)."""
+        import cupy
+
+        cupy.cuda.runtime.setDevice(self.device.ordinal)
 
     def _request(self, system, background: bool = False) -> _Ticket:
         fem = system.fem
@@ -227,12 +234,14 @@ class AsyncDevicePreconditioner:
             side = self._main if getattr(self.backend, "one_stream", False) else self._side
             ready = self._main.record_event() if side is not self._main else None
             args = (self.step, self._gen, uids, int(meta.get("version", -1)), R)
+            events = (wp.Event(self.device, enable_timing=True), wp.Event(self.device, enable_timing=True))
             if background and side is not self._main:  # cuSOLVER's calls may block the host: a thread makes them
                 if self._pool is None:
-                    self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="factor-enqueue")
-                ticket = _Ticket(*args, future=self._pool.submit(self._enqueue, side, ready))
+                    self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="factor-enqueue",
+                                                    initializer=self._thread_init)
+                ticket = _Ticket(*args, future=self._pool.submit(self._enqueue, side, ready, *events))
             else:
-                ticket = _Ticket(*args, *self._enqueue(side, ready))
+                ticket = _Ticket(*args, *self._enqueue(side, ready, *events))
             self._busy = ticket
         self.last_request_step = self.step
         return ticket

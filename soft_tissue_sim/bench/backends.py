@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import numpy as np
 import warp as wp
 
 from ..scene import load_scene, read_scene, resolve_device, resolve_path
 from . import RESULTS_DIR, write_result
+from .timing import apply_timing, refresh_timing, timed_steps
 
 
 def body(kind: str, n_long: int = 0) -> dict:
@@ -38,48 +38,20 @@ def measure(cfg: dict, backend: str, device: str, steps: int, reps: int = 50) ->
     solver = {"preconditioner": "async_ldlt", "tolerance": 1e-6, "max_iterations": 2000,
               "ldlt": {"backend": backend, "refresh_every": 4}}
     with load_scene(cfg, device=device, overrides={"solver": solver}) as sim:
-        dev = wp.get_device(sim.device)
         for _ in range(3):
             sim.step()
-        walls, its = [], []
-        for _ in range(steps):
-            t0 = time.perf_counter()
-            st = sim.step()
-            walls.append(1000.0 * (time.perf_counter() - t0))
-            its.append(st.iterations)
+        walls, stats = timed_steps(sim, steps)
         pre, integ = sim.preconditioner, sim.integrator
         integ.build()
         pre.begin_step(integ)
+        t = apply_timing(sim, reps)
+        graph = "graph_apply_ms" in t
+        apply_ms = t["graph_apply_ms"] if graph else t["apply_ms"]
+        factor_ms = refresh_timing(sim, 3)
         n = sim.mesh.n_nodes
-        r = wp.array(np.random.default_rng(0).standard_normal((n, 3)), dtype=wp.vec3d, device=dev)
-        z = wp.zeros_like(r)
-        pre.apply(r, z)
-        wp.synchronize_device(dev)
-        graph = dev.is_cuda and pre.graph_key() is not None
-        if graph:
-            with wp.ScopedCapture(device=dev) as cap:
-                for _ in range(10):
-                    pre.apply(r, z)
-            wp.capture_launch(cap.graph)
-            wp.synchronize_device(dev)
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            if graph:
-                wp.capture_launch(cap.graph)
-            else:
-                pre.apply(r, z)
-        wp.synchronize_device(dev)
-        apply_ms = 1000.0 * (time.perf_counter() - t0) / (reps * (10 if graph else 1))
-        fac = []
-        for _ in range(3):
-            wp.synchronize_device(dev)
-            t0 = time.perf_counter()
-            pre.refresh(integ)
-            wp.synchronize_device(dev)
-            fac.append(1000.0 * (time.perf_counter() - t0))
         return {"nodes": n, "dofs": 3 * n, "backend": backend, "apply_ms": apply_ms, "apply_in_graph": graph,
-                "factor_ms": float(np.median(fac)), "step_ms_median": float(np.median(walls)),
-                "iterations_mean": float(np.mean(its))}
+                "factor_ms": factor_ms, "step_ms_median": float(np.median(walls)),
+                "iterations_mean": float(np.mean([st.iterations for st in stats]))}
 
 
 def plot(result, prefix):

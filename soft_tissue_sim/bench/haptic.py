@@ -47,6 +47,7 @@ import warp as wp
 from ..paths import resolve_path
 from ..scene import load_scene, read_scene
 from .common import device_description, figure, parser, resolved_device, save_figure, write_result
+from .timing import apply_timing
 
 VARIANTS = {
     "cg": {"preconditioner": "none", "graph": False},
@@ -87,39 +88,6 @@ def _dist(a) -> dict:
             "max": float(a.max())}
 
 
-def apply_timing(sim, reps: int) -> dict:
-    """ms per preconditioner application at the simulation's current state: launched from
-    Python and synchronised, and replayed as a CUDA graph where the apply can be captured."""
-    pre = sim.preconditioner
-    if not hasattr(pre, "inner"):
-        return {}
-    dev = wp.get_device(sim.device)
-    n = sim.mesh.n_nodes
-    rng = np.random.default_rng(0)
-    r = wp.array(rng.standard_normal((n, 3)), dtype=wp.vec3d, device=dev)
-    z = wp.zeros_like(r)
-    pre.apply(r, z)
-    wp.synchronize_device(dev)
-    t0 = time.perf_counter()
-    for _ in range(reps):
-        pre.apply(r, z)
-    wp.synchronize_device(dev)
-    out = {"apply_ms": 1000.0 * (time.perf_counter() - t0) / reps}
-    key = getattr(pre, "graph_key", lambda: None)()
-    if dev.is_cuda and key is not None:
-        with wp.ScopedCapture(device=dev) as cap:
-            for _ in range(10):
-                pre.apply(r, z)
-        wp.capture_launch(cap.graph)
-        wp.synchronize_device(dev)
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            wp.capture_launch(cap.graph)
-        wp.synchronize_device(dev)
-        out["graph_apply_ms"] = 1000.0 * (time.perf_counter() - t0) / (10 * reps)
-    return out
-
-
 def run_variant(cfg: dict, variant: str, device: str, steps: int, warmup: int, reps: int) -> dict:
     solver = dict(cfg.get("solver") or {})
     v = VARIANTS[variant]
@@ -140,7 +108,7 @@ def run_variant(cfg: dict, variant: str, device: str, steps: int, warmup: int, r
             rows.append(st.as_dict())
         ps = sim.preconditioner.stats()
         cg = sim.integrator.cg
-        applies = apply_timing(sim, reps)
+        applies = apply_timing(sim, reps) if hasattr(sim.preconditioner, "inner") else {}
         finite = bool(np.isfinite(sim.positions()).all())
         nodes = sim.mesh.n_nodes
     finally:

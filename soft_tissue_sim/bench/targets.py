@@ -35,6 +35,7 @@ import warp as wp
 
 from ..scene import load_scene, read_scene, resolve_device, resolve_path
 from . import RESULTS_DIR, write_result
+from .timing import apply_timing, refresh_timing, timed_steps
 
 
 def _row(name, value, unit, goal, better="<=", note=None):
@@ -71,39 +72,12 @@ def precond_rows(device, reps=100):
         backend = pre.stats().get("backend")
         integ.build()
         pre.begin_step(integ)
-        dev = wp.get_device(device)
-        n = sim.mesh.n_nodes
-        r = wp.array(np.random.default_rng(0).standard_normal((n, 3)), dtype=wp.vec3d, device=dev)
-        z = wp.zeros_like(r)
-        pre.apply(r, z)
-        wp.synchronize_device(dev)
-        if dev.is_cuda and pre.graph_key() is not None:
-            with wp.ScopedCapture(device=dev) as cap:
-                for _ in range(10):
-                    pre.apply(r, z)
-            wp.capture_launch(cap.graph)
-            wp.synchronize_device(dev)
-            t0 = time.perf_counter()
-            for _ in range(reps):
-                wp.capture_launch(cap.graph)
-            wp.synchronize_device(dev)
-            apply_ms = 1000.0 * (time.perf_counter() - t0) / (10 * reps)
-        else:
-            t0 = time.perf_counter()
-            for _ in range(reps):
-                pre.apply(r, z)
-            wp.synchronize_device(dev)
-            apply_ms = 1000.0 * (time.perf_counter() - t0) / reps
-        walls = []
-        for _ in range(5):
-            wp.synchronize_device(dev)
-            t0 = time.perf_counter()
-            pre.refresh(integ)
-            wp.synchronize_device(dev)
-            walls.append(1000.0 * (time.perf_counter() - t0))
+        t = apply_timing(sim, reps)
+        apply_ms = t.get("graph_apply_ms", t["apply_ms"])
+        factor_ms = refresh_timing(sim, 5)
     note = f"brain, 5,202 DOFs, backend {backend}"
     return [_row("precond_apply_ms", apply_ms, "ms", 0.1, note=note),
-            _row("precond_factor_ms", float(np.median(walls)), "ms", 25.0, note=note)]
+            _row("precond_factor_ms", factor_ms, "ms", 25.0, note=note)]
 
 
 def cut_beam_rows(device, steps=90):
@@ -134,12 +108,8 @@ def beam100k_rows(device, steps=40, warmup=8):
     with load_scene(cfg, device=device) as sim:
         for _ in range(warmup):
             sim.step()
-        walls, its = [], []
-        for _ in range(steps):
-            t0 = time.perf_counter()
-            st = sim.step()
-            walls.append(1000.0 * (time.perf_counter() - t0))
-            its.append(st.iterations)
+        walls, stats = timed_steps(sim, steps)
+        its = [st.iterations for st in stats]
         ps = sim.preconditioner.stats()
         n = sim.mesh.n_nodes
     return [_row("beam100k_step_ms", float(np.median(walls)), "ms", 16.7,

@@ -301,7 +301,7 @@ def indent(friction, steps_down=2, hold=1):
 def test_sphere_indenting_a_block_matches_hertz_frictionless_and_stuck(friction):
     """Hertz for the frictionless case; with friction the exact (Spence) load differs from it by
     a few percent at Poisson 0.3, so every case must be within 10 %. Friction 5 sticks every
-    contact (full stick). Before the fix of contact._positive_definite, friction made the
+    contact (full stick). Before the fix of contact.compliance.positive_definite, friction made the
     compliance fall back to its diagonal: 13.8 x Hertz."""
     F, slip = indent(friction)
     assert F[2] == pytest.approx(hertz_force(DEPTH), rel=0.10)

@@ -37,6 +37,7 @@ from .cg import PCG
 from .corotational_fem import CorotationalFEM
 from .material import Damping, ParameterError
 from .stats import ContactStats, CutStats, GuardStats
+from .transfer import to_host
 
 
 @wp.kernel
@@ -389,7 +390,7 @@ class BackwardEuler:
         self._energy.zero_()
         wp.launch(_energy_kernel, self.fem.n_nodes,
                   [self.x, self.v, self.fem.lumped_mass, wp.vec3d(*self.gravity), self._energy], device=self.device)
-        return float(self._energy.numpy()[0])
+        return float(to_host(self._energy)[0][0])
 
     def elastic_energy(self) -> float:
         """Corotated strain energy sum_e V (mu eps:eps + lambda/2 tr(eps)^2), on the host (diagnostics)."""

@@ -65,6 +65,7 @@ from .material import Damping, MaterialTable, ParameterError
 from .paths import resolve_path
 from .preconditioner import make_preconditioner
 from .stats import GuardStats
+from .transfer import to_host
 
 if TYPE_CHECKING:  # built only in scenes that name cutting
     from .cutting import CutPlan, CutResult, Tissue
@@ -359,7 +360,7 @@ class Simulation:
     def _diverged(self, stats, ke_before: float) -> str | None:
         """Why the step just taken must not stand (NaN, or runaway kinetic energy), or None."""
         integ = self.integrator
-        if not (np.isfinite(stats.residual) and np.isfinite(integ.x.numpy()).all()):
+        if not (np.isfinite(stats.residual) and np.isfinite(to_host(integ.x)[0]).all()):
             return "non-finite state"
         ke = self._kinetic_energy()
         if not np.isfinite(ke):
@@ -382,7 +383,7 @@ class Simulation:
         ke_before = self._kinetic_energy() if self.guard_ratio > 0 else 0.0
         stats = integ.step()
         reason = self._diverged(stats, ke_before) if self.guard_ratio > 0 else (
-            None if np.isfinite(stats.residual) and np.isfinite(integ.x.numpy()).all() else "non-finite state")
+            None if np.isfinite(stats.residual) and np.isfinite(to_host(integ.x)[0]).all() else "non-finite state")
         if reason is None:
             return stats, True
 
@@ -440,10 +441,12 @@ class Simulation:
             reason = f"contact solve failed: {type(exc).__name__}: {exc}"
         if reason is None:
             stats.contact = response.stats
+            x, v = to_host(integ.x, integ.v)
             if response.dx is not None:  # x += dx, v += dx / dt
-                integ.x.assign(integ.x.numpy() + response.dx)
-                integ.v.assign(integ.v.numpy() + response.dx / integ.dt)
-            if not np.isfinite(integ.x.numpy()).all() or not np.isfinite(integ.v.numpy()).all():
+                x, v = x + response.dx, v + response.dx / integ.dt
+                integ.x.assign(x)
+                integ.v.assign(v)
+            if not np.isfinite(x).all() or not np.isfinite(v).all():
                 reason = "non-finite state after the contact correction"
             elif self.guard_ratio > 0:
                 ke = self._kinetic_energy()

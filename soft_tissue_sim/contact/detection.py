@@ -26,6 +26,7 @@ import warp as wp
 from scipy.sparse.csgraph import connected_components
 
 from ..instrument import Instrument, MeshObstacle, PlaneObstacle
+from ..transfer import to_host
 from .detection_kernels import (
     capsule_contacts_kernel,
     capsule_crossings_kernel,
@@ -115,14 +116,17 @@ def _search_radius(topo: SurfaceTopology, far: float) -> float:
 
 def _collect(topo: SurfaceTopology, obj: int, with_tri: bool) -> Contacts | None:
     """The rows a per-node kernel marked active, as contacts with object index ``obj``."""
-    act = topo.active.numpy()[: len(topo.surface)].astype(bool)
+    arrays = (topo.active, topo.gap, topo.normal, topo.point) + ((topo.tri, topo.bary) if with_tri else ())
+    host = to_host(*arrays)
+    act = host[0][: len(topo.surface)].astype(bool)
     if not act.any():
         return None
+    act = np.concatenate([act, np.zeros(len(host[0]) - len(act), bool)])
     k = int(act.sum())
-    tri = topo.faces[topo.tri.numpy()[act]].astype(np.int64) if with_tri else np.full((k, 3), -1, np.int64)
-    bary = topo.bary.numpy()[act] if with_tri else np.zeros((k, 3))
-    return Contacts(topo.surface[act].astype(np.int64), np.full(k, obj, np.int64), topo.gap.numpy()[act],
-                    topo.normal.numpy()[act], topo.point.numpy()[act], tri, bary)
+    tri = topo.faces[host[4][act]].astype(np.int64) if with_tri else np.full((k, 3), -1, np.int64)
+    bary = host[5][act] if with_tri else np.zeros((k, 3))
+    return Contacts(topo.surface[act[: len(topo.surface)]].astype(np.int64), np.full(k, obj, np.int64), host[1][act],
+                    host[2][act], host[3][act], tri, bary)
 
 
 def node_contacts(topo: SurfaceTopology, oi: int, obj, x: wp.array, x_features: wp.array, distance: float,
@@ -160,18 +164,19 @@ def face_contacts(topo: SurfaceTopology, oi: int, inst: Instrument, x: wp.array,
         pa, pb = inst.segment_world(inst.previous_step_pose)
         wp.launch(capsule_crossings_kernel, nf, [x_start, topo.faces_wp, wp.vec3d(*pa), wp.vec3d(*pb)],
                   outputs=[topo.f_crossed], device=device)
-        inside = int(topo.f_crossed.numpy()[:nf].any())
+        inside = int(to_host(topo.f_crossed)[0][:nf].any())
     lo, hi = blade_span(inst)
     wp.launch(capsule_faces_kernel, nf,
               [x, topo.faces_wp, topo.edge_owner, wp.vec3d(*a), wp.vec3d(*b), inst.radius, distance, lo, hi, inside],
               outputs=[topo.f_active, topo.f_gap, topo.f_normal, topo.f_point, topo.f_bary], device=device)
-    act = topo.f_active.numpy()[:nf].astype(bool)
+    f_act, f_gap, f_normal, f_point, f_bary = to_host(topo.f_active, topo.f_gap, topo.f_normal, topo.f_point,
+                                                     topo.f_bary)
+    act = f_act[:nf].astype(bool)
     if not act.any():
         return None
     k = int(act.sum())
-    return Contacts(np.full(k, -1, np.int64), np.full(k, oi, np.int64), topo.f_gap.numpy()[act],
-                    topo.f_normal.numpy()[act], topo.f_point.numpy()[act], topo.faces[act].astype(np.int64),
-                    topo.f_bary.numpy()[act])
+    return Contacts(np.full(k, -1, np.int64), np.full(k, oi, np.int64), f_gap[:nf][act], f_normal[:nf][act],
+                    f_point[:nf][act], topo.faces[act].astype(np.int64), f_bary[:nf][act])
 
 
 def self_contacts(topo: SurfaceTopology, x_features: wp.array, far: float, facing: float, depth: float,

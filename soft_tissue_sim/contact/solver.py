@@ -23,6 +23,7 @@ from ..body import BodyView
 from ..instrument import Instrument, MeshObstacle, obstacle_from_config
 from ..material import ParameterError
 from ..stats import ContactStats
+from ..transfer import to_host
 from .compliance import compliance, positive_definite
 from .detection import SurfaceTopology, face_contacts, node_contacts, self_contacts
 from .geometry import tangent_basis
@@ -173,8 +174,7 @@ class ContactSolver:
             inst.begin_step()
         integ = body.integrator
         dt = integ.dt
-        x = integ.x.numpy().copy()  # free motion
-        v = integ.v.numpy().copy()
+        x, v, free = (a.copy() for a in to_host(integ.x, integ.v, body.fem.free))  # free motion
         x_start = x - dt * v  # the step's start (x = x_start + dt v)
         # Planes and instruments (exact half-spaces / the tool's new pose) are tested at the
         # free-motion positions, at any depth. Triangle features are found at the step's start
@@ -204,7 +204,6 @@ class ContactSolver:
             c.point[own] = np.einsum("ks,ksj->kj", c.bary[own], x[c.tri[own]])
             c.gap[tri_feature] = np.einsum("kj,kj->k", c.normal[tri_feature],
                                            x[c.node[tri_feature]] - c.point[tri_feature])
-        free = body.fem.free.numpy().copy()
         k = len(c.node)
         # Jacobian blocks: up to 4 nodes per contact with weights: the tissue point moves with
         # +1 on its node, or +w_i on the triangle's nodes where it is a triangle's point

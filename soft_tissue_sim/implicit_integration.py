@@ -41,21 +41,6 @@ from .transfer import to_host
 
 
 @wp.kernel
-def _rhs_kernel(
-    f: wp.array(dtype=wp.vec3d),
-    Mv: wp.array(dtype=wp.vec3d),
-    Kv: wp.array(dtype=wp.vec3d),
-    free: wp.array(dtype=wp.float64),
-    dt: wp.float64,
-    c_m: wp.float64,
-    c_k: wp.float64,
-    b: wp.array(dtype=wp.vec3d),
-):
-    i = wp.tid()
-    b[i] = free[i] * (dt * f[i] - c_m * Mv[i] - c_k * Kv[i])
-
-
-@wp.kernel
 def _gravity_kernel(mass: wp.array(dtype=wp.float64), g: wp.vec3d, ext: wp.array(dtype=wp.vec3d),
                     f: wp.array(dtype=wp.vec3d)):
     i = wp.tid()
@@ -77,7 +62,7 @@ def _update_kernel(
 
 
 @wp.kernel
-def _newton_rhs_kernel(
+def _rhs_kernel(
     f: wp.array(dtype=wp.vec3d),
     Mdv: wp.array(dtype=wp.vec3d),
     Mv: wp.array(dtype=wp.vec3d),
@@ -88,7 +73,9 @@ def _newton_rhs_kernel(
     c_k: wp.float64,
     b: wp.array(dtype=wp.vec3d),
 ):
-    """b = -g(v_k) = dt f(x_k) - M (v_k - v_t) - dt alpha M v_k - dt beta K_k v_k (free nodes)."""
+    """b = dt f - M dv - c_m M v - c_k K v on free nodes: the right-hand side of eq. (1)
+    (dv = 0, c_k = dt beta + dt^2) and, re-linearised, -g(v_k) = dt f(x_k) - M (v_k - v_t)
+    - dt alpha M v_k - dt beta K_k v_k (c_k = dt beta)."""
     i = wp.tid()
     b[i] = free[i] * (dt * f[i] - Mdv[i] - c_m * Mv[i] - c_k * Kv[i])
 
@@ -235,6 +222,7 @@ class BackwardEuler:
     def _allocate(self) -> None:
         n, d = self.fem.n_nodes, self.device
         self.f = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self._zero = wp.zeros(n, dtype=wp.vec3d, device=d)  # M dv of the first linearisation
         self.f_ext = wp.zeros(n, dtype=wp.vec3d, device=d)
         self.b = wp.zeros(n, dtype=wp.vec3d, device=d)
         self.dv = wp.zeros(n, dtype=wp.vec3d, device=d)
@@ -284,7 +272,7 @@ class BackwardEuler:
         else:
             self._Mv.zero_()
         wp.launch(_rhs_kernel, fem.n_nodes,
-                  [self.f, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass, self.k_coef, self.b],
+                  [self.f, self._zero, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass, self.k_coef, self.b],
                   device=self.device)
 
     def _norm(self, a: wp.array) -> float:
@@ -307,7 +295,7 @@ class BackwardEuler:
             fem.mass_product(self.v, self._Mv)
         else:
             self._Mv.zero_()
-        wp.launch(_newton_rhs_kernel, fem.n_nodes,
+        wp.launch(_rhs_kernel, fem.n_nodes,
                   [self.f, self._Mdv, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass,
                    dt * self.damping.stiffness, self.b], device=self.device)
 

@@ -33,6 +33,7 @@ from .detection_kernels import (
     capsule_faces_kernel,
     copy_points_f32_kernel,
     face_normals_kernel,
+    Slots,
     plane_contacts_kernel,
     self_contacts_kernel,
     trimesh_contacts_kernel,
@@ -51,6 +52,13 @@ def blade_span(inst: Instrument) -> tuple[float, float]:
     z = bl[:, 2] / inst.length
     lo, hi = max(float(z.min()), 0.0), min(float(z.max()), 1.0)
     return (lo, hi) if lo < hi else (1.0, 0.0)
+
+
+def _slots(active, gap, normal, point) -> Slots:
+    """The kernels' view of a set of output slots."""
+    s = Slots()
+    s.active, s.gap, s.normal, s.point = active, gap, normal, point
+    return s
 
 
 def _output_slots(n: int, device) -> tuple:
@@ -73,6 +81,7 @@ class SurfaceTopology:
         self.nodes = wp.array(self.surface, dtype=wp.int32, device=dev)
         # one output slot per surface node, reused by every detection launch
         self.active, self.gap, self.normal, self.point, self.bary = _output_slots(ns, dev)
+        self.slots = _slots(self.active, self.gap, self.normal, self.point)
         self.tri = wp.zeros(ns, dtype=wp.int32, device=dev)
         self.scale = float(np.ptp(mesh.points, axis=0).max()) or 1.0
         # faces on the device, and which face owns each surface edge: edge_owner[f, k] = 1 where
@@ -85,6 +94,7 @@ class SurfaceTopology:
                                    dtype=wp.vec3i, device=dev)
         # one output slot per surface face (instrument against triangles)
         self.f_active, self.f_gap, self.f_normal, self.f_point, self.f_bary = _output_slots(nf, dev)
+        self.f_slots = _slots(self.f_active, self.f_gap, self.f_normal, self.f_point)
         self.f_crossed = wp.zeros(nf, dtype=wp.int32, device=dev)
         self.wmesh = None
         if self_collision and len(self.faces):
@@ -133,7 +143,7 @@ def node_contacts(topo: SurfaceTopology, oi: int, obj, x: wp.array, x_features: 
                   far: float, device) -> Contacts | None:
     """Surface nodes against object ``oi``: an instrument's capsule or a plane at ``x`` within
     ``distance``, a static mesh at ``x_features`` within ``far``."""
-    out = [topo.active, topo.gap, topo.normal, topo.point]
+    out = [topo.slots]
     ns = len(topo.surface)
     if isinstance(obj, Instrument):
         a, b = obj.segment_world()
@@ -168,7 +178,7 @@ def face_contacts(topo: SurfaceTopology, oi: int, inst: Instrument, x: wp.array,
     lo, hi = blade_span(inst)
     wp.launch(capsule_faces_kernel, nf,
               [x, topo.faces_wp, topo.edge_owner, wp.vec3d(*a), wp.vec3d(*b), inst.radius, distance, lo, hi, inside],
-              outputs=[topo.f_active, topo.f_gap, topo.f_normal, topo.f_point, topo.f_bary], device=device)
+              outputs=[topo.f_slots, topo.f_bary], device=device)
     f_act, f_gap, f_normal, f_point, f_bary = to_host(topo.f_active, topo.f_gap, topo.f_normal, topo.f_point,
                                                      topo.f_bary)
     act = f_act[:nf].astype(bool)
@@ -192,5 +202,5 @@ def self_contacts(topo: SurfaceTopology, x_features: wp.array, far: float, facin
     wp.launch(self_contacts_kernel, len(topo.surface),
               [x_features, topo.nodes, topo.wmesh.id, topo.faces_wp, topo.face_comp, topo.node_comp, topo.node_normal,
                topo.ring_offsets, topo.ring_nodes, far, _search_radius(topo, far), facing, depth],
-              outputs=[topo.active, topo.tri, topo.bary, topo.gap, topo.normal, topo.point], device=device)
+              outputs=[topo.slots, topo.tri, topo.bary], device=device)
     return _collect(topo, -1, True)

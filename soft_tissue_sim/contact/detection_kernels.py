@@ -2,8 +2,8 @@
 a capsule, a static triangle mesh, the tissue's own triangles) or per surface triangle
 (against a capsule). Launched by :mod:`soft_tissue_sim.contact.detection`.
 
-Every kernel writes its own output slot (``active[k]`` = 1 with gap, normal and point where
-it found a contact within ``distance``, 0 elsewhere): the normal is a unit vector pointing
+Every kernel writes its own output slot (:class:`Slots`: ``active[k]`` = 1 with gap, normal
+and point where it found a contact within ``distance``, 0 elsewhere): the normal is a unit vector pointing
 the way the tissue is pushed, the gap is < 0 for a penetration, the point lies on the other
 surface.
 """
@@ -22,22 +22,24 @@ from .geometry import (
 )
 
 
+@wp.struct
+class Slots:
+    """One output slot per thread of a detection kernel: ``active`` 1 where a contact was
+    found, with its gap, normal and point."""
+
+    active: wp.array(dtype=wp.int32)
+    gap: wp.array(dtype=wp.float64)
+    normal: wp.array(dtype=wp.vec3d)
+    point: wp.array(dtype=wp.vec3d)
+
+
 @wp.func
-def emit(
-    active: wp.array(dtype=wp.int32),
-    gap: wp.array(dtype=wp.float64),
-    nrm: wp.array(dtype=wp.vec3d),
-    cpoint: wp.array(dtype=wp.vec3d),
-    k: int,
-    g: wp.float64,
-    n: wp.vec3d,
-    p: wp.vec3d,
-):
+def emit(out: Slots, k: int, g: wp.float64, n: wp.vec3d, p: wp.vec3d):
     """Slot k holds a contact: gap g, normal n, point p on the other surface."""
-    active[k] = 1
-    gap[k] = g
-    nrm[k] = n
-    cpoint[k] = p
+    out.active[k] = 1
+    out.gap[k] = g
+    out.normal[k] = n
+    out.point[k] = p
 
 
 @wp.kernel
@@ -47,18 +49,15 @@ def plane_contacts_kernel(
     point: wp.vec3d,
     normal: wp.vec3d,
     distance: wp.float64,
-    active: wp.array(dtype=wp.int32),
-    gap: wp.array(dtype=wp.float64),
-    nrm: wp.array(dtype=wp.vec3d),
-    cpoint: wp.array(dtype=wp.vec3d),
+    out: Slots,
 ):
     """Surface node k against the plane (point, normal): gap = n . (x - point)."""
     k = wp.tid()
     xp = x[nodes[k]]
     g = wp.dot(xp - point, normal)
-    active[k] = 0
+    out.active[k] = 0
     if g < distance:
-        emit(active, gap, nrm, cpoint, k, g, normal, xp - g * normal)
+        emit(out, k, g, normal, xp - g * normal)
 
 
 @wp.kernel
@@ -69,10 +68,7 @@ def capsule_contacts_kernel(
     b: wp.vec3d,
     radius: wp.float64,
     distance: wp.float64,
-    active: wp.array(dtype=wp.int32),
-    gap: wp.array(dtype=wp.float64),
-    nrm: wp.array(dtype=wp.vec3d),
-    cpoint: wp.array(dtype=wp.vec3d),
+    out: Slots,
 ):
     """Surface node k against the capsule of axis ab: gap = |x - closest axis point| - radius."""
     k = wp.tid()
@@ -81,7 +77,7 @@ def capsule_contacts_kernel(
     d = xp - c
     dist = wp.length(d)
     g = dist - radius
-    active[k] = 0
+    out.active[k] = 0
     if g < distance:
         n = wp.vec3d(F64(0.0), F64(0.0), F64(-1.0))
         if dist > F64(1e-12) * radius:
@@ -92,7 +88,7 @@ def capsule_contacts_kernel(
                 n = wp.normalize(wp.cross(ax, wp.vec3d(F64(1.0), F64(0.0), F64(0.0))))
                 if wp.length(wp.cross(ax, wp.vec3d(F64(1.0), F64(0.0), F64(0.0)))) < F64(1e-6) * wp.length(ax):
                     n = wp.normalize(wp.cross(ax, wp.vec3d(F64(0.0), F64(1.0), F64(0.0))))
-        emit(active, gap, nrm, cpoint, k, g, n, c + radius * n)
+        emit(out, k, g, n, c + radius * n)
 
 
 
@@ -108,10 +104,7 @@ def capsule_faces_kernel(
     blade_lo: wp.float64,
     blade_hi: wp.float64,
     inside: int,
-    active: wp.array(dtype=wp.int32),
-    gap: wp.array(dtype=wp.float64),
-    nrm: wp.array(dtype=wp.vec3d),
-    cpoint: wp.array(dtype=wp.vec3d),
+    out: Slots,
     bary: wp.array(dtype=wp.vec3d),
 ):
     """Surface triangle f (outward normal by the right hand) against the capsule of axis ab,
@@ -130,7 +123,7 @@ def capsule_faces_kernel(
     ``inside`` (the tool was already through the surface at the step's start, e.g. in a cut:
     the triangles around it are then only kept a radius away from the axis)."""
     f = wp.tid()
-    active[f] = 0
+    out.active[f] = 0
     t = faces[f]
     va = x[t[0]]
     vb = x[t[1]]
@@ -167,7 +160,7 @@ def capsule_faces_kernel(
         if g < distance:
             p = a + s * (b - a)
             n = (w[0] * va + w[1] * vb + w[2] * vc - p) / dist
-            emit(active, gap, nrm, cpoint, f, g, n, p + radius * n)
+            emit(out, f, g, n, p + radius * n)
             bary[f] = w
         return
     # pierced or touched
@@ -200,7 +193,7 @@ def capsule_faces_kernel(
     wl = wp.vec3d(wp.max(wl[0], zero), wp.max(wl[1], zero), wp.max(wl[2], zero))
     wl = wl / (wl[0] + wl[1] + wl[2])
     n = -nf
-    emit(active, gap, nrm, cpoint, f, h - radius, n, p + radius * n)
+    emit(out, f, h - radius, n, p + radius * n)
     bary[f] = wl
 
 
@@ -238,16 +231,13 @@ def trimesh_contacts_kernel(
     tris: wp.array(dtype=wp.vec3i),
     distance: wp.float64,
     search: wp.float32,
-    active: wp.array(dtype=wp.int32),
-    gap: wp.array(dtype=wp.float64),
-    nrm: wp.array(dtype=wp.vec3d),
-    cpoint: wp.array(dtype=wp.vec3d),
+    out: Slots,
 ):
     """Surface node k against a static triangle mesh: the closest face from the float32 BVH
     (inside/outside from the angle-weighted pseudo normal), then the float64 closest point."""
     k = wp.tid()
     xp = x[nodes[k]]
-    active[k] = 0
+    out.active[k] = 0
     q = wp.mesh_query_point_sign_normal(mesh_id, to_vec3f(xp), search)
     if q.result:
         t = tris[q.face]
@@ -274,7 +264,7 @@ def trimesh_contacts_kernel(
             n = nf
             if dist > F64(1e-12) * wp.length(vb - va):
                 n = (sgn / dist) * d
-            emit(active, gap, nrm, cpoint, k, g, n, qp)
+            emit(out, k, g, n, qp)
 
 
 @wp.kernel
@@ -312,12 +302,9 @@ def self_contacts_kernel(
     margin: wp.float32,
     facing: wp.float64,
     depth: wp.float64,
-    active: wp.array(dtype=wp.int32),
+    out: Slots,
     tri: wp.array(dtype=wp.int32),
     bary: wp.array(dtype=wp.vec3d),
-    gap: wp.array(dtype=wp.float64),
-    nrm: wp.array(dtype=wp.vec3d),
-    cpoint: wp.array(dtype=wp.vec3d),
 ):
     """Surface node k against the tissue's surface triangles within ``distance``.
 
@@ -335,7 +322,7 @@ def self_contacts_kernel(
     k = wp.tid()
     p = nodes[k]
     xp = x[p]
-    active[k] = 0
+    out.active[k] = 0
     xf = to_vec3f(xp)
     lo = wp.vec3(xf[0] - margin, xf[1] - margin, xf[2] - margin)
     hi = wp.vec3(xf[0] + margin, xf[1] + margin, xf[2] + margin)
@@ -400,6 +387,6 @@ def self_contacts_kernel(
                 best_n = n
                 best_q = q
     if best_face >= 0:
-        emit(active, gap, nrm, cpoint, k, best_g, best_n, best_q)
+        emit(out, k, best_g, best_n, best_q)
         tri[k] = best_face
         bary[k] = best_w

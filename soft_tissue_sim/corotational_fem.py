@@ -224,36 +224,6 @@ def element_block(
 
 
 @wp.kernel
-def element_blocks_kernel(
-    tets: wp.array(dtype=wp.vec4i),
-    free: wp.array(dtype=wp.float64),
-    Dm_inv: wp.array(dtype=wp.mat33d),
-    volume: wp.array(dtype=wp.float64),
-    mu: wp.array(dtype=wp.float64),
-    lam: wp.array(dtype=wp.float64),
-    rho: wp.array(dtype=wp.float64),
-    R: wp.array(dtype=wp.mat33d),
-    k_coef: wp.float64,
-    m_coef: wp.float64,
-    consistent: int,
-    rows: wp.array(dtype=wp.int32),
-    cols: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.mat33d),
-):
-    """The 16 3x3 blocks of one element's contribution to the filtered A, as COO triplets
-    (blocks touching a fixed node are zero)."""
-    e = wp.tid()
-    t = tets[e]
-    for i in range(4):
-        for j in range(4):
-            blk = element_block(Dm_inv[e], R[e], volume[e], mu[e], lam[e], rho[e], i, j, k_coef, m_coef, consistent)
-            k = e * 16 + i * 4 + j
-            rows[k] = t[i]
-            cols[k] = t[j]
-            values[k] = blk * (free[t[i]] * free[t[j]])
-
-
-@wp.kernel
 def element_blocks_subset_kernel(
     ids: wp.array(dtype=wp.int32),
     tets: wp.array(dtype=wp.vec4i),
@@ -271,8 +241,9 @@ def element_blocks_subset_kernel(
     cols: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.mat33d),
 ):
-    """As element_blocks_kernel for the elements ids[0..]: the local change of A when a cut
-    removes or adds them (the perturbation N of the Sherman-Morrison correction, eq. 5)."""
+    """The 16 3x3 blocks of the elements ids[0..]'s contributions to the filtered A, as COO
+    triplets (blocks touching a fixed node are zero): all elements for the assembly, or those
+    a cut removes or adds (the perturbation N of the Sherman-Morrison correction, eq. 5)."""
     s = wp.tid()
     e = ids[s]
     t = tets[e]
@@ -402,6 +373,7 @@ class CorotationalFEM:
         self._node_rot = wp.zeros(n, dtype=wp.mat33d, device=d)
         # COO triplets of A: 16 blocks per element + one diagonal block per node.
         nt = 16 * m + n
+        self._all_tets = wp.array(np.arange(m, dtype=np.int32), dtype=wp.int32, device=d)
         self._rows = wp.zeros(nt, dtype=wp.int32, device=d)
         self._cols = wp.zeros(nt, dtype=wp.int32, device=d)
         self._vals = wp.zeros(nt, dtype=wp.mat33d, device=d)
@@ -498,10 +470,11 @@ class CorotationalFEM:
         (rows, cols, values), 16 blocks per element (zero where they touch a fixed node) and one
         per node (the identity on fixed nodes, zero elsewhere). Duplicates add up."""
         wp.launch(
-            element_blocks_kernel,
+            element_blocks_subset_kernel,
             self.n_tets,
-            [self.tets, self.free, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
-             float(k_coef), float(m_coef), int(self.consistent_mass), self._rows, self._cols, self._vals],
+            [self._all_tets, self.tets, self.free, self.Dm_inv, self.volume, self.mu, self.lam, self.rho,
+             self.rotations, float(k_coef), float(m_coef), int(self.consistent_mass), self._rows, self._cols,
+             self._vals],
             device=self.device,
         )
         wp.launch(

@@ -111,7 +111,8 @@ def test_one_newton_iteration_is_the_papers_step_and_the_tolerance_stops_early()
     np.testing.assert_array_equal(x_default, x_one)
     _, stats, _ = _energy_history(_soft_beam(tolerance=0.2), steps=5)
     assert all(s.nonlinear_residual <= 0.2 and s.converged for s in stats)
-    assert 1 < max(s.newton_iterations for s in stats) < 20  # re-linearised, and stopped early
+    most = max(s.newton_iterations for s in stats)
+    assert most > 1 and most < 20  # re-linearised, and stopped early
     with pytest.raises(ParameterError, match="newton_iterations"):
         load_scene(_soft_beam(newton=0), device="cpu")
     with pytest.raises(ParameterError, match="newton_tolerance"):

@@ -18,15 +18,10 @@ and contact (no gathered Delassus operator); the dense backend serves those scen
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import warp as wp
 
 from .dense_inverse import rotate_in_kernel
-
-CAPTURE_SOLVE = False  # whether PCG may capture cuDSS's solve in a CUDA graph
-BLOCKING = os.environ.get("STS_CUDSS_BLOCKING", "0") == "1"  # nvmath's blocking calls (cuDSS's own allocator)
 
 
 @wp.kernel
@@ -86,8 +81,7 @@ class _Slot:
         self.A = csp.csr_matrix((cupy.asarray(values), cupy.asarray(indices), cupy.asarray(indptr)), shape=(n3, n3))
         self.rhs = cupy.asarray(b)
         opts = DirectSolverOptions(sparse_system_type=DirectSolverMatrixType.SPD,
-                                   sparse_system_view=DirectSolverMatrixViewType.FULL,
-                                   blocking=True if BLOCKING else "auto")
+                                   sparse_system_view=DirectSolverMatrixViewType.FULL)
         self.solver = DirectSolver(self.A, self.rhs, options=opts, stream=stream.cuda_stream)
         # write where the solver reads (the matrix's values, the right-hand side), whatever it wrapped
         self.values = wp.array(ptr=self.A.data.data.ptr, dtype=wp.float64, shape=(int(indices.shape[0]),),
@@ -193,10 +187,7 @@ class CuDSSFactor:
         wp.launch(rotate_out_kernel, n, [dR, slot.x, z], device=self.device)
 
     def graph_key(self):
-        if not CAPTURE_SOLVE or self._active is None:
-            return None
-        slot = self._slots[self._active]
-        return ("cudss", id(slot.solver), slot.x.ptr, slot.b.ptr)
+        return None  # cuDSS's solve is not captured in the PCG graph
 
     def reset(self) -> None:
         self._active = None

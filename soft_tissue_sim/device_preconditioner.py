@@ -60,7 +60,6 @@ class _Ticket:
     def __init__(self, step, gen, uids, version, R, start=None, done=None, cpu_ms=None, future=None):
         self.step, self.gen, self.uids, self.version, self.R = step, gen, uids, version, R
         self.start, self.done, self.cpu_ms, self.future = start, done, cpu_ms, future
-        self.requested = time.perf_counter()
 
     def events(self):
         """(start, done) events, waiting for the background enqueue if there is one."""

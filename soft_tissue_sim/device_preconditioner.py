@@ -93,10 +93,6 @@ class FoldedCorrection:
         self.q_ms = 0.0
         self.folds = 0
 
-    @property
-    def active(self) -> bool:
-        return False  # nothing to apply beside the inverse: it is corrected in place
-
     def add(self, mod: Modification, current_uids: np.ndarray) -> None:
         self.owner._modified(mod, np.asarray(current_uids, np.int64))
 

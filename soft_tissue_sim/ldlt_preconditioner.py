@@ -562,13 +562,13 @@ class AsyncLDLTPreconditioner:
         return out
 
     def delassus(self, B: np.ndarray) -> np.ndarray | None:
-        """B^T P^-1 B for a block of constraint columns B = H^T (3n, m): the Delassus operator
-        W / dt^2 of eq. (4), corrected after cuts (eq. 11-12), rotated (eq. 2, 8), from the
+        """B^T P^-1 B for a block of constraint columns B = H^T (3n, m; dense or sparse): the
+        Delassus operator W / dt^2 of eq. (4), corrected after cuts (eq. 11-12), rotated (eq. 2, 8), from the
         factor's forward solves alone (:mod:`soft_tissue_sim.delassus`). None when this
         preconditioner keeps no host L (``lower_factor`` off): use :meth:`apply_columns`."""
         if self.lower is None:
             return None
-        B = np.asarray(B, dtype=np.float64)
+        B = B.toarray() if sps.issparse(B) else np.asarray(B, dtype=np.float64)
         if self.correction is not None and self.correction.active:
             return self.correction.delassus(B, self.lower)
         if self.R_tu is None or 3 * len(self.R_tu) != B.shape[0]:

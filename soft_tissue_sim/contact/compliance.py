@@ -36,13 +36,11 @@ def compliance(H: sps.csr_matrix, mode: str, preconditioner, integrator, fem):
         mode = "diagonal"  # jacobi / none: no factorization to use
     Yt = None  # rows: P^-1 applied to the rows of H
     if mode == "preconditioner":
-        device_factor = hasattr(inner, "backend")  # gathers W from constraint rows in node form
-        Hd = None if device_factor else H.toarray()  # (m, 3n): one row per constraint
         try:
-            W = inner.delassus(H.T.tocsc() if device_factor else Hd.T) if hasattr(inner, "delassus") else None
+            W = inner.delassus(H.T.tocsc()) if hasattr(inner, "delassus") else None
             if W is not None:  # forward solves alone (host) or gathered (device); dx by one application
                 return W, (lambda lam: inner.apply_columns((H.T @ lam)[:, None])[:, 0]), mode
-            Hd = H.toarray() if Hd is None else Hd
+            Hd = H.toarray()  # (m, 3n): one row per constraint
             if hasattr(inner, "apply_columns"):
                 Yt = np.ascontiguousarray(np.asarray(inner.apply_columns(np.ascontiguousarray(Hd.T))).T)
             else:

@@ -288,7 +288,7 @@ __syncthreads();
 #endif
 return v;
 """)
-def _block_sum(v: wp.float64) -> wp.float64: ...
+def block_sum(v: wp.float64) -> wp.float64: ...
 
 
 @wp.kernel
@@ -305,7 +305,7 @@ def _dot_partial_kernel(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d)
         acc += ai[0] * bi[0]
         acc += ai[1] * bi[1]
         acc += ai[2] * bi[2]
-    acc = _block_sum(acc)
+    acc = block_sum(acc)
     if t % nt == 0:
         partials[t // nt] = acc
 
@@ -315,7 +315,7 @@ def _sum_partials(partials: wp.array(dtype=wp.float64), t: int, nt: int):
     acc = wp.float64(0.0)
     for k in range(t, partials.shape[0], nt):
         acc += partials[k]
-    return _block_sum(acc)
+    return block_sum(acc)
 
 
 @wp.kernel

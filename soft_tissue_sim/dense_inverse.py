@@ -17,7 +17,7 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   nodes (:func:`delassus_kernel`, an entry of W per thread).
 
 The matrix is symmetric and stored row-major (C order); LAPACK and cuSOLVER see it as its
-column-major transpose, the same matrix. ``potri`` fills one triangle, which
+column-major transpose, the same matrix. On the CPU ``potri`` fills one triangle, which
 :func:`symmetrize_kernel` mirrors. Arrays are Warp arrays; CuPy (GPU) or NumPy (CPU) view them
 without copies for the library calls (``xp``).
 """
@@ -30,7 +30,7 @@ import sys
 import numpy as np
 import warp as wp
 
-from .cg import _block_sum
+from .cg import block_sum
 
 BLOCK = 256  # threads per node in the matrix-vector product on CUDA
 
@@ -93,9 +93,9 @@ def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.flo
         a0 += P[r, j] * sj
         a1 += P[r + 1, j] * sj
         a2 += P[r + 2, j] * sj
-    a0 = _block_sum(a0)
-    a1 = _block_sum(a1)
-    a2 = _block_sum(a2)
+    a0 = block_sum(a0)
+    a1 = block_sum(a1)
+    a2 = block_sum(a2)
     if lane == 0:
         z[i] = dR[i] * wp.vec3d(a0, a1, a2)
 

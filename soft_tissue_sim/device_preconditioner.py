@@ -217,7 +217,7 @@ class AsyncDevicePreconditioner:
             self._main.wait_event(self._busy.events()[1])  # the work buffer is free once the last one ended
         triplets = fem.assemble_triplets(system.m_coef, system.k_coef)
         self.backend.assemble(triplets, 3 * fem.n_nodes, stream=self._main, topology=meta.get("version"))
-        R = wp.clone(fem._node_rot)
+        R = wp.clone(fem.update_node_rotations())  # R(t_u) of this factor
         if self._side is None:
             t0 = time.perf_counter()
             self.backend.factorize()
@@ -277,8 +277,6 @@ class AsyncDevicePreconditioner:
 
     def refresh(self, system) -> None:
         """A factor of the current state, made and installed now (waits for it)."""
-        fem = system.fem
-        fem.update_node_rotations()
         self._refresh_now(system)
 
     def _refresh_now(self, system) -> None:

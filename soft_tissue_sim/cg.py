@@ -272,6 +272,7 @@ _NSCAL = 12
 _RED_BLOCK = 256  # threads per block of the dot-product kernels on CUDA
 
 
+# block_sum(v): the sum of v over a thread block, in thread 0 (on the CPU, a block is one thread: v)
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
 __shared__ double red[32];

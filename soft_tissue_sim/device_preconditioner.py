@@ -155,6 +155,7 @@ class AsyncDevicePreconditioner:
         self.deterministic = bool(deterministic)
         self.lag = int(lag)
         self._side = wp.Stream(self.device) if self.device.is_cuda else None
+        self._vec = None  # (r, z) of apply_vector
         self.correction: FoldedCorrection | None = None
         self.mods: list[Modification] = []
         self._busy = None  # the last factorization enqueued (its work buffer is in use until it ends)
@@ -399,6 +400,18 @@ class AsyncDevicePreconditioner:
             self.apply(r, z)
             out[:, c] = z.numpy().reshape(-1)
         return out
+
+    def apply_vector(self, b: np.ndarray) -> wp.array:
+        """P^-1 b for one host vector b (3n,), left on the device: a (n,) vec3d array that the
+        next call overwrites (no wait for the device)."""
+        b = np.ascontiguousarray(b, dtype=np.float64).reshape(-1, 3)
+        if self._vec is None or self._vec[0].shape[0] != len(b):
+            self._vec = (wp.empty(len(b), dtype=wp.vec3d, device=self.device),
+                         wp.empty(len(b), dtype=wp.vec3d, device=self.device))
+        r, z = self._vec
+        r.assign(b)
+        self.apply(r, z)
+        return z
 
     def delassus(self, B) -> np.ndarray | None:
         """B^T P^-1 B for constraint columns B = H^T (3n, m) (W / dt^2 of eq. 4, corrected after

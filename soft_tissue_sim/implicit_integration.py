@@ -116,6 +116,34 @@ def _energy_kernel(
     wp.atomic_add(out, 1, pe)
 
 
+@wp.kernel
+def _guard_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    v: wp.array(dtype=wp.vec3d),
+    mass: wp.array(dtype=wp.float64),
+    out: wp.array(dtype=wp.float64),
+):
+    """out[0] += the kinetic energy, out[1] += the number of nodes with a non-finite x or v."""
+    i = wp.tid()
+    wp.atomic_add(out, 0, wp.float64(0.5) * mass[i] * wp.dot(v[i], v[i]))
+    s = wp.dot(x[i], x[i]) + wp.dot(v[i], v[i])
+    if not wp.isfinite(s):
+        wp.atomic_add(out, 1, wp.float64(1.0))
+
+
+@wp.kernel
+def _correct_kernel(
+    dx: wp.array(dtype=wp.vec3d),
+    dt: wp.float64,
+    x: wp.array(dtype=wp.vec3d),
+    v: wp.array(dtype=wp.vec3d),
+):
+    """x += dx, v += dx / dt: a correction of the positions that the velocities follow."""
+    i = wp.tid()
+    x[i] = x[i] + dx[i]
+    v[i] = v[i] + dx[i] / dt
+
+
 _COMPONENT = {"component": True}  # a field holding a record some part of the step adds
 
 
@@ -229,6 +257,7 @@ class BackwardEuler:
         self._Mv = wp.zeros(n, dtype=wp.vec3d, device=d)
         self._Kv = wp.zeros(n, dtype=wp.vec3d, device=d)
         self._energy = wp.zeros(2, dtype=wp.float64, device=d)
+        self._guard = wp.zeros(2, dtype=wp.float64, device=d)
         self._v_t = wp.zeros(n, dtype=wp.vec3d, device=d)  # the step's start velocity (Newton)
         self._dvel = wp.zeros(n, dtype=wp.vec3d, device=d)
         self._Mdv = wp.zeros(n, dtype=wp.vec3d, device=d)
@@ -379,6 +408,22 @@ class BackwardEuler:
         wp.launch(_energy_kernel, self.fem.n_nodes,
                   [self.x, self.v, self.fem.lumped_mass, wp.vec3d(*self.gravity), self._energy], device=self.device)
         return float(to_host(self._energy)[0][0])
+
+    def launch_guard(self) -> wp.array:
+        """Launch the divergence guard's reduction at the current state: a device array
+        [kinetic energy, non-finite nodes], returned unread (read it with the step's other
+        values)."""
+        self._guard.zero_()
+        wp.launch(_guard_kernel, self.fem.n_nodes, [self.x, self.v, self.fem.lumped_mass, self._guard],
+                  device=self.device)
+        return self._guard
+
+    def correct(self, dx) -> None:
+        """x += dx, v += dx / dt (a position correction, e.g. the contact response of eq. 4);
+        ``dx`` (n, 3) on the host or a device array."""
+        if not isinstance(dx, wp.array):
+            dx = wp.array(np.asarray(dx, dtype=np.float64), dtype=wp.vec3d, device=self.device)
+        wp.launch(_correct_kernel, self.fem.n_nodes, [dx, float(self.dt), self.x, self.v], device=self.device)
 
     def elastic_energy(self) -> float:
         """Corotated strain energy sum_e V (mu eps:eps + lambda/2 tr(eps)^2), on the host (diagnostics)."""

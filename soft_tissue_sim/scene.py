@@ -277,6 +277,7 @@ class Simulation:
         g = float(np.linalg.norm(self.integrator.gravity))
         self._energy_floor = self.fem.total_mass * (g * size + 0.5)  # weight over the body size + 1 m/s
         self._closed = False
+        self._ke_checked = None  # kinetic energy after the free motion's guard (None: not checked)
         self._finalizer = weakref.finalize(self, self.preconditioner.close)
 
     # ----------------------------------------------------------- components
@@ -359,10 +360,10 @@ class Simulation:
 
     def _diverged(self, stats, ke_before: float) -> str | None:
         """Why the step just taken must not stand (NaN, or runaway kinetic energy), or None."""
-        integ = self.integrator
-        if not (np.isfinite(stats.residual) and np.isfinite(to_host(integ.x)[0]).all()):
+        ke, nonfinite = (float(g) for g in to_host(self.integrator.launch_guard())[0])
+        self._ke_checked = ke  # the kinetic energy of the state now (the contact guard's "before")
+        if not np.isfinite(stats.residual) or nonfinite != 0.0:
             return "non-finite state"
-        ke = self._kinetic_energy()
         if not np.isfinite(ke):
             return "non-finite energy"
         if ke > self.guard_ratio * (ke_before + self._energy_floor):
@@ -380,6 +381,7 @@ class Simulation:
         integ = self.integrator
         x_prev, v_prev = wp.clone(integ.x), wp.clone(integ.v)  # last good state
         k0, t0 = integ.step_index, integ.time
+        self._ke_checked = None
         ke_before = self._kinetic_energy() if self.guard_ratio > 0 else 0.0
         stats = integ.step()
         reason = self._diverged(stats, ke_before) if self.guard_ratio > 0 else (
@@ -433,7 +435,9 @@ class Simulation:
         when the solve failed) and the guard's contact fields."""
         integ = self.integrator
         x_free, v_free = wp.clone(integ.x), wp.clone(integ.v)
-        ke_free = self._kinetic_energy() if self.guard_ratio > 0 else 0.0
+        ke_free = 0.0
+        if self.guard_ratio > 0:
+            ke_free = self._ke_checked if self._ke_checked is not None else self._kinetic_energy()
         try:
             response = self.contact.step(self.view())
             reason = None
@@ -441,17 +445,18 @@ class Simulation:
             reason = f"contact solve failed: {type(exc).__name__}: {exc}"
         if reason is None:
             stats.contact = response.stats
-            x, v = to_host(integ.x, integ.v)
             if response.dx is not None:  # x += dx, v += dx / dt
-                x, v = x + response.dx, v + response.dx / integ.dt
-                integ.x.assign(x)
-                integ.v.assign(v)
-            if not np.isfinite(x).all() or not np.isfinite(v).all():
+                integ.correct(response.dx)
+            # the guard's values and the penetration left, launched together and read in one wait
+            gap = self.contact.launch_penetration(self.view())
+            guard, *rest = to_host(integ.launch_guard(), *([gap] if gap is not None else []))
+            ke, nonfinite = float(guard[0]), float(guard[1])
+            if rest and np.isfinite(rest[0][0]):
+                stats.contact.max_penetration = float(max(0.0, -rest[0][0]))
+            if nonfinite != 0.0 or not np.isfinite(ke):
                 reason = "non-finite state after the contact correction"
-            elif self.guard_ratio > 0:
-                ke = self._kinetic_energy()
-                if not ke <= self.guard_ratio * (ke_free + self._energy_floor):
-                    reason = f"runaway energy after the contact correction: kinetic {ke:.3g} J after {ke_free:.3g} J"
+            elif self.guard_ratio > 0 and not ke <= self.guard_ratio * (ke_free + self._energy_floor):
+                reason = f"runaway energy after the contact correction: kinetic {ke:.3g} J after {ke_free:.3g} J"
         if reason is not None:
             integ.x, integ.v = x_free, v_free
             self.contact_rejections += 1

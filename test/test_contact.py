@@ -256,7 +256,7 @@ def test_thin_tool_pressed_on_a_face_is_held_by_it(monkeypatch, faces):
     from soft_tissue_sim.contact import ContactSolver
 
     if not faces:
-        monkeypatch.setattr(ContactSolver, "_capsule_faces", lambda *args, **kwargs: None)
+        monkeypatch.setattr(ContactSolver, "faces", False)
     r = 0.001
     cfg = scene(mesh={"generator": "beam", "n_long": 3, "n_cross": 3, "spacing": 0.01},
                 materials=[{"id": 0, "young": 2.0e4, "poisson": 0.3, "density": 1000.0}],
@@ -360,11 +360,14 @@ def test_capsule_lying_across_an_edge_counts_it_once(tmp_path, along):
         # control: if every face owned its edges the ridge would be counted twice
         topo = sim.contact._topo
         a, b = inst.segment_world()
+        sec = topo.out.section(0, "face")
         wp.launch(capsule_faces_kernel, len(faces),
                   [wp.array(pts, dtype=wp.vec3d), topo.faces_wp, wp.array(np.ones_like(faces), dtype=wp.vec3i),
-                   wp.vec3d(*a), wp.vec3d(*b), r, 0.002, 1.0, 0.0, 0],
-                  outputs=[topo.f_slots, topo.f_bary], device="cpu")
-        assert sorted(np.flatnonzero(topo.f_active.numpy()).tolist()) == ridge_faces
+                   wp.array([a, b, a, b], dtype=wp.vec3d), wp.array([r, 1.0, 0.0], dtype=wp.float64), 0.002,
+                   wp.zeros(1, dtype=wp.int32), 0],
+                  outputs=[topo.out.slots(sec)], device="cpu")
+        act = topo.out.active.numpy()[sec.base: sec.base + sec.size]
+        assert sorted(np.flatnonzero(act).tolist()) == ridge_faces
 
 
 @pytest.mark.parametrize("tilt", [0.0, 50.0])

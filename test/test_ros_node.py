@@ -105,6 +105,9 @@ class RecordingInstruments:
     def step(self, body):
         return ContactResponse(None, ContactStats(contacts=2))
 
+    def launch_penetration(self, body):
+        return None  # no measurement of the penetration left
+
     def reset(self):
         self.calls.clear()
 

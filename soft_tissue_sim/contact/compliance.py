@@ -16,7 +16,8 @@ lambda is a force, not an impulse (the paper factorizes A / dt^2). Modes:
   only, so contact forces are not the physical ones.
 - ``exact``: A^-1 itself, one PCG solve per constraint row.
 
-Invariant: the functions return W / dt^2 and the map lambda -> P^-1 H^T lambda of the same P.
+Invariant: the functions return W / dt^2 and the map lambda -> P^-1 H^T lambda of the same P
+(a host vector (3n,), or a device array (n,) of vec3d where the factor lives on a GPU).
 Fixed nodes have zero columns in H, so they never move.
 """
 
@@ -39,6 +40,8 @@ def compliance(H: sps.csr_matrix, mode: str, preconditioner, integrator, fem):
         try:
             W = inner.delassus(H.T.tocsc()) if hasattr(inner, "delassus") else None
             if W is not None:  # forward solves alone (host) or gathered (device); dx by one application
+                if hasattr(inner, "apply_vector"):  # a device factor: the result stays there
+                    return W, (lambda lam: inner.apply_vector(H.T @ lam)), mode
                 return W, (lambda lam: inner.apply_columns((H.T @ lam)[:, None])[:, 0]), mode
             Hd = H.toarray()  # (m, 3n): one row per constraint
             if hasattr(inner, "apply_columns"):

@@ -20,22 +20,27 @@ the mesh (:meth:`SurfaceTopology.matches`), never reused across a change.
 
 from __future__ import annotations
 
+import warnings
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sps
 import warp as wp
 from scipy.sparse.csgraph import connected_components
 
 from ..instrument import Instrument, MeshObstacle, PlaneObstacle
-from ..transfer import to_host
 from .detection_kernels import (
+    Slots,
     capsule_contacts_kernel,
     capsule_crossings_kernel,
     capsule_faces_kernel,
     copy_points_f32_kernel,
     face_normals_kernel,
-    Slots,
+    min_gap_kernel,
     plane_contacts_kernel,
     self_contacts_kernel,
+    step_start_kernel,
+    surface_reach_kernel,
     trimesh_contacts_kernel,
 )
 from .geometry import edge_ownership
@@ -54,24 +59,82 @@ def blade_span(inst: Instrument) -> tuple[float, float]:
     return (lo, hi) if lo < hi else (1.0, 0.0)
 
 
-def _slots(active, gap, normal, point) -> Slots:
-    """The kernels' view of a set of output slots."""
-    s = Slots()
-    s.active, s.gap, s.normal, s.point = active, gap, normal, point
-    return s
+@dataclass
+class Section:
+    """The slots one detection launch writes: ``size`` of them from ``base``, for object ``obj``
+    (-1: the tissue itself); ``kind`` says what a thread is: "node" (a surface node against the
+    object), "face" (a surface triangle against an instrument) or "self" (a surface node against
+    the tissue's own triangles)."""
+
+    obj: int
+    kind: str
+    base: int
+    size: int
 
 
-def _output_slots(n: int, device) -> tuple:
-    """(active, gap, normal, point, bary): n output slots of a detection kernel."""
-    return (wp.zeros(n, dtype=wp.int32, device=device), wp.zeros(n, dtype=wp.float64, device=device),
-            *(wp.zeros(n, dtype=wp.vec3d, device=device) for _ in range(3)))
+class Outputs:
+    """The output slots of every launch of one detection, in one set of device arrays, so that
+    one read brings them all to the host (:meth:`read`)."""
+
+    def __init__(self, sections: list[Section], device):
+        self.sections = sections
+        n = max(sum(s.size for s in sections), 1)
+        self.active = wp.zeros(n, dtype=wp.int32, device=device)
+        self.gap = wp.zeros(n, dtype=wp.float64, device=device)
+        self.normal = wp.zeros(n, dtype=wp.vec3d, device=device)
+        self.point = wp.zeros(n, dtype=wp.vec3d, device=device)
+        self.tri = wp.zeros(n, dtype=wp.int32, device=device)
+        self.bary = wp.zeros(n, dtype=wp.vec3d, device=device)
+        self.all = self.slots(Section(-2, "all", 0, n))
+
+    @property
+    def arrays(self) -> tuple:
+        return self.active, self.gap, self.normal, self.point, self.tri, self.bary
+
+    def slots(self, section: Section) -> Slots:
+        """The kernels' view of ``section``'s slots."""
+        s = Slots()
+        s.base = section.base
+        s.active, s.gap, s.normal, s.point, s.tri, s.bary = self.arrays
+        return s
+
+    def section(self, obj: int, kind: str) -> Section | None:
+        for s in self.sections:
+            if s.obj == obj and s.kind == kind:
+                return s
+        return None
+
+
+def collect(topo: "SurfaceTopology", host: list) -> Contacts:
+    """The contacts of one detection from its outputs read to the host (``host``: the arrays of
+    :attr:`Outputs.arrays`), section by section in launch order."""
+    active, gap, normal, point, tri, bary = host
+    parts = []
+    for sec in topo.out.sections:
+        sl = slice(sec.base, sec.base + sec.size)
+        act = active[sl].astype(bool)
+        if not act.any():
+            continue
+        k = int(act.sum())
+        if sec.kind == "face":
+            node = np.full(k, -1, np.int64)
+            tris = topo.faces[act].astype(np.int64)
+        else:
+            node = topo.surface[act].astype(np.int64)
+            tris = topo.faces[tri[sl][act]].astype(np.int64) if sec.kind == "self" else np.full((k, 3), -1, np.int64)
+        w = bary[sl][act] if sec.kind != "node" else np.zeros((k, 3))
+        parts.append(Contacts(node, np.full(k, sec.obj, np.int64), gap[sl][act], normal[sl][act], point[sl][act],
+                              tris, w))
+    return Contacts.concat(parts)
 
 
 class SurfaceTopology:
     """Surface data of one mesh; rebuilt when cutting changes the mesh (never reused across
     a change of node count or tets)."""
 
-    def __init__(self, fem, self_collision: bool):
+    def __init__(self, fem, self_collision: bool, objects: list = ()):
+        """``objects``: the contact solver's instruments and obstacles, in order (their index is
+        the contacts' ``obj``): each gets its output slots."""
         mesh, dev = fem.mesh, fem.device
         self.keys = (fem.mesh, fem.mesh.tets, fem.tets, fem.n_nodes)
         self.n_nodes = fem.n_nodes
@@ -79,10 +142,6 @@ class SurfaceTopology:
         self.surface = np.unique(self.faces).astype(np.int32)
         ns = max(len(self.surface), 1)
         self.nodes = wp.array(self.surface, dtype=wp.int32, device=dev)
-        # one output slot per surface node, reused by every detection launch
-        self.active, self.gap, self.normal, self.point, self.bary = _output_slots(ns, dev)
-        self.slots = _slots(self.active, self.gap, self.normal, self.point)
-        self.tri = wp.zeros(ns, dtype=wp.int32, device=dev)
         self.scale = float(np.ptp(mesh.points, axis=0).max()) or 1.0
         # faces on the device, and which face owns each surface edge: edge_owner[f, k] = 1 where
         # face f owns its edge from vertex k to vertex k + 1, each edge owned by exactly one of
@@ -92,10 +151,6 @@ class SurfaceTopology:
                                  device=dev)
         self.edge_owner = wp.array(edge_ownership(self.faces) if len(self.faces) else np.zeros((1, 3), np.int32),
                                    dtype=wp.vec3i, device=dev)
-        # one output slot per surface face (instrument against triangles)
-        self.f_active, self.f_gap, self.f_normal, self.f_point, self.f_bary = _output_slots(nf, dev)
-        self.f_slots = _slots(self.f_active, self.f_gap, self.f_normal, self.f_point)
-        self.f_crossed = wp.zeros(nf, dtype=wp.int32, device=dev)
         self.wmesh = None
         if self_collision and len(self.faces):
             n = fem.n_nodes
@@ -113,94 +168,144 @@ class SurfaceTopology:
             self.node_normal = wp.zeros(n, dtype=wp.vec3d, device=dev)
             self.wmesh = wp.Mesh(points=self.points32, indices=wp.array(self.faces.reshape(-1), dtype=wp.int32,
                                                                           device=dev))
+        # output slots: per object, one per surface node and, for an instrument, one per surface
+        # face; then one per surface node for self-collision
+        sections, base = [], 0
+        for oi, obj in enumerate(objects):
+            sections.append(Section(oi, "node", base, ns))
+            base += ns
+            if isinstance(obj, Instrument):
+                sections.append(Section(oi, "face", base, nf))
+                base += nf
+        if self.wmesh is not None:
+            sections.append(Section(-1, "self", base, ns))
+        self.out = Outputs(sections, dev)
+        # state of one detection on the device: the step's start, the reach of the free motion,
+        # which instruments were through the surface at the start, the smallest gap
+        self.x_start = wp.zeros(fem.n_nodes, dtype=wp.vec3d, device=dev)
+        self.reach = wp.zeros(1, dtype=wp.float64, device=dev)
+        self.inside = wp.zeros(max(len(objects), 1), dtype=wp.int32, device=dev)
+        self.min_gap = wp.zeros(1, dtype=wp.float64, device=dev)
+        # the objects' geometry of the step, on the device (see upload_objects)
+        self.geom = wp.zeros(4 * max(len(objects), 1), dtype=wp.vec3d, device=dev)
+        self.params = wp.zeros(3 * max(len(objects), 1), dtype=wp.float64, device=dev)
+        self.graphs: dict = {}  # captured detections (CUDA), by their arguments
 
     def matches(self, fem) -> bool:
         k = self.keys
         return fem.mesh is k[0] and fem.mesh.tets is k[1] and fem.tets is k[2] and fem.n_nodes == k[3]
 
 
-def _search_radius(topo: SurfaceTopology, far: float) -> float:
-    """The float32 BVH query radius that covers ``far`` (the float64 test decides)."""
-    return float(far * 1.001 + 1e-6 * topo.scale)
+def upload_objects(topo: SurfaceTopology, objects: list) -> None:
+    """The objects' geometry of this step into ``topo.geom`` / ``topo.params``, where the
+    kernels read it (so that a captured detection replays with new poses): per object ``oi``,
+    geom[4 oi ...] = an instrument's axis (a, b) at the step's pose and at the previous step's
+    pose, or a plane's (point, normal); params[3 oi ...] = (radius, blade_lo, blade_hi)."""
+    geom = np.zeros((len(topo.geom), 3))
+    params = np.zeros(len(topo.params))
+    for oi, obj in enumerate(objects):
+        if isinstance(obj, Instrument):
+            geom[4 * oi: 4 * oi + 2] = obj.segment_world()
+            geom[4 * oi + 2: 4 * oi + 4] = obj.segment_world(obj.previous_step_pose)
+            params[3 * oi: 3 * oi + 3] = (obj.radius, *blade_span(obj))
+        elif isinstance(obj, PlaneObstacle):
+            geom[4 * oi], geom[4 * oi + 1] = obj.point, obj.normal
+    topo.geom.assign(geom)
+    topo.params.assign(params)
 
 
-def _collect(topo: SurfaceTopology, obj: int, with_tri: bool) -> Contacts | None:
-    """The rows a per-node kernel marked active, as contacts with object index ``obj``."""
-    arrays = (topo.active, topo.gap, topo.normal, topo.point) + ((topo.tri, topo.bary) if with_tri else ())
-    host = to_host(*arrays)
-    act = host[0][: len(topo.surface)].astype(bool)
-    if not act.any():
-        return None
-    act = np.concatenate([act, np.zeros(len(host[0]) - len(act), bool)])
-    k = int(act.sum())
-    tri = topo.faces[host[4][act]].astype(np.int64) if with_tri else np.full((k, 3), -1, np.int64)
-    bary = host[5][act] if with_tri else np.zeros((k, 3))
-    return Contacts(topo.surface[act[: len(topo.surface)]].astype(np.int64), np.full(k, obj, np.int64), host[1][act],
-                    host[2][act], host[3][act], tri, bary)
+def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_features: wp.array, distance: float,
+                     reach: wp.array, x_start: wp.array | None, facing: float, depth: float, device,
+                     faces: bool = True) -> None:
+    """Launch every detection kernel of one detection into ``topo.out`` (nothing is read back:
+    :func:`collect` after a read of ``topo.out.arrays``), for the objects' geometry last given
+    to :func:`upload_objects`. Planes and instruments are tested at ``x`` within ``distance``;
+    triangle features (mesh obstacles, self-collision) at ``x_features`` within ``distance +
+    reach[0]`` (``reach``: a device array, so that it can come from the state without a read).
+    With ``x_start`` (the tissue at the step's start), an instrument whose axis then, at its
+    previous pose, went through the surface is inside: its piercings of triangles are not
+    contacts (:mod:`soft_tissue_sim.contact.detection`). ``faces`` False leaves out the
+    instruments against the triangles (their slots stay empty).
+
+    On CUDA the launches are captured once per set of arguments as a graph and replayed
+    (nothing in them depends on the host but the arrays' addresses); where capture fails they
+    run as plain launches."""
+    if not len(topo.surface):
+        return
+    args = (x, x_features, reach, x_start, float(distance), float(facing), float(depth), bool(faces))
+    dev = wp.get_device(device)
+    if not dev.is_cuda:
+        _launch_all(topo, objects, *args, dev)
+        return
+    key = (x.ptr, x_features.ptr, reach.ptr, None if x_start is None else x_start.ptr) + args[4:]
+    graph = topo.graphs.get(key)
+    if graph is None:  # first time: plain launches (modules load); captured the next time
+        topo.graphs[key] = "seen"
+    elif graph == "seen":
+        try:
+            with wp.ScopedCapture(device=dev) as cap:
+                _launch_all(topo, objects, *args, dev)
+            graph = cap.graph
+        except Exception as exc:  # noqa: BLE001 - no graph for these arguments: plain launches
+            warnings.warn(f"contact detection: graph capture failed ({exc}); launching directly", stacklevel=2)
+            graph = False
+        topo.graphs[key] = graph
+    if graph:
+        wp.capture_launch(graph)
+    else:
+        _launch_all(topo, objects, *args, dev)
 
 
-def node_contacts(topo: SurfaceTopology, oi: int, obj, x: wp.array, x_features: wp.array, distance: float,
-                  far: float, device) -> Contacts | None:
-    """Surface nodes against object ``oi``: an instrument's capsule or a plane at ``x`` within
-    ``distance``, a static mesh at ``x_features`` within ``far``."""
-    out = [topo.slots]
-    ns = len(topo.surface)
-    if isinstance(obj, Instrument):
-        a, b = obj.segment_world()
-        wp.launch(capsule_contacts_kernel, ns, [x, topo.nodes, wp.vec3d(*a), wp.vec3d(*b), obj.radius, distance],
-                  outputs=out, device=device)
-    elif isinstance(obj, PlaneObstacle):
-        wp.launch(plane_contacts_kernel, ns, [x, topo.nodes, wp.vec3d(*obj.point), wp.vec3d(*obj.normal), distance],
-                  outputs=out, device=device)
-    elif isinstance(obj, MeshObstacle):
-        wmesh, verts, tris = obj.warp_mesh(device)
-        wp.launch(trimesh_contacts_kernel, ns,
-                  [x_features, topo.nodes, wmesh.id, verts, tris, far, _search_radius(topo, far)],
-                  outputs=out, device=device)
-    return _collect(topo, oi, False)
+def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, reach, x_start, dist, facing, depth, faces,
+                device) -> None:
+    """The launches of :func:`launch_detection`."""
+    out = topo.out
+    out.active.zero_()
+    ns, nf = len(topo.surface), len(topo.faces)
+    topo.inside.zero_()
+    for oi, obj in enumerate(objects):
+        sec = out.slots(out.section(oi, "node"))
+        if isinstance(obj, Instrument):
+            wp.launch(capsule_contacts_kernel, ns, [x, topo.nodes, topo.geom, topo.params, oi, dist],
+                      outputs=[sec], device=device)
+            if not faces:
+                continue
+            if x_start is not None:
+                wp.launch(capsule_crossings_kernel, nf, [x_start, topo.faces_wp, topo.geom, oi],
+                          outputs=[topo.inside], device=device)
+            wp.launch(capsule_faces_kernel, nf,
+                      [x, topo.faces_wp, topo.edge_owner, topo.geom, topo.params, dist, topo.inside, oi],
+                      outputs=[out.slots(out.section(oi, "face"))], device=device)
+        elif isinstance(obj, PlaneObstacle):
+            wp.launch(plane_contacts_kernel, ns, [x, topo.nodes, topo.geom, oi, dist], outputs=[sec], device=device)
+        elif isinstance(obj, MeshObstacle):
+            wmesh, verts, tris = obj.warp_mesh(device)
+            wp.launch(trimesh_contacts_kernel, ns,
+                      [x_features, topo.nodes, wmesh.id, verts, tris, dist, reach, topo.scale],
+                      outputs=[sec], device=device)
+    if topo.wmesh is not None:
+        wp.launch(copy_points_f32_kernel, topo.n_nodes, [x_features, topo.points32], device=device)
+        topo.wmesh.refit()
+        topo.node_normal.zero_()
+        wp.launch(face_normals_kernel, nf, [x_features, topo.faces_wp, topo.node_normal], device=device)
+        wp.launch(self_contacts_kernel, ns,
+                  [x_features, topo.nodes, topo.wmesh.id, topo.faces_wp, topo.face_comp, topo.node_comp,
+                   topo.node_normal, topo.ring_offsets, topo.ring_nodes, dist, reach, topo.scale, facing, depth],
+                  outputs=[out.slots(out.section(-1, "self"))], device=device)
 
 
-def face_contacts(topo: SurfaceTopology, oi: int, inst: Instrument, x: wp.array, a: np.ndarray, b: np.ndarray,
-                  x_start: wp.array | None, distance: float, device) -> Contacts | None:
-    """Instrument ``oi`` (axis a-b) against the surface triangles at ``x``: rows with node -1,
-    the triangle's nodes in ``tri`` and the tissue point's barycentric weights in ``bary``.
-    With ``x_start`` (the tissue at the step's start), a tool whose axis then, at its previous
-    pose, went through the surface is inside: its piercings are not contacts."""
-    nf = len(topo.faces)
-    if nf == 0:
-        return None
-    inside = 0
-    if x_start is not None:
-        pa, pb = inst.segment_world(inst.previous_step_pose)
-        wp.launch(capsule_crossings_kernel, nf, [x_start, topo.faces_wp, wp.vec3d(*pa), wp.vec3d(*pb)],
-                  outputs=[topo.f_crossed], device=device)
-        inside = int(to_host(topo.f_crossed)[0][:nf].any())
-    lo, hi = blade_span(inst)
-    wp.launch(capsule_faces_kernel, nf,
-              [x, topo.faces_wp, topo.edge_owner, wp.vec3d(*a), wp.vec3d(*b), inst.radius, distance, lo, hi, inside],
-              outputs=[topo.f_slots, topo.f_bary], device=device)
-    f_act, f_gap, f_normal, f_point, f_bary = to_host(topo.f_active, topo.f_gap, topo.f_normal, topo.f_point,
-                                                     topo.f_bary)
-    act = f_act[:nf].astype(bool)
-    if not act.any():
-        return None
-    k = int(act.sum())
-    return Contacts(np.full(k, -1, np.int64), np.full(k, oi, np.int64), f_gap[:nf][act], f_normal[:nf][act],
-                    f_point[:nf][act], topo.faces[act].astype(np.int64), f_bary[:nf][act])
+def launch_start(topo: SurfaceTopology, x: wp.array, v: wp.array, dt: float, device) -> None:
+    """``topo.x_start`` = x - dt v (the step's start from the free motion) and ``topo.reach`` =
+    twice the largest motion of a surface node during the step, on the device."""
+    wp.launch(step_start_kernel, topo.n_nodes, [x, v, float(dt), topo.x_start], device=device)
+    topo.reach.zero_()
+    if len(topo.surface):
+        wp.launch(surface_reach_kernel, len(topo.surface), [x, topo.x_start, topo.nodes, topo.reach], device=device)
 
 
-def self_contacts(topo: SurfaceTopology, x_features: wp.array, far: float, facing: float, depth: float,
-                  device) -> Contacts | None:
-    """Surface nodes against the tissue's own triangles at ``x_features`` within ``far`` (the
-    BVH refitted to these positions first); object index -1."""
-    if topo.wmesh is None:
-        return None
-    wp.launch(copy_points_f32_kernel, topo.n_nodes, [x_features, topo.points32], device=device)
-    topo.wmesh.refit()
-    topo.node_normal.zero_()
-    wp.launch(face_normals_kernel, len(topo.faces), [x_features, topo.faces_wp, topo.node_normal], device=device)
-    wp.launch(self_contacts_kernel, len(topo.surface),
-              [x_features, topo.nodes, topo.wmesh.id, topo.faces_wp, topo.face_comp, topo.node_comp, topo.node_normal,
-               topo.ring_offsets, topo.ring_nodes, far, _search_radius(topo, far), facing, depth],
-              outputs=[topo.slots, topo.tri, topo.bary], device=device)
-    return _collect(topo, -1, True)
+def launch_min_gap(topo: SurfaceTopology, device) -> wp.array:
+    """The smallest gap of the last detection's contacts into ``topo.min_gap`` (a device array
+    of one value, +inf where there is none); returned, not read."""
+    topo.min_gap.fill_(np.inf)
+    wp.launch(min_gap_kernel, topo.out.active.shape[0], [topo.out.all], outputs=[topo.min_gap], device=device)
+    return topo.min_gap

@@ -2,10 +2,12 @@
 a capsule, a static triangle mesh, the tissue's own triangles) or per surface triangle
 (against a capsule). Launched by :mod:`soft_tissue_sim.contact.detection`.
 
-Every kernel writes its own output slot (:class:`Slots`: ``active[k]`` = 1 with gap, normal
-and point where it found a contact within ``distance``, 0 elsewhere): the normal is a unit vector pointing
-the way the tissue is pushed, the gap is < 0 for a penetration, the point lies on the other
-surface.
+Every kernel writes its own output slot ``base + k`` of a :class:`Slots` record shared by all
+the launches of one detection (``active`` = 1 with gap, normal and point where it found a
+contact within ``distance``, 0 elsewhere), so that one read brings every object's contacts to
+the host: the normal is a unit vector pointing the way the tissue is pushed, the gap is < 0
+for a penetration, the point lies on the other surface. Search radii that depend on the state
+(the reach of the free motion) are read from a device array, not passed from the host.
 """
 
 from __future__ import annotations
@@ -24,38 +26,66 @@ from .geometry import (
 
 @wp.struct
 class Slots:
-    """One output slot per thread of a detection kernel: ``active`` 1 where a contact was
-    found, with its gap, normal and point."""
+    """The output slots of a detection launch: thread k writes slot ``base + k``; ``active`` 1
+    where a contact was found, with its gap, normal, point, and (rows with a triangle) the
+    triangle's index and the barycentric weights of the tissue point."""
 
+    base: int
     active: wp.array(dtype=wp.int32)
     gap: wp.array(dtype=wp.float64)
     normal: wp.array(dtype=wp.vec3d)
     point: wp.array(dtype=wp.vec3d)
+    tri: wp.array(dtype=wp.int32)
+    bary: wp.array(dtype=wp.vec3d)
+
+
+@wp.func
+def clear(out: Slots, k: int):
+    """Slot k holds no contact (yet)."""
+    out.active[out.base + k] = 0
 
 
 @wp.func
 def emit(out: Slots, k: int, g: wp.float64, n: wp.vec3d, p: wp.vec3d):
     """Slot k holds a contact: gap g, normal n, point p on the other surface."""
-    out.active[k] = 1
-    out.gap[k] = g
-    out.normal[k] = n
-    out.point[k] = p
+    i = out.base + k
+    out.active[i] = 1
+    out.gap[i] = g
+    out.normal[i] = n
+    out.point[i] = p
+
+
+@wp.func
+def emit_triangle(out: Slots, k: int, f: int, w: wp.vec3d):
+    """Slot k's tissue point (or other surface) is triangle f at barycentric weights w."""
+    i = out.base + k
+    out.tri[i] = f
+    out.bary[i] = w
+
+
+@wp.func
+def search_margin(far: wp.float64, scale: wp.float64):
+    """The float32 BVH query radius that covers ``far`` (the float64 test decides)."""
+    return wp.float32(far * F64(1.001) + F64(1e-6) * scale)
 
 
 @wp.kernel
 def plane_contacts_kernel(
     x: wp.array(dtype=wp.vec3d),
     nodes: wp.array(dtype=wp.int32),
-    point: wp.vec3d,
-    normal: wp.vec3d,
+    geom: wp.array(dtype=wp.vec3d),
+    obj: int,
     distance: wp.float64,
     out: Slots,
 ):
-    """Surface node k against the plane (point, normal): gap = n . (x - point)."""
+    """Surface node k against the plane of object ``obj`` (point geom[4 obj], unit normal
+    geom[4 obj + 1]): gap = n . (x - point)."""
     k = wp.tid()
+    point = geom[4 * obj]
+    normal = geom[4 * obj + 1]
     xp = x[nodes[k]]
     g = wp.dot(xp - point, normal)
-    out.active[k] = 0
+    clear(out, k)
     if g < distance:
         emit(out, k, g, normal, xp - g * normal)
 
@@ -64,20 +94,24 @@ def plane_contacts_kernel(
 def capsule_contacts_kernel(
     x: wp.array(dtype=wp.vec3d),
     nodes: wp.array(dtype=wp.int32),
-    a: wp.vec3d,
-    b: wp.vec3d,
-    radius: wp.float64,
+    geom: wp.array(dtype=wp.vec3d),
+    params: wp.array(dtype=wp.float64),
+    obj: int,
     distance: wp.float64,
     out: Slots,
 ):
-    """Surface node k against the capsule of axis ab: gap = |x - closest axis point| - radius."""
+    """Surface node k against the capsule of instrument ``obj`` (axis a = geom[4 obj], b =
+    geom[4 obj + 1], radius params[3 obj]): gap = |x - closest axis point| - radius."""
     k = wp.tid()
+    a = geom[4 * obj]
+    b = geom[4 * obj + 1]
+    radius = params[3 * obj]
     xp = x[nodes[k]]
     c = closest_on_segment(xp, a, b)
     d = xp - c
     dist = wp.length(d)
     g = dist - radius
-    out.active[k] = 0
+    clear(out, k)
     if g < distance:
         n = wp.vec3d(F64(0.0), F64(0.0), F64(-1.0))
         if dist > F64(1e-12) * radius:
@@ -97,18 +131,17 @@ def capsule_faces_kernel(
     x: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
     edge_owner: wp.array(dtype=wp.vec3i),
-    a: wp.vec3d,
-    b: wp.vec3d,
-    radius: wp.float64,
+    geom: wp.array(dtype=wp.vec3d),
+    params: wp.array(dtype=wp.float64),
     distance: wp.float64,
-    blade_lo: wp.float64,
-    blade_hi: wp.float64,
-    inside: int,
+    inside: wp.array(dtype=wp.int32),
+    tool: int,
     out: Slots,
-    bary: wp.array(dtype=wp.vec3d),
 ):
-    """Surface triangle f (outward normal by the right hand) against the capsule of axis ab,
-    so that a tool thinner than the mesh spacing cannot slip between nodes.
+    """Surface triangle f (outward normal by the right hand) against the capsule of instrument
+    ``tool`` (axis a = geom[4 tool], b = geom[4 tool + 1], radius params[3 tool], blade along
+    the axis fractions [blade_lo, blade_hi] = params[3 tool + 1 ...]), so that a tool thinner
+    than the mesh spacing cannot slip between nodes.
 
     Only where the triangle's closest point to the axis is inside it, or on an edge this face
     owns (``edge_owner[f][k]`` = 1 for the edge from vertex k to vertex k + 1; one face per
@@ -120,10 +153,15 @@ def capsule_faces_kernel(
     gap = (lowest signed height of that part) - radius, the point and barycentric weights at
     that lowest point. Not a contact, skipped: a piercing at an axis fraction in [blade_lo,
     blade_hi] (the instrument's blade: a cut in progress), and any piercing or touching when
-    ``inside`` (the tool was already through the surface at the step's start, e.g. in a cut:
+    ``inside[tool]`` (the tool was already through the surface at the step's start, e.g. in a cut:
     the triangles around it are then only kept a radius away from the axis)."""
     f = wp.tid()
-    out.active[f] = 0
+    clear(out, f)
+    a = geom[4 * tool]
+    b = geom[4 * tool + 1]
+    radius = params[3 * tool]
+    blade_lo = params[3 * tool + 1]
+    blade_hi = params[3 * tool + 2]
     t = faces[f]
     va = x[t[0]]
     vb = x[t[1]]
@@ -161,10 +199,10 @@ def capsule_faces_kernel(
             p = a + s * (b - a)
             n = (w[0] * va + w[1] * vb + w[2] * vc - p) / dist
             emit(out, f, g, n, p + radius * n)
-            bary[f] = w
+            emit_triangle(out, f, f, w)
         return
     # pierced or touched
-    if inside != 0 or (crossing != 0 and s >= blade_lo and s <= blade_hi):
+    if inside[tool] != 0 or (crossing != 0 and s >= blade_lo and s <= blade_hi):
         return
     # the part of the axis inside the triangle's prism: s0 <= s <= s1
     s0 = zero
@@ -194,20 +232,22 @@ def capsule_faces_kernel(
     wl = wl / (wl[0] + wl[1] + wl[2])
     n = -nf
     emit(out, f, h - radius, n, p + radius * n)
-    bary[f] = wl
+    emit_triangle(out, f, f, wl)
 
 
 @wp.kernel
 def capsule_crossings_kernel(
     x: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
-    a: wp.vec3d,
-    b: wp.vec3d,
-    crossed: wp.array(dtype=wp.int32),
+    geom: wp.array(dtype=wp.vec3d),
+    tool: int,
+    inside: wp.array(dtype=wp.int32),
 ):
-    """crossed[f] = 1 where the axis ab passes through surface triangle f."""
+    """inside[tool] = 1 where the axis of instrument ``tool`` at its previous pose (geom[4 tool
+    + 2] to geom[4 tool + 3]) passes through any surface triangle (zeroed before)."""
     f = wp.tid()
-    crossed[f] = 0
+    a = geom[4 * tool + 2]
+    b = geom[4 * tool + 3]
     t = faces[f]
     va = x[t[0]]
     vb = x[t[1]]
@@ -219,7 +259,8 @@ def capsule_crossings_kernel(
     if wp.length(cen - closest_on_segment(cen, a, b)) > rad:
         return
     s, w, d2, crossing = segment_triangle_closest(a, b, va, vb, vc)
-    crossed[f] = crossing
+    if crossing != 0:
+        inside[tool] = 1
 
 
 @wp.kernel
@@ -230,15 +271,18 @@ def trimesh_contacts_kernel(
     verts: wp.array(dtype=wp.vec3d),
     tris: wp.array(dtype=wp.vec3i),
     distance: wp.float64,
-    search: wp.float32,
+    reach: wp.array(dtype=wp.float64),
+    scale: wp.float64,
     out: Slots,
 ):
-    """Surface node k against a static triangle mesh: the closest face from the float32 BVH
-    (inside/outside from the angle-weighted pseudo normal), then the float64 closest point."""
+    """Surface node k against a static triangle mesh within distance + reach[0]: the closest
+    face from the float32 BVH (inside/outside from the angle-weighted pseudo normal), then the
+    float64 closest point."""
     k = wp.tid()
     xp = x[nodes[k]]
-    out.active[k] = 0
-    q = wp.mesh_query_point_sign_normal(mesh_id, to_vec3f(xp), search)
+    clear(out, k)
+    far = distance + reach[0]
+    q = wp.mesh_query_point_sign_normal(mesh_id, to_vec3f(xp), search_margin(far, scale))
     if q.result:
         t = tris[q.face]
         va = verts[t[0]]
@@ -260,7 +304,7 @@ def trimesh_contacts_kernel(
         elif q.sign < wp.float32(0.0):
             sgn = F64(-1.0)
         g = sgn * dist
-        if g < distance:
+        if g < far:
             n = nf
             if dist > F64(1e-12) * wp.length(vb - va):
                 n = (sgn / dist) * d
@@ -299,14 +343,13 @@ def self_contacts_kernel(
     ring_offsets: wp.array(dtype=wp.int32),
     ring_nodes: wp.array(dtype=wp.int32),
     distance: wp.float64,
-    margin: wp.float32,
+    reach: wp.array(dtype=wp.float64),
+    scale: wp.float64,
     facing: wp.float64,
     depth: wp.float64,
     out: Slots,
-    tri: wp.array(dtype=wp.int32),
-    bary: wp.array(dtype=wp.vec3d),
 ):
-    """Surface node k against the tissue's surface triangles within ``distance``.
+    """Surface node k against the tissue's surface triangles within ``distance + reach[0]``.
 
     Skipped: triangles incident to the node or to its tet neighbours (the node's own
     neighbourhood), and triangles of the same connected component unless they face the node
@@ -322,15 +365,17 @@ def self_contacts_kernel(
     k = wp.tid()
     p = nodes[k]
     xp = x[p]
-    out.active[k] = 0
+    clear(out, k)
     xf = to_vec3f(xp)
+    far = distance + reach[0]
+    margin = search_margin(far, scale)
     lo = wp.vec3(xf[0] - margin, xf[1] - margin, xf[2] - margin)
     hi = wp.vec3(xf[0] + margin, xf[1] + margin, xf[2] + margin)
     nn = node_normal[p]
     nlen = wp.length(nn)
     if nlen > F64(0.0):
         nn = nn / nlen
-    best = distance
+    best = far
     best_face = int(-1)
     best_w = wp.vec3d()
     best_g = F64(0.0)
@@ -388,5 +433,38 @@ def self_contacts_kernel(
                 best_q = q
     if best_face >= 0:
         emit(out, k, best_g, best_n, best_q)
-        tri[k] = best_face
-        bary[k] = best_w
+        emit_triangle(out, k, best_face, best_w)
+
+
+@wp.kernel
+def step_start_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    v: wp.array(dtype=wp.vec3d),
+    dt: wp.float64,
+    x_start: wp.array(dtype=wp.vec3d),
+):
+    """The tissue at the step's start from the free motion: x_start = x - dt v."""
+    i = wp.tid()
+    x_start[i] = x[i] - dt * v[i]
+
+
+@wp.kernel
+def surface_reach_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    x_start: wp.array(dtype=wp.vec3d),
+    nodes: wp.array(dtype=wp.int32),
+    reach: wp.array(dtype=wp.float64),
+):
+    """reach[0] = max(reach[0], 2 |x - x_start|) over the surface nodes (zeroed before): how far a
+    node and a triangle of the surface can close in on each other during the step."""
+    k = wp.tid()
+    p = nodes[k]
+    wp.atomic_max(reach, 0, F64(2.0) * wp.length(x[p] - x_start[p]))
+
+
+@wp.kernel
+def min_gap_kernel(out: Slots, result: wp.array(dtype=wp.float64)):
+    """result[0] = min(result[0], the gap of every active slot)."""
+    i = wp.tid()
+    if out.active[i] != 0:
+        wp.atomic_min(result, 0, out.gap[i])

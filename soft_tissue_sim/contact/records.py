@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
+import warp as wp
 
 from ..stats import ContactStats
 
@@ -73,5 +74,5 @@ class ContactResponse:
     """What one contact step changes: the correction of the free motion, which the caller
     applies as x += dx, v += dx / dt (None: no contact), and its statistics."""
 
-    dx: np.ndarray | None  # (n, 3) [m], zero on fixed nodes
+    dx: np.ndarray | wp.array | None  # (n, 3) [m] (a (n,) vec3d device array on a GPU), zero on fixed nodes
     stats: ContactStats

@@ -25,20 +25,33 @@ from ..material import ParameterError
 from ..stats import ContactStats
 from ..transfer import to_host
 from .compliance import compliance, positive_definite
-from .detection import SurfaceTopology, face_contacts, node_contacts, self_contacts
+from .detection import SurfaceTopology, collect, launch_detection, launch_min_gap, launch_start, upload_objects
 from .geometry import tangent_basis
 from .options import parse_options
 from .pgs import solve_pgs
 from .records import ContactResponse, Contacts
 
 
+@wp.kernel
+def _scaled_free_kernel(y: wp.array(dtype=wp.vec3d), s: wp.float64, free: wp.array(dtype=wp.float64),
+                        out: wp.array(dtype=wp.vec3d)):
+    """out = s y on the free nodes, 0 on the fixed ones."""
+    i = wp.tid()
+    out[i] = (s * free[i]) * y[i]
+
+
 class ContactSolver:
     """Instruments, obstacles, detection and the LCP response of one simulation.
+
+    ``faces``: detect instruments against the surface triangles too (default; False only for
+    a control experiment, where a tool thinner than the mesh spacing slips between nodes).
 
     Built by :class:`soft_tissue_sim.scene.Simulation` only when the scene names
     instruments, obstacles or self-collision. See the module docstring for the method,
     the units and the sign conventions.
     """
+
+    faces: bool = True
 
     def __init__(self, options: dict, instruments: list, obstacles: list, device, points: np.ndarray):
         """``points``: the tissue's rest positions (an instrument without a pose is parked above
@@ -130,13 +143,13 @@ class ContactSolver:
     # ------------------------------------------------------------ detection
     def _topology(self, fem) -> SurfaceTopology:
         if self._topo is None or not self._topo.matches(fem):
-            self._topo = SurfaceTopology(fem, self.options["self_collision"])
+            self._topo = SurfaceTopology(fem, self.options["self_collision"], self.objects)
         return self._topo
 
-    def _capsule_faces(self, topo: SurfaceTopology, oi: int, inst: Instrument, x: wp.array, a: np.ndarray,
-                       b: np.ndarray, x_start: wp.array | None) -> Contacts | None:
-        """Instrument ``oi`` against the surface triangles (:func:`.detection.face_contacts`)."""
-        return face_contacts(topo, oi, inst, x, a, b, x_start, self.options["distance"], self.device)
+    def _launch(self, topo: SurfaceTopology, x: wp.array, x_features: wp.array, x_start: wp.array | None) -> None:
+        o = self.options
+        launch_detection(topo, self.objects, x, x_features, o["distance"], topo.reach, x_start, o["facing"],
+                         o["self_depth"], self.device, self.faces)
 
     def detect(self, body, x: wp.array | None = None, x_features: wp.array | None = None, reach: float = 0.0,
                x_start: wp.array | None = None) -> Contacts:
@@ -148,43 +161,54 @@ class ContactSolver:
         instruments' previous poses tell which tools were already through the surface (their
         piercings of triangles are then not contacts); without it every piercing is one."""
         topo = self._topology(body.fem)
-        dev, dist = self.device, self.options["distance"]
         x = body.integrator.x if x is None else x
-        xf = x if x_features is None else x_features
-        far = dist + float(reach)  # search radius of the triangle features
-        if len(topo.surface) == 0:
+        if not len(topo.surface):
             return Contacts.empty()
-        parts = []
-        for oi, obj in enumerate(self.objects):
-            parts.append(node_contacts(topo, oi, obj, x, xf, dist, far, dev))
-            if isinstance(obj, Instrument):
-                a, b = obj.segment_world()
-                parts.append(self._capsule_faces(topo, oi, obj, x, a, b, x_start))
-        parts.append(self_contacts(topo, xf, far, self.options["facing"], self.options["self_depth"], dev))
-        return Contacts.concat([p for p in parts if p is not None])
+        topo.reach.fill_(float(reach))
+        upload_objects(topo, self.objects)
+        self._launch(topo, x, x if x_features is None else x_features, x_start)
+        return collect(topo, to_host(*topo.out.arrays))
+
+    def launch_penetration(self, body) -> wp.array | None:
+        """Launch a detection at the tissue's current positions (after the correction), with the
+        objects where this step's detection had them, and the reduction of its smallest gap; returns the device array of that gap (+inf: no contact)
+        for the caller to read with its other values (``max_penetration = max(0, -gap)``), or
+        None where the tissue has no surface."""
+        topo = self._topology(body.fem)
+        if not len(topo.surface):
+            return None
+        topo.reach.zero_()
+        x = body.integrator.x
+        self._launch(topo, x, x, topo.x_start)
+        return launch_min_gap(topo, self.device)
 
     # ------------------------------------------------------------------ step
     def step(self, body: BodyView) -> ContactResponse:
         """Detect the contacts of the free motion (``body.integrator``'s x and v), solve the LCP
         and update the wrenches and :attr:`contacts`. Returns the correction of x and v (the
-        caller applies it) and the statistics; ``body`` is only read."""
+        caller applies it, then may measure the penetration left with
+        :meth:`launch_penetration`) and the statistics; ``body`` is only read.
+
+        On a GPU the detection's kernels are launched together and read back with the state in
+        one wait."""
         t0 = time.perf_counter()
         o = self.options
         for inst in self.instruments.values():
             inst.begin_step()
         integ = body.integrator
         dt = integ.dt
-        x, v, free = (a.copy() for a in to_host(integ.x, integ.v, body.fem.free))  # free motion
-        x_start = x - dt * v  # the step's start (x = x_start + dt v)
+        topo = self._topology(body.fem)
         # Planes and instruments (exact half-spaces / the tool's new pose) are tested at the
         # free-motion positions, at any depth. Triangle features are found at the step's start
         # and their gap is linearised to the free motion; the search reaches `distance` plus
         # how far surface nodes moved in the free motion (twice: node and triangle may close
         # in on each other), so that nothing tunnels through a triangle in one step.
-        surf = self._topology(body.fem).surface
-        moved = float(np.sqrt(np.max(np.sum((x[surf] - x_start[surf]) ** 2, axis=1)))) if len(surf) else 0.0
-        xs_wp = wp.array(x_start, dtype=wp.vec3d, device=self.device)
-        c = self.detect(body, integ.x, xs_wp, reach=2.0 * moved, x_start=xs_wp)
+        launch_start(topo, integ.x, integ.v, dt, self.device)
+        upload_objects(topo, self.objects)
+        self._launch(topo, integ.x, topo.x_start, topo.x_start)
+        x, x_start, free, *outputs = to_host(integ.x, topo.x_start, body.fem.free, *topo.out.arrays)
+        c = collect(topo, outputs) if len(topo.surface) else Contacts.empty()
+        x, x_start, free = x.copy(), x_start.copy(), free.copy()
         tri_feature = c.obj < 0
         for oi, obj in enumerate(self.objects):
             if isinstance(obj, MeshObstacle):
@@ -232,18 +256,13 @@ class ContactSolver:
             self._warm = {}
         else:
             dx = self._respond(body, c, nodes4, w4, ws4, free, x, x_start, stats)
-        # penetration left after the correction: detection again at the corrected positions
-        x_after = integ.x if dx is None else wp.array(x + dx, dtype=wp.vec3d, device=self.device)
-        after = self.detect(body, x_after, x_start=xs_wp)
-        if len(after):
-            stats.max_penetration = float(max(0.0, -after.gap.min()))
         stats.contact_ms = 1000.0 * (time.perf_counter() - t0)
         return ContactResponse(dx, stats)
 
     def _respond(self, body: BodyView, c: Contacts, nodes4: np.ndarray, w4: np.ndarray, ws4: np.ndarray,
                  free: np.ndarray, x: np.ndarray, x_start: np.ndarray, stats: ContactStats) -> np.ndarray:
         """LCP of eq. (3) for the contacts ``c`` at the free motion ``x``; returns the correction
-        dx = dt^2 P^-1 H^T lambda of the positions. ``nodes4`` (k, 4): the contact's node and
+        dx = dt^2 P^-1 H^T lambda of the positions (on the device where the factor is). ``nodes4`` (k, 4): the contact's node and
         triangle nodes (-1: none), ``ws4`` their weights in the tissue point's relative
         displacement, ``w4`` the same zeroed on fixed nodes (the Jacobian's)."""
         o = self.options
@@ -317,7 +336,12 @@ class ContactSolver:
                                   o["friction_cone"] == "pyramid", lam)
         stats.gs_iterations, stats.lcp_residual, stats.compliance = its, res, kind
         # correction with the same compliance: dx = dt^2 P^-1 H^T lambda, v += dx / dt
-        dx = (dt * dt) * np.asarray(apply_y(lam)).reshape(n, 3) * free[:, None]
+        y = apply_y(lam)
+        if isinstance(y, wp.array):  # on the device: scaled there, never read back
+            dx = wp.empty(n, dtype=wp.vec3d, device=self.device)
+            wp.launch(_scaled_free_kernel, n, [y, float(dt * dt), body.fem.free, dx], device=self.device)
+        else:
+            dx = (dt * dt) * np.asarray(y).reshape(n, 3) * free[:, None]
         # forces on the tissue, wrenches on the objects, warm start
         ln = lam[row_start]
         force = ln[:, None] * normal

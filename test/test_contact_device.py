@@ -1,0 +1,88 @@
+"""One detection, one read: every object's contacts from one set of output slots, the step's
+start and reach computed on the device, the smallest gap reduced there
+(soft_tissue_sim.contact.detection). Warp's CPU backend by default; ``STS_TEST_DEVICE=cuda:0``
+runs the same checks on a GPU and compares its contact steps with the CPU's."""
+
+import os
+
+import numpy as np
+import pytest
+import warp as wp
+
+from soft_tissue_sim import load_scene
+
+DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
+
+TOOLS = [{"name": "probe", "shape": "capsule", "radius": 0.004, "length": 0.05},
+         {"name": "scalpel", "shape": "capsule", "radius": 0.0005, "length": 0.05, "blade": [[0, 0, 0], [0, 0, 0.01]]}]
+
+
+def _scene(device):
+    return {"name": "pressed", "device": device,
+            "mesh": {"generator": "beam", "n_long": 8, "n_cross": 3, "spacing": 0.01},
+            "materials": [{"id": 0, "young": 2.0e4, "poisson": 0.4, "density": 1000.0}],
+            "fixed": {"axis": "z", "below": 0.001}, "gravity": [0.0, 0.0, -9.81], "time": {"dt": 0.01},
+            "solver": {"tolerance": 1e-9, "preconditioner": "async_ldlt", "ldlt": {"deterministic": True}},
+            "instruments": TOOLS,
+            "obstacles": [{"name": "wall", "type": "plane", "point": [-0.0005, 0.0, 0.0], "normal": [1.0, 0.0, 0.0]}],
+            "contact": {"distance": 0.001, "friction": 0.3, "self_collision": True}}
+
+
+def _press(sim, depth):
+    """Probe and scalpel upright over the top, ``depth`` into it."""
+    top = float(sim.mesh.points[:, 2].max())
+    sim.set_instrument_pose("probe", [0.021, 0.011, top + 0.004 - depth], [0, 0, 0, 1])
+    sim.set_instrument_pose("scalpel", [0.052, 0.009, top - depth], [0, 0, 0, 1])
+
+
+def test_one_read_detection_matches_the_geometry_and_the_reduced_gap():
+    """The node rows of the probe are exactly the surface nodes within ``distance`` of its
+    capsule (numpy reference), the plane's rows the nodes within ``distance`` of the wall, and
+    the device's smallest gap equals the smallest gap of the rows read back."""
+    with load_scene(_scene(DEVICE)) as sim:
+        _press(sim, 0.002)
+        for inst in sim.contact.instruments.values():
+            inst.begin_step()
+        c = sim.contact.detect(sim)
+        x = sim.positions()
+        surface = np.unique(sim.mesh.boundary_faces())
+        a, b = sim.contact.instrument("probe").segment_world()
+        p = x[surface]
+        t = np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
+        gap = np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1) - 0.004
+        expect = surface[gap < 0.001]
+        assert len(expect) > 0
+        rows = (c.obj == 0) & (c.node >= 0)
+        np.testing.assert_array_equal(np.sort(c.node[rows]), np.sort(expect))
+        np.testing.assert_allclose(c.gap[rows][np.argsort(c.node[rows])], gap[gap < 0.001][np.argsort(expect)],
+                                   atol=1e-12)
+        wall = c.obj == 2
+        np.testing.assert_array_equal(np.sort(c.node[wall]), np.sort(surface[x[surface, 0] + 0.0005 < 0.001]))
+        # the reduction on the device of the same detection's gaps
+        topo = sim.contact._topo
+        g = sim.contact.launch_penetration(sim)
+        assert float(g.numpy()[0]) == pytest.approx(float(sim.contact.detect(sim, x_start=topo.x_start).gap.min()),
+                                                    abs=0.0)
+
+
+def test_the_step_reports_the_penetration_left_and_the_device_matches_the_cpu():
+    """A pressed block: contacts found and answered, the penetration left after the
+    correction a small fraction of the press; on a GPU the same steps as on the CPU."""
+    runs = {}
+    for dev in dict.fromkeys([DEVICE, "cpu"]):
+        with load_scene(_scene(dev)) as sim:
+            pens, forces = [], []
+            for k in range(6):
+                _press(sim, 0.0005 * k)
+                st = sim.step()
+                pens.append(st.contact.max_penetration)
+                forces.append(sim.instrument_wrench("probe")[0])
+            runs[dev] = (sim.positions(), np.array(pens), np.array(forces))
+    x, pens, forces = runs[DEVICE]
+    assert forces[-1][2] > 0.0  # the tissue pushes the probe up
+    assert 0.0 <= pens[-1] < 0.2 * 0.0025
+    if DEVICE != "cpu":
+        xc, pc, fc = runs["cpu"]
+        np.testing.assert_allclose(x, xc, atol=1e-9)
+        np.testing.assert_allclose(forces, fc, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(pens, pc, atol=1e-9)

@@ -45,8 +45,8 @@ PRECONDITIONERS = ("none", "jacobi", "async_ldlt", "direct")
 BACKENDS = ("auto", "cholmod", "dense", "cudss")
 DENSE_MAX_DOFS = 12_000  # auto: the dense inverse up to this size on a GPU (bench backends, docs/benchmarks.md)
 _RETIRED = {"apply_on", "columns_on", "lanes", "tail_width", "tail_block", "cols_lanes", "min_device_columns"}
-_LDLT_KEYS = {"backend", "rotate", "refresh_every", "deterministic", "lag", "mode", "ordering", "worker",
-              "release_gil", "dense_max_dofs"}
+_LDLT_KEYS = {"backend", "rotate", "refresh_every", "device_refresh_every", "deterministic", "lag", "mode",
+              "ordering", "worker", "release_gil", "dense_max_dofs"}
 
 
 class HostPreconditioner:
@@ -173,6 +173,11 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, meta_fn=None, dev
         return HostPreconditioner(inner)
     from .device_preconditioner import AsyncDevicePreconditioner
 
+    if not direct and "device_refresh_every" in options:  # a GPU factorization shares the device with the steps
+        every = options["device_refresh_every"]
+        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+            raise ParameterError(f"ldlt device_refresh_every must be a whole number >= 1, got {every!r}")
+        sched["refresh_every"] = every
     if backend == "dense":
         from .dense_inverse import DenseInverse
 

@@ -217,6 +217,25 @@ def test_asynchronous_schedule_installs_each_factor_after_its_request():
         assert ps["refresh_interval"] >= 3
 
 
+def test_device_refresh_every_sets_the_interval_of_the_device_backends_only():
+    """``device_refresh_every`` replaces ``refresh_every`` for a device factor (dense here) and
+    leaves CHOLMOD's; a bad value is refused."""
+    ldlt = {"backend": "dense", "refresh_every": 2, "device_refresh_every": 5, "deterministic": True}
+    with load_scene("test_small.yaml", device=DEVICE,
+                    overrides={"solver": {"preconditioner": "async_ldlt", "ldlt": ldlt}}) as sim:
+        for _ in range(16):
+            sim.step()
+        assert sim.preconditioner.refresh_every == 5 and np.all(np.diff(sim.preconditioner.swaps) == 5)
+    if not CUDA:
+        with load_scene("test_small.yaml", overrides={"solver": {"preconditioner": "async_ldlt",
+                                                                 "ldlt": {**ldlt, "backend": "cholmod"}}}) as sim:
+            assert sim.preconditioner.inner.refresh_every == 2
+    for bad in (0, 2.5, True):
+        with pytest.raises(ParameterError, match="device_refresh_every"):
+            load_scene("test_small.yaml", device=DEVICE, overrides={"solver": {
+                "preconditioner": "async_ldlt", "ldlt": {**ldlt, "device_refresh_every": bad}}})
+
+
 def test_lag_installs_each_factor_lag_steps_later_on_the_device():
     ov = {"solver": _solver(backend="dense", refresh_every=2, lag=3, tol=1e-8)}
     with load_scene("test_small.yaml", device=DEVICE, overrides=ov) as sim:

@@ -42,8 +42,9 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
     solver["ldlt"] = {**(solver.get("ldlt") or {}), "backend": backend}
     if worker is not None:
         solver["ldlt"]["worker"] = worker
-    if refresh_every is not None:
+    if refresh_every is not None:  # on every device
         solver["ldlt"]["refresh_every"] = int(refresh_every)
+        solver["ldlt"].pop("device_refresh_every", None)
     if synchronous or lag:  # the factor made in the step that requests it (no background worker)
         solver["ldlt"]["deterministic"] = True
     if lag:  # ... and installed lag steps later (the paper's background factorization took about 5.6)

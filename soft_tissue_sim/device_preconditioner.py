@@ -418,13 +418,18 @@ class AsyncDevicePreconditioner:
         cuts, rotated), or None when the backend cannot gather it (use apply_columns)."""
         if not hasattr(self.backend, "delassus"):
             return None
-        n = self.dR.shape[0]
-        nodes, coef = constraint_rows(B, n)
-        m = len(nodes)
-        if m == 0:
+        return self.delassus_rows(*constraint_rows(B, self.dR.shape[0]))
+
+    def delassus_rows(self, nodes: np.ndarray, coef: np.ndarray) -> np.ndarray | None:
+        """:meth:`delassus` for columns given in node form (see :func:`constraint_rows`)."""
+        if not hasattr(self.backend, "delassus"):
+            return None
+        if len(nodes) == 0:
             return np.zeros((0, 0))
-        W = self.backend.delassus(wp.array(nodes, dtype=wp.int32, device=self.device),
-                                  wp.array(coef, dtype=wp.vec3d, device=self.device), self.dR)
+        W = self.backend.delassus(wp.array(np.ascontiguousarray(nodes, dtype=np.int32), dtype=wp.int32,
+                                           device=self.device),
+                                  wp.array(np.ascontiguousarray(coef, dtype=np.float64), dtype=wp.vec3d,
+                                           device=self.device), self.dR)
         return 0.5 * (W + W.T)
 
     # -------------------------------------------------------------- lifecycle

@@ -7,6 +7,7 @@ from sksparse.cholmod import analyze
 
 from soft_tissue_sim import load_scene
 from soft_tissue_sim.delassus import GROUP, LowerFactor
+from soft_tissue_sim.device_preconditioner import constraint_rows
 from soft_tissue_sim.ldlt_preconditioner import _drop_decoupled
 
 from test_cutting import beam_scene, lengthwise
@@ -122,6 +123,9 @@ def test_dense_delassus_equals_its_columns_rotated_and_corrected():
             ref = B.T @ pre.apply_columns(B)
             W = pre.delassus(sps.csc_matrix(B))
             assert np.abs(W - ref).max() <= 1e-10 * np.abs(ref).max()
+            # the same columns given in node form (as the contact step gives them)
+            Wn = pre.delassus_rows(*constraint_rows(sps.csc_matrix(B), sim.fem.n_nodes))
+            assert np.abs(Wn - ref).max() <= 1e-10 * np.abs(ref).max()
             return B, W
 
         B, W = check()

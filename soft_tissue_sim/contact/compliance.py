@@ -30,15 +30,20 @@ import scipy.sparse as sps
 import warp as wp
 
 
-def compliance(H: sps.csr_matrix, mode: str, preconditioner, integrator, fem):
-    """(W / dt^2 = H P^-1 H^T dense, a function lam -> P^-1 H^T lam, the kind used)."""
+def compliance(H: sps.csr_matrix, mode: str, preconditioner, integrator, fem, node_rows=None):
+    """(W / dt^2 = H P^-1 H^T dense, a function lam -> P^-1 H^T lam, the kind used).
+    ``node_rows``: H in node form, (nodes (m, 4) int32, -1 for none; coef (m, 4, 3)), which a
+    device factor gathers W from directly."""
     inner = getattr(preconditioner, "inner", None)
     if mode == "preconditioner" and inner is None:
         mode = "diagonal"  # jacobi / none: no factorization to use
     Yt = None  # rows: P^-1 applied to the rows of H
     if mode == "preconditioner":
         try:
-            W = inner.delassus(H.T.tocsc()) if hasattr(inner, "delassus") else None
+            if node_rows is not None and hasattr(inner, "delassus_rows"):
+                W = inner.delassus_rows(*node_rows)
+            else:
+                W = inner.delassus(H.T.tocsc()) if hasattr(inner, "delassus") else None
             if W is not None:  # forward solves alone (host) or gathered (device); dx by one application
                 if hasattr(inner, "apply_vector"):  # a device factor: the result stays there
                     return W, (lambda lam: inner.apply_vector(H.T @ lam)), mode

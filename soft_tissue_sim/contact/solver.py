@@ -293,18 +293,18 @@ class ContactSolver:
         d0[row_start] = c.gap
         d0[row_start[fr] + 1] = np.einsum("kj,kj->k", t1[fr], rel[fr])
         d0[row_start[fr] + 2] = np.einsum("kj,kj->k", t2[fr], rel[fr])
-        ri, ci, vi = [], [], []
-        for dirs, rowidx, sel in ((normal, row_start, np.ones(k, bool)), (t1, row_start + 1, fr),
-                                  (t2, row_start + 2, fr)):
-            cc = np.flatnonzero(sel)
-            for s in range(4):
-                cs = cc[valid[cc, s]]
-                for j in range(3):
-                    ri.append(rowidx[cs])
-                    ci.append(3 * nodes4[cs, s] + j)
-                    vi.append(w4[cs, s] * dirs[cs, j])
-        H = sps.coo_matrix((np.concatenate(vi), (np.concatenate(ri), np.concatenate(ci))), shape=(m, 3 * n)).tocsr()
-        W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
+        # H in node form: row r moves nodes rnodes[r] (-1: none) along rcoef[r] (the weight times
+        # the row's direction: the normal, then the two tangents with friction)
+        dirs = np.empty((m, 3))
+        dirs[row_start] = normal
+        dirs[row_start[fr] + 1], dirs[row_start[fr] + 2] = t1[fr], t2[fr]
+        owner = np.repeat(np.arange(k), rows)
+        rnodes = np.where(valid[owner], nodes4[owner], -1).astype(np.int32)
+        rcoef = w4[owner][:, :, None] * dirs[:, None, :]
+        r_i, s_i = np.nonzero(rnodes >= 0)
+        cols = (3 * rnodes[r_i, s_i].astype(np.int64))[:, None] + np.arange(3)
+        H = sps.csr_matrix((rcoef[r_i, s_i].ravel(), (np.repeat(r_i, 3), cols.ravel())), shape=(m, 3 * n))
+        W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem, (rnodes, rcoef))
         W = dt * dt * 0.5 * (W0 + W0.T)
         if kind != "diagonal" and not positive_definite(W):
             # A factor corrected by many cuts, stale, with identity-padded DOFs, can stop being

@@ -365,7 +365,8 @@ class BackwardEuler:
                 unreachable = unreachable or res.tolerance_unreachable
             if self.newton_tolerance is not None:
                 converged = converged and nonlinear <= self.newton_tolerance
-        wp.synchronize_device(self.device)
+        # the step's own stream only: a factorization in flight on another stream is not waited for
+        wp.synchronize_stream(wp.get_stream(self.device))
         t3 = time.perf_counter()
         self.step_index += 1
         self.time += self.dt

@@ -366,7 +366,8 @@ class BackwardEuler:
             if self.newton_tolerance is not None:
                 converged = converged and nonlinear <= self.newton_tolerance
         # the step's own stream only: a factorization in flight on another stream is not waited for
-        wp.synchronize_stream(wp.get_stream(self.device))
+        if wp.get_device(self.device).is_cuda:
+            wp.synchronize_stream(wp.get_stream(self.device))
         t3 = time.perf_counter()
         self.step_index += 1
         self.time += self.dt

@@ -406,6 +406,9 @@ def _pcg_xpby_kernel(s: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d),
     p[i] = z[i] + s[_BETA] * p[i]
 
 
+MAX_CAPTURE_FAILURES = 3
+
+
 class DevicePCG(PCG):
     """:class:`PCG` with its scalars on the device and the loop a ``wp.capture_while``.
 
@@ -418,7 +421,10 @@ class DevicePCG(PCG):
     solve with the same key -- vector size, array addresses, the operator's ``graph_key()``
     (found on a bound method's owner) and the preconditioner's -- and replays it afterwards;
     a new key (a cut, a new factor
-    pattern, a changed dt) runs uncaptured once, then is captured again. Without a graph the
+    pattern, a changed dt) runs uncaptured once, then is captured again. A capture that fails
+    (work another thread enqueues meanwhile can invalidate it) runs that solve uncaptured and
+    is tried again with the next solves; graphs are given up after ``MAX_CAPTURE_FAILURES``
+    failures in a row. Without a graph the
     loop still needs no host read of dot products: on CUDA ``capture_while`` reads the flag
     (one small copy per iteration), on the CPU it reads it in place.
 
@@ -433,6 +439,7 @@ class DevicePCG(PCG):
         self.graph_unsupported = bool(graph and dev.is_cuda and not wp.is_conditional_graph_supported())
         self.graph = bool(graph) and not self.graph_unsupported
         self.graph_error = None
+        self.capture_failures = 0  # in a row; graphs are given up after MAX_CAPTURE_FAILURES
         self.captures = 0
         self.replays = 0
         self.host_solves = 0
@@ -528,14 +535,18 @@ class DevicePCG(PCG):
             try:
                 with wp.ScopedCapture(device=self.device) as cap:
                     self._run(matvec, b, x, preconditioner)
-            except Exception as exc:  # noqa: BLE001 - no graph from now on; this solve runs uncaptured
-                self.graph = False
+            except Exception as exc:  # noqa: BLE001 - this solve runs uncaptured; captured again later
+                self.capture_failures += 1
                 self.graph_error = f"{type(exc).__name__}: {exc}"
-                warnings.warn(f"DevicePCG: graph capture failed ({self.graph_error}); running without a graph",
-                              RuntimeWarning, stacklevel=2)
+                self._seen_key = None
+                if self.capture_failures >= MAX_CAPTURE_FAILURES:
+                    self.graph = False
+                    warnings.warn(f"DevicePCG: graph capture failed {self.capture_failures} times in a row "
+                                  f"({self.graph_error}); running without a graph", RuntimeWarning, stacklevel=2)
                 self._run(matvec, b, x, preconditioner)
             else:
                 self._graph, self._graph_key = cap.graph, key
+                self.capture_failures = 0
                 self.captures += 1
                 wp.capture_launch(self._graph)
                 self.replays += 1

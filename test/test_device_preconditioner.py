@@ -156,6 +156,46 @@ def test_device_scalar_pcg_matches_host_pcg(pre, graph):
         assert (dpcg.captures, dpcg.replays) == ((1, 2) if graph else (0, 0))
 
 
+def test_a_failed_capture_runs_uncaptured_and_is_tried_again(monkeypatch):
+    """A capture that fails (as one invalidated by another thread's work would) leaves that
+    solve correct and uncaptured; the next solves capture again; three failures in a row
+    give graphs up."""
+    import soft_tissue_sim.cg as cgm
+
+    ov = {"solver": _solver(pre="jacobi", graph=True, tol=1e-8)}
+    with load_scene(_layered_beam(), device=DEVICE, overrides=ov) as sim:
+        integ = sim.integrator
+        n = sim.mesh.n_nodes
+        integ.build()
+        integ.preconditioner.begin_step(integ)
+        ref = PCG(n, DEVICE, 1e-8, integ.cg.max_iterations)
+        x_ref = wp.zeros(n, dtype=wp.vec3d, device=DEVICE)
+        ref.solve(integ.matvec, integ.b, x_ref, integ.preconditioner)
+        real = wp.ScopedCapture
+        fails = {"left": 1}
+
+        class Flaky(real):
+            def __enter__(self):
+                if fails["left"] > 0:
+                    fails["left"] -= 1
+                    raise RuntimeError("capture invalidated")
+                return super().__enter__()
+
+        monkeypatch.setattr(cgm.wp, "ScopedCapture", Flaky)
+        dpcg = DevicePCG(n, DEVICE, 1e-8, integ.cg.max_iterations, graph=True)
+        x = wp.zeros(n, dtype=wp.vec3d, device=DEVICE)
+        for k in range(5):  # seen, capture fails (uncaptured), seen, captured, replayed
+            r = dpcg.solve(integ.matvec, integ.b, x, integ.preconditioner)
+            assert r.converged and np.abs(x.numpy() - x_ref.numpy()).max() <= 1e-6 * np.abs(x_ref.numpy()).max()
+        assert dpcg.graph and dpcg.capture_failures == 0 and (dpcg.captures, dpcg.replays) == (1, 2)
+        fails["left"] = 10
+        dpcg2 = DevicePCG(n, DEVICE, 1e-8, integ.cg.max_iterations, graph=True)
+        with pytest.warns(RuntimeWarning, match="3 times in a row"):
+            for k in range(7):
+                assert dpcg2.solve(integ.matvec, integ.b, x, integ.preconditioner).converged
+        assert not dpcg2.graph and dpcg2.captures == 0
+
+
 def test_device_pcg_zero_and_nonfinite_right_hand_sides():
     with load_scene(_layered_beam(), device=DEVICE, overrides={"solver": _solver(pre="jacobi")}) as sim:
         integ = sim.integrator

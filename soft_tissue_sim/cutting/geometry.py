@@ -3,7 +3,8 @@ filter, then exact tests): which tets a blade triangle crosses, which interior f
 separates (``split``), where mesh edges cross the blade (``subdivide``).
 
 Invariants: ``tol`` [m] widens every test the same way (a touching blade counts); degenerate
-blade triangles are dropped, never divided by.
+blade triangles are dropped, never divided by; a tet's tests are row-wise arithmetic on its
+own nodes, so which other tets are tested with it (the culling) changes no result.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
 
 def _points_in_triangle(p, a, b, c, tol):
-    """(k,) whether points p (k,3), already on the plane of (a,b,c), lie in the triangle (+tol)."""
+    """(k,) whether points p (k,3), already on the plane of (a,b,c), lie in the triangle (+tol).
+    (The ``subdivide`` scheme's test; ``split`` batches triangles with :func:`_in_triangles`.)"""
     v0, v1, v2 = b - a, c - a, p - a
     d00, d01, d11 = v0 @ v0, v0 @ v1, v1 @ v1
     d20, d21 = v2 @ v0, v2 @ v1

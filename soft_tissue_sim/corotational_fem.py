@@ -338,28 +338,49 @@ class CorotationalFEM:
         self.set_mesh(mesh, fixed_nodes)
 
     # ----------------------------------------------------------------- set-up
-    def set_mesh(self, mesh: TetMesh, fixed_nodes: np.ndarray | None = None) -> None:
-        """(Re)build all rest-state arrays for ``mesh`` (also after a topology change)."""
-        self.mesh = mesh
+    def set_mesh(self, mesh: TetMesh, fixed_nodes: np.ndarray | None = None, tet_source=None) -> None:
+        """(Re)build all rest-state arrays for ``mesh`` (also after a topology change).
+
+        ``tet_source`` (m,): for each tet, the tet of the previous mesh it comes from, or -1
+        (a topology change keeps most tets as they were). A tet whose four rest positions equal
+        its source's, bit for bit, takes the source's Dm^-1 and volume; the others are computed.
+        Both ways give the same numbers (each tet's are a function of its rest positions).
+        Bad input raises ValueError and leaves the FEM as it was."""
         n, m = mesh.n_nodes, mesh.n_tets
         X = mesh.points.astype(np.float64)
         T = mesh.tets.astype(np.int32)
-        Dm = np.stack([X[T[:, 1]] - X[T[:, 0]], X[T[:, 2]] - X[T[:, 0]], X[T[:, 3]] - X[T[:, 0]]], axis=2)
-        vol = np.linalg.det(Dm) / 6.0
+        Xt = X[T]  # (m, 4, 3) rest positions of each tet's nodes
+        prev = getattr(self, "_rest_tets", None)
+        reuse, src = np.zeros(m, bool), None
+        if tet_source is not None and prev is not None:
+            src = np.asarray(tet_source, dtype=np.int64)
+            if src.shape != (m,) or (m and (src.min() < -1 or src.max() >= len(prev[0]))):
+                raise ValueError(f"tet_source must hold one index in [-1, {len(prev[0])}) per tet ({m}), got "
+                                 f"shape {src.shape}")
+            k = np.flatnonzero(src >= 0)
+            reuse[k] = np.all((Xt[k] == prev[0][src[k]]).reshape(len(k), 12), axis=1)
+        Dm_inv, vol = np.empty((m, 3, 3)), np.empty(m)
+        if reuse.any():
+            Dm_inv[reuse], vol[reuse] = prev[1][src[reuse]], prev[2][src[reuse]]
+        new = ~reuse
+        Xn = Xt[new]
+        Dm = np.stack([Xn[:, 1] - Xn[:, 0], Xn[:, 2] - Xn[:, 0], Xn[:, 3] - Xn[:, 0]], axis=2)
+        vol[new] = np.linalg.det(Dm) / 6.0
         if np.any(vol <= 0.0):
             bad = np.flatnonzero(vol <= 0.0)
             raise ValueError(f"{len(bad)} tets with non-positive rest volume, e.g. {bad[:10].tolist()}")
+        Dm_inv[new] = np.linalg.inv(Dm)
         mu, lam, rho = self.materials.element_arrays(mesh.material_ids)
-        lumped = np.zeros(n)
-        np.add.at(lumped, T.ravel(), np.repeat(rho * vol / 4.0, 4))
+        lumped = np.bincount(T.ravel(), weights=np.repeat(rho * vol / 4.0, 4), minlength=n)  # in order, as add.at
         free = np.ones(n)
         if fixed_nodes is not None and len(fixed_nodes):
             free[np.asarray(fixed_nodes, dtype=np.int64)] = 0.0
         d = self.device
+        self.mesh = mesh
         self.n_nodes, self.n_tets = n, m
         self.rest = wp.array(X, dtype=wp.vec3d, device=d)
         self.tets = wp.array(T, dtype=wp.vec4i, device=d)
-        self.Dm_inv = wp.array(np.linalg.inv(Dm), dtype=wp.mat33d, device=d)
+        self.Dm_inv = wp.array(Dm_inv, dtype=wp.mat33d, device=d)
         self.volume = wp.array(vol, dtype=wp.float64, device=d)
         self.mu = wp.array(mu, dtype=wp.float64, device=d)
         self.lam = wp.array(lam, dtype=wp.float64, device=d)
@@ -374,13 +395,14 @@ class CorotationalFEM:
         # COO triplets of A: 16 blocks per element + one diagonal block per node.
         nt = 16 * m + n
         self._all_tets = wp.array(np.arange(m, dtype=np.int32), dtype=wp.int32, device=d)
-        self._rows = wp.zeros(nt, dtype=wp.int32, device=d)
-        self._cols = wp.zeros(nt, dtype=wp.int32, device=d)
-        self._vals = wp.zeros(nt, dtype=wp.mat33d, device=d)
+        self._rows = wp.empty(nt, dtype=wp.int32, device=d)  # assemble_triplets writes every entry
+        self._cols = wp.empty(nt, dtype=wp.int32, device=d)
+        self._vals = wp.empty(nt, dtype=wp.mat33d, device=d)
         self._bsr = wps.bsr_zeros(n, n, wp.mat33d, device=d)
         self._triplet_map = None
         self._csc_map = None
         self.total_mass = float(lumped.sum())
+        self._rest_tets = (Xt, Dm_inv, vol)  # what the next set_mesh may take over (tet_source)
 
     def set_fixed_nodes(self, fixed_nodes) -> None:
         free = np.ones(self.n_nodes)

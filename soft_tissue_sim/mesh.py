@@ -20,6 +20,7 @@ __all__ = [
     "MeshError",
     "TetMesh",
     "tet_quality",
+    "interior_faces",
     "validate_mesh",
     "load_mesh",
     "save_mesh",
@@ -65,6 +66,32 @@ def unique_rows(rows: np.ndarray, **kw):
     return (uniq, *rest) if rest else uniq
 
 
+def interior_faces(tets: np.ndarray):
+    """The interior faces of tets (m, 4): (f, 2) the two tets sharing each (lower index first),
+    (f, 3) its nodes (ascending), and (m, 4) the face of each tet opposite its node k
+    (``_FACES[k]``) as an index into those, -1 on the boundary; int64, faces sorted by their
+    node triples."""
+    tets = np.asarray(tets, dtype=np.int64)
+    m = len(tets)
+    f0, f1, f2 = (tets[:, _FACES[:, j]].ravel() for j in range(3))  # entry 4 t + k: face k of tet t
+    lo, hi = np.minimum(np.minimum(f0, f1), f2), np.maximum(np.maximum(f0, f1), f2)
+    key = np.stack([lo, f0 + f1 + f2 - lo - hi, hi], axis=1)  # each face's nodes, ascending
+    base = int(hi.max()) + 1 if m else 1
+    if base**3 < 2**62:  # one packed int64 key per face, sorted stably: the order of the lexsort
+        packed = (lo * base + key[:, 1]) * base + hi
+        order = np.argsort(packed, kind="stable")
+        ps = packed[order]
+        first = np.flatnonzero(ps[1:] == ps[:-1])
+    else:
+        order = np.lexsort(key.T[::-1])
+        ks = key[order]
+        first = np.flatnonzero(np.all(ks[1:] == ks[:-1], axis=1))
+    a, b = order[first], order[first + 1]
+    tet_face = np.full(4 * m, -1, np.int64)
+    tet_face[a] = tet_face[b] = np.arange(len(first))
+    return np.stack([a // 4, b // 4], axis=1), key[a], tet_face.reshape(m, 4)
+
+
 def _list(idx, limit: int = 10) -> str:
     """'[3, 7, 9]' or '[0, 1, ..., 9] and 25 more (35 in all)'."""
     idx = [int(i) for i in np.asarray(idx).ravel()]
@@ -101,6 +128,17 @@ class TetMesh:
     @property
     def n_tets(self) -> int:
         return int(self.tets.shape[0])
+
+    def interior_faces(self):
+        """:func:`interior_faces` of this mesh, computed once per connectivity (the cache holds a
+        copy of the tets it was made from, so a changed ``tets`` is recomputed). Read-only arrays."""
+        cached = self.__dict__.get("_interior_faces")
+        if cached is None or not np.array_equal(cached[0], self.tets):
+            faces = interior_faces(self.tets)
+            for a in faces:
+                a.flags.writeable = False
+            cached = self._interior_faces = (self.tets.copy(), faces)
+        return cached[1]
 
     def copy(self) -> "TetMesh":
         return TetMesh(self.points.copy(), self.tets.copy(), self.material_ids.copy())

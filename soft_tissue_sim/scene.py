@@ -329,7 +329,7 @@ class Simulation:
         fem.update_rotations(integ.x)
         R_nodes = fem.node_rotations()
         old_blocks = fem.element_blocks(change.removed_tets, m_coef, k_coef)
-        fem.set_mesh(change.mesh, change.fixed)
+        fem.set_mesh(change.mesh, change.fixed, change.tet_source)
         integ.set_state(change.x, change.v)
         fem.update_rotations(integ.x)
         new_blocks = fem.element_blocks(change.added_tets, m_coef, k_coef)

@@ -166,3 +166,39 @@ def test_undefined_material_id_is_named():
     mesh.material_ids[:] = 7
     with pytest.raises(ParameterError, match=r"material ids \[7\]"):
         MaterialTable({0: Material(1e5, 0.3, 1000.0)}).element_arrays(mesh.material_ids)
+
+
+def _rest_arrays(f):
+    return [f.Dm_inv.numpy(), f.volume.numpy(), f.lumped_mass.numpy(), f.free.numpy(), f.tets.numpy()]
+
+
+def test_rest_data_taken_over_from_the_source_tets_equal_a_fresh_build():
+    """set_mesh with tet_source (a node split, then a removal; also a wrong hint) gives the
+    very numbers of a FEM built afresh on the new mesh; a malformed hint is refused and the
+    FEM keeps its mesh."""
+    from soft_tissue_sim.mesh import TetMesh
+
+    rng = np.random.default_rng(3)
+    mesh = beam_mesh(6, n_cross=3, spacing=0.01)
+    mesh = TetMesh(mesh.points + 0.002 * rng.uniform(-0.5, 0.5, mesh.points.shape), mesh.tets)  # all shapes differ
+    mat = MaterialTable({0: Material(1e5, 0.3, 1000.0)})
+    f = CorotationalFEM(mesh, mat, "cpu", fixed_nodes=np.arange(9))
+    # node 30 split: a copy at the same rest position takes its place in some of its tets
+    T = mesh.tets.copy()
+    at = np.flatnonzero(np.any(T == 30, axis=1))[::2]
+    T[at] = np.where(T[at] == 30, mesh.n_nodes, T[at])
+    split = TetMesh(np.concatenate([mesh.points, mesh.points[30:31]]), T)
+    removal = TetMesh(split.points, split.tets[5:])
+    for new, source in ((split, np.arange(mesh.n_tets)), (removal, np.arange(5, mesh.n_tets)),
+                        (removal, np.roll(np.arange(removal.n_tets), 7))):  # the last one wrong: computed
+        f.set_mesh(new, np.arange(9), tet_source=source)
+        fresh = CorotationalFEM(new, mat, "cpu", fixed_nodes=np.arange(9))
+        for a, b in zip(_rest_arrays(f), _rest_arrays(fresh)):
+            np.testing.assert_array_equal(a, b)
+        assert f.total_mass == fresh.total_mass
+    before = _rest_arrays(f)
+    with pytest.raises(ValueError, match="tet_source"):
+        f.set_mesh(split, np.arange(9), tet_source=np.arange(3))
+    with pytest.raises(ValueError, match="tet_source"):
+        f.set_mesh(split, np.arange(9), tet_source=np.full(split.n_tets, removal.n_tets))
+    assert f.mesh is removal and all(np.array_equal(a, b) for a, b in zip(before, _rest_arrays(f)))

@@ -572,3 +572,96 @@ def test_a_blade_swept_across_the_beam_parts_it(scheme, step):
         sizes = np.bincount(sim.mesh.node_components())
         assert len(sizes) == 2, sizes
         assert sizes.min() > 0.4 * sizes.sum(), sizes  # the cut at x = 0.054 of 0.12: about half each
+
+
+def _reference_faces_cut(P, tets, tris, tol):
+    """The split scheme's cut faces by brute force: every interior face found by sorting all
+    faces, every tet of each triangle's bounding box (+tol) given the exact section test alone,
+    every tet's side, every face looked at (no culling, no cache)."""
+    from soft_tissue_sim.cutting.geometry import _dot, _path_planes, _sections_meet_triangles
+    from soft_tissue_sim.mesh import _FACES
+
+    faces = tets[:, _FACES].reshape(-1, 3)
+    key = np.sort(faces, axis=1)
+    order = np.lexsort(key.T[::-1])
+    ks = key[order]
+    first = np.flatnonzero(np.all(ks[1:] == ks[:-1], axis=1))
+    pairs = np.stack([order[first] // 4, order[first + 1] // 4], axis=1)
+    cut = np.zeros(len(pairs), bool)
+    hits = []
+    for tri in tris:
+        (a, b, c), n = tri, _path_planes(tri)[1]  # the blade's plane, as the cutter defines it
+        if not len(n):
+            hits.append(None)
+            continue
+        n = n[0]
+        X = P[tets]
+        lo, hi = np.minimum(np.minimum(a, b), c) - tol, np.maximum(np.maximum(a, b), c) + tol
+        box = np.all((X.max(axis=1) >= lo) & (X.min(axis=1) <= hi), axis=1)
+        d = _dot(X - a, n)
+        straddle = (d.min(axis=1) <= tol) & (d.max(axis=1) >= -tol)
+        hit = np.array([bool(box[i] and straddle[i] and _sections_meet_triangles(X[i:i + 1], np.array([[a, b, c]]),
+                                                                              n[None], tol)[0])
+                        for i in range(len(tets))])
+        side = _dot(X.mean(axis=1) - a, n) >= 0.0
+        cut |= (side[pairs[:, 0]] != side[pairs[:, 1]]) & (hit[pairs[:, 0]] | hit[pairs[:, 1]])
+        hits.append(np.flatnonzero(hit))
+    return pairs, ks[first], cut, hits
+
+
+def _random_blades(rng, P, k):
+    """Blade triangles around a mesh of points P: random sizes (a tenth of an element to the
+    whole mesh), slivers, triangles with corners on nodes and in the planes of the grid."""
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    h = float(np.min(hi - lo)) / 3.0
+    out = []
+    for i in range(k):
+        kind = i % 4
+        a = rng.uniform(lo - 0.1 * h, hi + 0.1 * h)
+        if kind == 0:  # random size and shape
+            s = h * 10.0 ** rng.uniform(-1.0, 0.7)
+            out.append([a, a + s * rng.standard_normal(3), a + s * rng.standard_normal(3)])
+        elif kind == 1:  # a sliver
+            b = a + 2 * h * rng.standard_normal(3)
+            out.append([a, b, b + 1e-4 * h * rng.standard_normal(3)])
+        elif kind == 2:  # corners on mesh nodes
+            out.append(list(P[rng.choice(len(P), 3, replace=False)]))
+        else:  # in a grid plane through nodes, corners at nodes' coordinates
+            ax = rng.integers(3)
+            q = P[rng.choice(len(P), 3, replace=False)].copy()
+            q[:, ax] = P[rng.integers(len(P)), ax]
+            out.append(list(q))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("jitter", [0.0, 0.2])
+def test_culled_cut_faces_equal_the_brute_force_ones(jitter):
+    """faces_cut_by_triangles (tets culled by the blade's box, faces looked up from the cut tets,
+    the mesh's cached interior faces) and tets_cut_by_triangle give exactly the faces and tets
+    of a brute-force search, on random blades, slivers and blades through nodes and grid planes."""
+    from soft_tissue_sim.cutting.geometry import faces_cut_by_triangles
+    from soft_tissue_sim.mesh import grid_mesh
+
+    rng = np.random.default_rng(7)
+    mesh = grid_mesh(np.linspace(0, 0.04, 5), np.linspace(0, 0.03, 4), np.linspace(0, 0.03, 4))
+    P = mesh.points + jitter * 0.01 * rng.uniform(-0.5, 0.5, mesh.points.shape)
+    tets = mesh.tets.astype(np.int64)
+    n_cut = n_hit = 0
+    for tol in (1e-12, 1e-4):
+        for _ in range(10):
+            tris = _random_blades(rng, P, 4)
+            pairs, fnodes, cut, hits = _reference_faces_cut(P, tets, tris, tol)
+            got = faces_cut_by_triangles(P, tets, tris, tol, faces=mesh.interior_faces())
+            np.testing.assert_array_equal(got[0], pairs)
+            np.testing.assert_array_equal(got[1], fnodes)
+            np.testing.assert_array_equal(got[2], cut)
+            np.testing.assert_array_equal(faces_cut_by_triangles(P, tets, tris, tol)[2], cut)  # faces not given
+            for tri, hit in zip(tris, hits):
+                mine, side = tets_cut_by_triangle(P, tets, tri, tol)
+                if hit is None:
+                    assert side is None and not len(mine)
+                else:
+                    np.testing.assert_array_equal(np.sort(mine), hit)
+                    n_hit += len(hit)
+            n_cut += int(cut.sum())
+    assert n_cut > 100 and n_hit > 100  # the blades did cut

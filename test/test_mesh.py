@@ -13,6 +13,7 @@ from soft_tissue_sim.mesh import (
     beam_mesh,
     brain_mesh,
     cli,
+    interior_faces,
     load_mesh,
     save_mesh,
     tet_quality,
@@ -312,6 +313,43 @@ def test_edges_and_euler_characteristic(brain):
         assert m.n_nodes - len(e) + len(faces) - m.n_tets == 1  # a ball
     one = TetMesh(REGULAR, np.array([[0, 1, 2, 3]]))
     assert one.edges().tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]
+
+
+@pytest.mark.parametrize("scale", [1, 2**21])  # packed face keys, and the lexsort fallback
+def test_interior_faces_pair_the_tets_that_share_a_face(brain, scale):
+    from soft_tissue_sim.mesh import _FACES
+
+    T = brain.tets.astype(np.int64) * scale  # node ids spread out, their order kept
+    pairs, fnodes, tet_face = interior_faces(T)
+    owners = {}
+    for t, tet in enumerate(T.tolist()):
+        for k, f in enumerate(_FACES.tolist()):
+            owners.setdefault(tuple(sorted(tet[i] for i in f)), []).append((t, k))
+    assert max(len(v) for v in owners.values()) == 2
+    inner = sorted((key, v) for key, v in owners.items() if len(v) == 2)
+    assert fnodes.tolist() == [list(key) for key, _ in inner]  # sorted by node triples
+    assert pairs.tolist() == [[v[0][0], v[1][0]] for _, v in inner]
+    expect = np.full((len(T), 4), -1)
+    for f, (_, v) in enumerate(inner):
+        for t, k in v:
+            expect[t, k] = f
+    np.testing.assert_array_equal(tet_face, expect)
+    assert pairs.dtype == fnodes.dtype == tet_face.dtype == np.int64
+
+
+def test_interior_faces_are_cached_until_the_tets_change():
+    m = beam_mesh(4, n_cross=3)
+    f = m.interior_faces()
+    assert m.interior_faces() is f
+    with pytest.raises(ValueError):
+        f[0][0, 0] = 3  # read-only: shared by every caller
+    m.tets = m.tets[::-1].copy()  # replaced
+    g = m.interior_faces()
+    assert g is not f and all(np.array_equal(a, b) for a, b in zip(g, interior_faces(m.tets)))
+    m.tets[:2] = m.tets[1::-1].copy()  # changed in place
+    h = m.interior_faces()
+    assert h is not g and all(np.array_equal(a, b) for a, b in zip(h, interior_faces(m.tets)))
+    assert not np.array_equal(h[2], g[2])
 
 
 def test_tetmesh_checks_shapes():

@@ -311,7 +311,7 @@ class Cutter:
             work, parent, fresh = tets, np.arange(len(tets)), np.zeros(len(tets), bool)
             ea, eb, et = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
             P = pts
-            pairs, fnodes, cut = faces_cut_by_triangles(P, work, tris, tol)
+            pairs, fnodes, cut = faces_cut_by_triangles(P, work, tris, tol, faces=mesh.interior_faces())
         new_tets, dup = work, np.zeros(0, np.int64)
         if cut.any():
             new_tets, dup = split_along_faces(work, pairs[cut], fnodes[cut], pairs, fnodes, len(P))
@@ -327,11 +327,14 @@ class Cutter:
         a, b, t = (np.concatenate([ea, ext_a[dup]]), np.concatenate([eb, ext_b[dup]]),
                    np.concatenate([et, ext_t[dup]]))
         same = ~fresh & np.all(new_tets == tets[parent], axis=1)
-        removed_ids = np.setdiff1d(np.arange(len(tets)), parent[same])
+        kept = np.zeros(len(tets), bool)
+        kept[parent[same]] = True
+        removed_ids = np.flatnonzero(~kept)
         what = "cut (subdivision)" if len(ea) else "cut"
         note = " (refined inside the elements the blade is crossing, not separated yet)" if len(ea) and not len(dup) else ""
         plan = self._change(tissue, new_tets, (a, b, t), removed_ids, np.flatnonzero(~same), keep=np.arange(n),
-                            mats=mesh.material_ids[parent], what=what, note=note, t0=t0)
+                            mats=mesh.material_ids[parent], what=what, note=note, t0=t0,
+                            tet_source=np.where(fresh, -1, parent))
         plan.result.faces_cut = int(cut.sum())
         if plan.change is not None and stroke is not None and self.scheme == "subdivide":
             # every new node is on the cut: the crossings and the copies of nodes of cut faces
@@ -417,14 +420,15 @@ class Cutter:
 
     # ------------------------------------------------------------- planning
     def _change(self, tissue: Tissue, new_tets, source, removed_ids, added_ids, keep, kept_tets=None, mats=None,
-                what: str = "cut", note: str = "", t0: float = 0.0) -> CutPlan:
+                what: str = "cut", note: str = "", t0: float = 0.0, tet_source=None) -> CutPlan:
         """A topology change of ``tissue``, or a refusal (the mesh unchanged).
 
         ``new_tets``: the new tets (None: element removal, ``keep`` the nodes kept, ``kept_tets``
         the tets). New nodes are appended after the old ones, node k at (1 - t) a + t b of old
         nodes ``source = (a, b, t)`` (a copy of node a: b = a, t = 0), for its rest and current
         position and its velocity: a node on an edge follows the displacement field exactly.
-        ``mats``: the new tets' material ids (default: unchanged)."""
+        ``mats``: the new tets' material ids (default: unchanged); ``tet_source``: the old tet
+        each new one comes from (-1: none; removal: the kept ones)."""
         mesh, old_uids, free_old = tissue.mesh, tissue.node_uids, tissue.free
         x, v = tissue.x, tissue.v
         if new_tets is None:  # element removal with compaction
@@ -436,8 +440,11 @@ class Cutter:
             free_new = free_old[keep]
             mats = mesh.material_ids[kept_tets]
             created = np.zeros(0, np.int64)
-            removed = np.setdiff1d(old_uids, uids_new)
+            gone = np.ones(mesh.n_nodes, bool)
+            gone[keep] = False
+            removed = np.sort(old_uids[gone])
             source = np.zeros(0, np.int64)
+            tet_source = np.flatnonzero(kept_tets)
         else:  # node splitting and subdivision: new nodes appended
             a, b, t = source
             t = np.asarray(t, dtype=np.float64)[:, None]
@@ -463,7 +470,7 @@ class Cutter:
                                      f"{self.min_quality} or a node without a tet; mesh unchanged",
                                      ms=1000.0 * (time.perf_counter() - t0)))
         change = TopologyChange(TetMesh(pts_new, tets_new, mats), x_new, v_new, uids_new, free_new, removed_ids,
-                                added_ids, created, removed, source, old_uids, free_old)
+                                added_ids, created, removed, source, old_uids, free_old, tet_source)
         return CutPlan(CutResult(True, what, tets_changed=int(len(removed_ids)), nodes_added=int(len(created)),
                                  nodes_removed=int(len(removed))), change, note, t0)
 

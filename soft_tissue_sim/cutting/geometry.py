@@ -3,20 +3,22 @@ filter, then exact tests): which tets a blade triangle crosses, which interior f
 separates (``split``), where mesh edges cross the blade (``subdivide``).
 
 Invariants: ``tol`` [m] widens every test the same way (a touching blade counts); degenerate
-blade triangles are dropped, never divided by.
+blade triangles are dropped, never divided by; a tet's tests are row-wise arithmetic on its
+own nodes, so which other tets are tested with it (the culling) changes no result.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import _FACES
+from ..mesh import interior_faces as _interior_faces
 
 TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
 
 def _points_in_triangle(p, a, b, c, tol):
-    """(k,) whether points p (k,3), already on the plane of (a,b,c), lie in the triangle (+tol)."""
+    """(k,) whether points p (k,3), already on the plane of (a,b,c), lie in the triangle (+tol).
+    (The ``subdivide`` scheme's test; ``split`` batches triangles with :func:`_in_triangles`.)"""
     v0, v1, v2 = b - a, c - a, p - a
     d00, d01, d11 = v0 @ v0, v0 @ v1, v1 @ v1
     d20, d21 = v2 @ v0, v2 @ v1
@@ -27,77 +29,114 @@ def _points_in_triangle(p, a, b, c, tol):
     return (v >= -rel) & (w >= -rel) & (v + w <= 1.0 + rel)
 
 
-def _segment_meets_tets(p0, p1, X, tol):
-    """Mask (k,): does the segment p0-p1 meet the tets X (k, 4, 3)? (Clipping by the 4 faces.)"""
-    e = p1 - p0
-    tmin = np.zeros(len(X))
-    tmax = np.ones(len(X))
-    ok = np.ones(len(X), bool)
-    for i in range(4):
-        o = [j for j in range(4) if j != i]
-        nrm = np.cross(X[:, o[1]] - X[:, o[0]], X[:, o[2]] - X[:, o[0]])
-        nrm *= np.sign(np.einsum("kj,kj->k", nrm, X[:, i] - X[:, o[0]]))[:, None]  # inwards
-        scale = np.linalg.norm(nrm, axis=1)
-        h0 = np.einsum("kj,kj->k", nrm, p0 - X[:, o[0]]) + tol * scale  # >= 0 inside (with tolerance)
-        dh = nrm @ e
+def _dot(u, v):
+    """Row-wise dot products of (..., 3) arrays, summed in a fixed order: a tet's value does
+    not depend on the other tets of its batch, so culling cannot change a result."""
+    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
+
+
+_LOW_BITS, _HIGH_BITS = np.array([1, 2, 4], np.uint8), np.array([8, 16, 32], np.uint8)
+
+
+def _near_blade(points, tets, tri, tol):
+    """Indices of the tets whose bounding box meets the triangle's, widened by ``tol``: a tet
+    is far when all its nodes lie beyond the same face of that box (their outcodes share a bit)."""
+    lo, hi = tri.min(axis=0) - tol, tri.max(axis=0) + tol
+    code = ((points < lo) @ _LOW_BITS) | ((points > hi) @ _HIGH_BITS)
+    c = code[tets]
+    return np.flatnonzero((c[:, 0] & c[:, 1] & c[:, 2] & c[:, 3]) == 0)
+
+
+def _in_triangles(p, a, b, c, tol):
+    """Whether points p (..., 3), already on the planes of the triangles (a, b, c) (broadcast
+    against p), lie in them (+tol)."""
+    v0, v1, v2 = b - a, c - a, p - a
+    d00, d01, d11 = _dot(v0, v0), _dot(v0, v1), _dot(v1, v1)
+    d20, d21 = _dot(v2, v0), _dot(v2, v1)
+    den = d00 * d11 - d01 * d01
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    rel = tol / np.sqrt(np.maximum(d00, d11))
+    return (v >= -rel) & (w >= -rel) & (v + w <= 1.0 + rel)
+
+
+def _cross(u, v):
+    """Row-wise cross products of (..., 3) arrays."""
+    return np.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1], u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
+                     u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1)
+
+
+_OTHERS = np.array([[j for j in range(4) if j != i] for i in range(4)])  # face i: the vertices but i
+
+
+def _segments_meet_tets(segments, X, tol):
+    """Mask (k,): does one of the segments (p0[i], p1[i]) (pairs of (k, 3) arrays) meet the tet
+    X[i] (k, 4, 3)? (Clipping by the 4 faces, each moved out by ``tol``.)"""
+    o = X[:, _OTHERS]  # (k, 4, 3, 3): face i's vertices
+    nrm = _cross(o[:, :, 1] - o[:, :, 0], o[:, :, 2] - o[:, :, 0])
+    nrm *= np.sign(_dot(nrm, X - o[:, :, 0]))[..., None]  # inwards
+    widen = tol * np.sqrt(_dot(nrm, nrm))
+    meet = np.zeros(len(X), bool)
+    for p0, p1 in segments:
+        h0 = _dot(nrm, p0[:, None] - o[:, :, 0]) + widen  # (k, 4): >= 0 inside (with tolerance)
+        dh = _dot(nrm, (p1 - p0)[:, None])
         with np.errstate(divide="ignore", invalid="ignore"):
             t = -h0 / dh
-        ok &= ~((dh == 0.0) & (h0 < 0.0))
-        tmin = np.where(dh > 0.0, np.maximum(tmin, t), tmin)
-        tmax = np.where(dh < 0.0, np.minimum(tmax, t), tmax)
-    return ok & (tmin <= tmax)
+        tmin = np.maximum(np.where(dh > 0.0, t, 0.0).max(axis=1), 0.0)
+        tmax = np.minimum(np.where(dh < 0.0, t, 1.0).min(axis=1), 1.0)
+        meet |= ~np.any((dh == 0.0) & (h0 < 0.0), axis=1) & (tmin <= tmax)
+    return meet
+
+
+def _sections_meet_triangles(X, tri, n, tol):
+    """Mask (k,): does the section of the tet X[i] (k, 4, 3) by the plane of the triangle
+    tri[i] (k, 3, 3; unit normal n[i]) overlap that triangle (+tol)? Yes when a crossing of a
+    tet edge with the plane, or a tet vertex on it, lies inside the triangle, or when an edge
+    of the triangle passes through the tet (a blade thinner than the element, or inside it)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    d = _dot(X - a[:, None], n[:, None])  # (k, 4) signed distances of the vertices
+    di, dj = d[:, TET_EDGES[:, 0]], d[:, TET_EDGES[:, 1]]  # (k, 6)
+    cross = di * dj < 0.0
+    t = np.where(cross, di / np.where(cross, di - dj, 1.0), 0.0)
+    Xi = X[:, TET_EDGES[:, 0]]
+    p = Xi + t[..., None] * (X[:, TET_EDGES[:, 1]] - Xi)  # the edges' crossings, then the vertices
+    p = np.concatenate([p, X], axis=1)
+    p = p - _dot(p - a[:, None], n[:, None])[..., None] * n[:, None]  # on the plane
+    inside = _in_triangles(p, a[:, None], b[:, None], c[:, None], tol)
+    hit = np.any(np.concatenate([cross, np.abs(d) <= tol], axis=1) & inside, axis=1)
+    return hit | _segments_meet_tets(((a, b), (b, c), (c, a)), X, tol)
+
+
+def _tets_cut(points, tets, tris, nrm, tol):
+    """For each (non-degenerate) blade triangle with unit normal ``nrm``, the indices of the
+    tets it cuts: near it (:func:`_near_blade`), with vertices on both sides of its plane
+    (+tol), and a section that overlaps it (:func:`_sections_meet_triangles`). The exact
+    tests of all triangles run as one batch."""
+    cand = [_near_blade(points, tets, tri, tol) for tri in tris]
+    owner = np.repeat(np.arange(len(tris)), [len(c) for c in cand])
+    cand = np.concatenate(cand)
+    X = points[tets[cand]]  # (k, 4, 3)
+    d = _dot(X - tris[owner, 0][:, None], nrm[owner][:, None])
+    straddle = (d.min(axis=1) <= tol) & (d.max(axis=1) >= -tol)
+    cand, owner, X = cand[straddle], owner[straddle], X[straddle]
+    hit = _sections_meet_triangles(X, tris[owner], nrm[owner], tol)
+    return [cand[hit & (owner == k)] for k in range(len(tris))]
 
 
 def tets_cut_by_triangle(points, tets, tri, tol):
     """Indices of tets whose section by the plane of ``tri`` overlaps the triangle, and the
-    signed distances (m,) of all tet centroids to that plane (the side of every tet)."""
-    a, b, c = (np.asarray(t, dtype=np.float64) for t in tri)
-    n = np.cross(b - a, c - a)
-    area2 = np.linalg.norm(n)
-    if not area2 > 0.0:
+    signed distances (m,) of all tet centroids to that plane (the side of every tet); for a
+    degenerate triangle, no tets and None."""
+    points, tets = np.asarray(points, np.float64), np.asarray(tets, np.int64)
+    tris, nrm = _path_planes(tri)
+    if not len(tris):
         return np.zeros(0, np.int64), None
-    n /= area2
-    X = points[tets]  # (m,4,3)
-    side = (X.mean(axis=1) - a) @ n
-    lo, hi = np.minimum(np.minimum(a, b), c) - tol, np.maximum(np.maximum(a, b), c) + tol
-    cand = np.flatnonzero(np.all((X.max(axis=1) >= lo) & (X.min(axis=1) <= hi), axis=1))
-    if not len(cand):
-        return cand, side
-    Xc = X[cand]
-    d = (Xc - a) @ n  # (k,4)
-    straddle = (d.min(axis=1) <= tol) & (d.max(axis=1) >= -tol)
-    cand, Xc, d = cand[straddle], Xc[straddle], d[straddle]
-    hit = np.zeros(len(cand), bool)
-    # crossing points of the tet edges with the plane, and vertices on it
-    for i, j in TET_EDGES:
-        di, dj = d[:, i], d[:, j]
-        cross = (di * dj < 0.0)
-        t = np.where(cross, di / np.where(cross, di - dj, 1.0), 0.0)
-        p = Xc[:, i] + t[:, None] * (Xc[:, j] - Xc[:, i])
-        p = p - ((p - a) @ n)[:, None] * n
-        hit |= cross & _points_in_triangle(p, a, b, c, tol)
-    for i in range(4):
-        on = np.abs(d[:, i]) <= tol
-        p = Xc[:, i] - ((Xc[:, i] - a) @ n)[:, None] * n
-        hit |= on & _points_in_triangle(p, a, b, c, tol)
-    # the triangle's edges through the tet: the section polygon overlaps the triangle though
-    # none of its corners lies inside it (a blade thinner than the element, or inside it)
-    for p0, p1 in ((a, b), (b, c), (c, a)):
-        hit |= _segment_meets_tets(p0, p1, Xc, tol)
-    return cand[hit], side
+    return _tets_cut(points, tets, tris, nrm, tol)[0], _dot(points[tets].mean(axis=1) - tris[0, 0], nrm[0])
 
 
 def interior_faces(tets):
-    """(f, 2) tets sharing each interior face and (f, 3) its nodes."""
-    faces = tets[:, _FACES].reshape(-1, 3)
-    owner = np.repeat(np.arange(len(tets)), 4)
-    key = np.sort(faces, axis=1)
-    order = np.lexsort(key.T[::-1])
-    ks = key[order]
-    same = np.all(ks[1:] == ks[:-1], axis=1)
-    first = np.flatnonzero(same)
-    pairs = np.stack([owner[order[first]], owner[order[first + 1]]], axis=1)
-    return pairs, ks[first]
+    """(f, 2) tets sharing each interior face and (f, 3) its nodes (:func:`..mesh.interior_faces`)."""
+    return _interior_faces(tets)[:2]
 
 
 def sweep_triangles(p0, p1, q0, q1):
@@ -140,19 +179,22 @@ def edge_crossings(P, edges, tris, tol):
     return t_out, which
 
 
-def faces_cut_by_triangles(P, tets, tris, tol):
+def faces_cut_by_triangles(P, tets, tris, tol, faces=None):
     """The interior faces a blade separates (``split``): for each blade triangle, the faces
     between tets on opposite sides of its plane (the sign of their centroid's distance) of which
-    at least one is intersected (its section overlaps the triangle). Returns (pairs, face
-    nodes, mask)."""
-    pairs, fnodes = interior_faces(tets)
+    at least one is intersected (its section overlaps the triangle: :func:`tets_cut_by_triangle`).
+    ``faces``: :func:`..mesh.interior_faces` of ``tets`` where known (``TetMesh.interior_faces``).
+    Only the tets near a triangle are tested, and only the faces of those it cuts are looked at.
+    Returns (pairs, face nodes, mask)."""
+    P, tets = np.asarray(P, np.float64), np.asarray(tets, np.int64)
+    pairs, fnodes, tet_face = _interior_faces(tets) if faces is None else faces
     cut = np.zeros(len(pairs), bool)
-    for tri in tris:
-        hit, side = tets_cut_by_triangle(P, tets, tri, tol)
-        if side is None or not len(hit):
-            continue
-        is_hit = np.zeros(len(tets), bool)
-        is_hit[hit] = True
-        sa, sb = side[pairs[:, 0]] >= 0.0, side[pairs[:, 1]] >= 0.0
-        cut |= (sa != sb) & (is_hit[pairs[:, 0]] | is_hit[pairs[:, 1]])
+    tris, nrm = _path_planes(tris)
+    if not len(tris):
+        return pairs, fnodes, cut
+    for tri, n, hit in zip(tris, nrm, _tets_cut(P, tets, tris, nrm, tol)):
+        f = tet_face[hit].ravel()
+        f = f[f >= 0]
+        side = _dot(P[tets[pairs[f].ravel()]].mean(axis=1) - tri[0], n).reshape(-1, 2) >= 0.0
+        cut[f[side[:, 0] != side[:, 1]]] = True
     return pairs, fnodes, cut

@@ -63,6 +63,7 @@ class TopologyChange:
     rotation_source: np.ndarray  # per new node, the old node (index) whose rotation it takes
     old_uids: np.ndarray  # the numbering before
     old_free: np.ndarray
+    tet_source: np.ndarray | None = None  # per new tet, the old tet it comes from (-1: a new one)
 
     @property
     def fixed(self) -> np.ndarray:
@@ -71,15 +72,29 @@ class TopologyChange:
     def modification(self, version: int, old_blocks, new_blocks, R_nodes: np.ndarray) -> Modification:
         """The change of A (eq. 5-7) from the removed tets' element blocks (old numbering) and the
         added ones' (new numbering), with the old nodes' rotations ``R_nodes`` (a new node takes
-        its source's)."""
-        R_index = dict(zip(self.old_uids.tolist(), range(len(self.old_uids))))
-        R_index.update((int(u), R_index[int(self.old_uids[s])]) for u, s in zip(self.created, self.rotation_source))
-        free = dict(zip(self.node_uids.tolist(), self.free.tolist()))
-        free.update(zip(self.old_uids.tolist(), self.old_free.tolist()))
+        its source's) and free flags (an old node's from before the change)."""
+        n_old = len(self.old_uids)
+        R_keys = np.concatenate([self.old_uids, self.created])
+        R_rows = np.concatenate([np.arange(n_old), np.asarray(self.rotation_source, np.int64)])
+        free_keys = np.concatenate([self.old_uids, self.node_uids])  # an old node's flag first
+        free_vals = np.concatenate([self.old_free, self.free])
         return modification_from_blocks(version, old_blocks, new_blocks, self.old_uids, self.node_uids,
-                                        lambda uids: np.stack([R_nodes[R_index[u]] for u in uids.tolist()]),
-                                        lambda uids: np.array([free[u] for u in uids.tolist()]),
+                                        lambda uids: R_nodes[R_rows[_positions(R_keys, uids)]],
+                                        lambda uids: free_vals[_positions(free_keys, uids)],
                                         created=self.created, removed=self.removed)
+
+
+def _positions(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """For each query value, the position of its first occurrence in ``keys``; KeyError where
+    it is absent."""
+    query = np.asarray(query, np.int64)
+    order = np.argsort(keys, kind="stable")
+    k = np.minimum(np.searchsorted(keys, query, sorter=order), max(len(keys) - 1, 0))
+    if not len(keys) or np.any(keys[order[k]] != query):
+        if len(query):
+            raise KeyError(f"node uids unknown to the change: {query[~np.isin(query, keys)][:10].tolist()}")
+        return np.zeros(0, np.int64)
+    return order[k]
 
 
 @dataclass

@@ -35,13 +35,17 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
     order = np.argsort(keys)
     keys_sorted = keys[order]
     # edges: through each uncut interior face, for each of its cut nodes, (v, a) - (v, b)
-    cut_set = np.zeros(len(all_pairs), bool)
+    at = is_cut_node[all_face_nodes]
+    near = np.flatnonzero(at[:, 0] | at[:, 1] | at[:, 2])  # the faces at a cut node
+    cut_set = np.zeros(len(near), bool)
     if len(cut_pairs):
         # mark faces listed as cut (compare by sorted node triples)
-        fk = all_face_nodes[:, 0] * (n_nodes ** 2) + all_face_nodes[:, 1] * n_nodes + all_face_nodes[:, 2]
+        fn = all_face_nodes[near]
+        fk = fn[:, 0] * (n_nodes ** 2) + fn[:, 1] * n_nodes + fn[:, 2]
         ck = cut_nodes_of_faces[:, 0] * (n_nodes ** 2) + cut_nodes_of_faces[:, 1] * n_nodes + cut_nodes_of_faces[:, 2]
         cut_set = np.isin(fk, ck)
-    unc_pairs, unc_nodes = all_pairs[~cut_set], all_face_nodes[~cut_set]
+    unc = near[~cut_set]
+    unc_pairs, unc_nodes = all_pairs[unc], all_face_nodes[unc]
     ea, eb = [], []
     for c in range(3):
         v = unc_nodes[:, c].astype(np.int64)

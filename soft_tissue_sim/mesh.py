@@ -164,15 +164,18 @@ class TetMesh:
 
     def boundary_faces(self) -> np.ndarray:
         """(k, 3) int32 faces used by exactly one tet, right-hand normal pointing out of it."""
+        tet_face = self.interior_faces()[2]  # cached per connectivity (cutting reads it too)
         faces = self.tets[:, _FACES].reshape(-1, 3)
-        key = np.sort(faces, axis=1)
-        _, inv, cnt = unique_rows(key, return_inverse=True, return_counts=True)
-        return np.ascontiguousarray(faces[cnt[inv.ravel()] == 1], dtype=np.int32)
+        return np.ascontiguousarray(faces[tet_face.ravel() < 0], dtype=np.int32)
 
     def edges(self) -> np.ndarray:
         """(e, 2) unique edges, each as (i, j) with i < j, rows sorted."""
-        e = np.sort(self.tets[:, _EDGES].reshape(-1, 2), axis=1)
-        return unique_rows(e).astype(np.int32)
+        e = np.sort(self.tets[:, _EDGES].reshape(-1, 2), axis=1).astype(np.int64)
+        base = int(e.max()) + 1 if len(e) else 1
+        if base * base >= 2**62:
+            return unique_rows(e).astype(np.int32)
+        key = np.unique(e[:, 0] * base + e[:, 1])  # one packed key per edge: sorted as the rows are
+        return np.stack([key // base, key % base], axis=1).astype(np.int32)
 
 
 def _signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ from .geometry import F64
 @wp.func
 def contact_update(
     W: wp.array2d(dtype=wp.float64),
-    d0: wp.array(dtype=wp.float64),
+    delta: wp.array(dtype=wp.float64),
     lam: wp.array(dtype=wp.float64),
     r: int,
     rows: int,
@@ -28,24 +28,19 @@ def contact_update(
     pyramid: int,
 ):
     """Projected Gauss-Seidel update of the contact whose normal row is r, from the current
-    lambda (not written). Returns (lambda_n, lambda_t1, lambda_t2, change), the change being
-    the largest W_rr |new - old| of its rows [m]; for an active normal row that is |delta_n|."""
+    lambda and delta = W lambda + d0 (neither written). Returns (lambda_n, lambda_t1,
+    lambda_t2, change), the change being the largest W_rr |new - old| of its rows [m]; for an
+    active normal row that is |delta_n|."""
     zero = F64(0.0)
-    m = W.shape[0]
-    dn = d0[r]
-    for j in range(m):
-        dn += W[r, j] * lam[j]
+    dn = delta[r]
     ln = wp.max(zero, lam[r] - dn / W[r, r])
     change = W[r, r] * wp.abs(ln - lam[r])
     l1 = zero
     l2 = zero
     if rows == 3:
         dln = ln - lam[r]  # the tangential gaps see the new normal force
-        t1 = d0[r + 1] + W[r + 1, r] * dln
-        t2 = d0[r + 2] + W[r + 2, r] * dln
-        for j in range(m):
-            t1 += W[r + 1, j] * lam[j]
-            t2 += W[r + 2, j] * lam[j]
+        t1 = delta[r + 1] + W[r + 1, r] * dln
+        t2 = delta[r + 2] + W[r + 2, r] * dln
         a11 = W[r + 1, r + 1]
         a22 = W[r + 2, r + 2]
         a12 = F64(0.5) * (W[r + 1, r + 2] + W[r + 2, r + 1])
@@ -72,19 +67,45 @@ def contact_update(
 
 
 @wp.func
+def exact_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64),
+                delta: wp.array(dtype=wp.float64)):
+    """delta = W lambda + d0, summed afresh (the sweeps update it incrementally)."""
+    m = W.shape[0]
+    for i in range(m):
+        d = d0[i]
+        for j in range(m):
+            d += W[i, j] * lam[j]
+        delta[i] = d
+
+
+@wp.func
+def move(W: wp.array2d(dtype=wp.float64), delta: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64),
+         j: int, value: wp.float64):
+    """lambda_j <- value, and delta by W's column j (W symmetric: its row j) times the change."""
+    d = value - lam[j]
+    if d != F64(0.0):
+        for i in range(W.shape[0]):
+            delta[i] += W[j, i] * d
+        lam[j] = value
+
+
+@wp.func
 def pgs_residual(
     W: wp.array2d(dtype=wp.float64),
     d0: wp.array(dtype=wp.float64),
     lam: wp.array(dtype=wp.float64),
+    delta: wp.array(dtype=wp.float64),
     row_start: wp.array(dtype=wp.int32),
     n_rows: wp.array(dtype=wp.int32),
     mu: wp.array(dtype=wp.float64),
     pyramid: int,
 ):
-    """Largest change a (Jacobi) sweep would make: 0 exactly at a solution of the LCP [m]."""
+    """Largest change a (Jacobi) sweep would make: 0 exactly at a solution of the LCP [m].
+    delta is first summed afresh from lambda."""
+    exact_delta(W, d0, lam, delta)
     res = F64(0.0)
     for c in range(row_start.shape[0]):
-        ln, l1, l2, ch = contact_update(W, d0, lam, row_start[c], n_rows[c], mu[c], pyramid)
+        ln, l1, l2, ch = contact_update(W, delta, lam, row_start[c], n_rows[c], mu[c], pyramid)
         res = wp.max(res, ch)
     return res
 
@@ -100,39 +121,43 @@ def pgs_kernel(
     tolerance: wp.float64,
     pyramid: int,
     lam: wp.array(dtype=wp.float64),
+    delta: wp.array(dtype=wp.float64),
     info: wp.array(dtype=wp.float64),
 ):
     """Projected Gauss-Seidel for delta = W lambda + d0 with Signorini-Coulomb contacts.
 
     Contact c owns row row_start[c] (normal) and, if n_rows[c] == 3, the two tangent rows
-    after it. Sweeps until the largest change (see :func:`contact_update`) of a sweep and the
-    residual (:func:`pgs_residual`) are <= tolerance. info = [sweeps, residual].
-    One thread: launched with dim 1 on the CPU.
+    after it. delta is kept equal to W lambda + d0 as lambda changes (a change of lambda_j adds
+    W's column j times it), so a contact whose forces do not change (one apart, say) costs
+    O(1) a sweep; it is summed afresh for each residual. Sweeps until the largest change (see
+    :func:`contact_update`) of a sweep and the residual (:func:`pgs_residual`) are <=
+    tolerance. info = [sweeps, residual]. W symmetric. One thread: launched with dim 1 on the
+    CPU.
     """
     nc = row_start.shape[0]
+    exact_delta(W, d0, lam, delta)
     it = int(0)
     res = F64(-1.0)
     for sweep in range(max_iterations):
         change = F64(0.0)
         for c in range(nc):
             r = row_start[c]
-            ln, l1, l2, ch = contact_update(W, d0, lam, r, n_rows[c], mu[c], pyramid)
-            lam[r] = ln
+            ln, l1, l2, ch = contact_update(W, delta, lam, r, n_rows[c], mu[c], pyramid)
+            move(W, delta, lam, r, ln)
             if n_rows[c] == 3:
-                lam[r + 1] = l1
-                lam[r + 2] = l2
+                move(W, delta, lam, r + 1, l1)
+                move(W, delta, lam, r + 2, l2)
             change = wp.max(change, ch)
         it = sweep + 1
         res = F64(-1.0)
         if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-            res = pgs_residual(W, d0, lam, row_start, n_rows, mu, pyramid)
+            res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid)
             if res <= tolerance:
                 break
     if res < F64(0.0):
-        res = pgs_residual(W, d0, lam, row_start, n_rows, mu, pyramid)
+        res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid)
     info[0] = F64(it)
     info[1] = res
-
 
 
 def solve_pgs(W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, rows: np.ndarray, mu: np.ndarray,
@@ -144,6 +169,6 @@ def solve_pgs(W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, rows: np.nda
               [wp.array(W, dtype=wp.float64, device="cpu"), wp.array(d0, dtype=wp.float64, device="cpu"),
                wp.array(row_start, dtype=wp.int32, device="cpu"), wp.array(rows, dtype=wp.int32, device="cpu"),
                wp.array(mu, dtype=wp.float64, device="cpu"), int(max_iterations), float(tolerance), int(pyramid),
-               lam_wp, info], device="cpu")
+               lam_wp, wp.zeros(len(d0), dtype=wp.float64, device="cpu"), info], device="cpu")
     its, res = info.numpy()
     return lam_wp.numpy().copy(), int(its), float(res)

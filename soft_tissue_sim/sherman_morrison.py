@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sps
 
+from .blas_threads import one_thread
 from .ldlt_preconditioner import rotate_nodes
 
 
@@ -320,10 +321,11 @@ class ShermanMorrisonCorrection:
         W = lower.quadratic(sps.coo_matrix((Be.data[inside], (Be.row[inside], Be.col[inside])), shape=(nf3, c)))
         Ba = sps.csr_matrix((Be.data[~inside], (Be.col[~inside], Be.row[~inside] - nf3)), shape=(c, Be.shape[0] - nf3))
         W += (Ba @ Ba.T).toarray()
-        for U, Q, _ in self.terms:
-            m = Be.row < U.shape[0]  # U's rows: the DOFs of its time, later ones are zero
-            Vt = sps.csr_matrix((Be.data[m], (Be.col[m], Be.row[m])), shape=(c, U.shape[0])) @ U  # (U^T B)^T
-            W -= Vt @ (Q @ Vt.T)
+        with one_thread():
+            for U, Q, _ in self.terms:
+                m = Be.row < U.shape[0]  # U's rows: the DOFs of its time, later ones are zero
+                Vt = sps.csr_matrix((Be.data[m], (Be.col[m], Be.row[m])), shape=(c, U.shape[0])) @ U  # (U^T B)^T
+                W -= Vt @ (Q @ Vt.T)
         return 0.5 * (W + W.T)
 
     def _to_ext_sparse(self, B) -> sps.coo_matrix:

@@ -193,17 +193,20 @@ class LowerFactor:
         return Supernode(a, np.asfortranarray(block[:s]), np.ascontiguousarray(block[s:]),
                          Li[Lp[b]:Lp[b + 1]].astype(np.int64))
 
-    def _solve_reach(self, B, scaled: bool):
+    def _solve_reach(self, B, gram: bool):
         """Forward solves of the columns of B (n, c; dense or sparse, original numbering) on
         the union R of their reaches: (Y (|R|, groups * GROUP), reach (|R|,) permuted rows,
-        slot (c,)), column k of B being column slot[k] of Y. With ``scaled`` the rows are
-        D^-1/2 L^-1 P B (D > 0), else L^-1 P B.
+        slot (c,), G), column k of B being column slot[k] of Y. Without ``gram``: Y = L^-1 P B
+        and G None. With it: G = Y^T D^-1 Y (groups * GROUP square), and Y = D^-1/2 L^-1 P B
+        where D > 0 (else unscaled).
 
-        R is walked in order: the large supernodes in it by BLAS (a triangular solve of their
-        rows, then a product updating the rows below them), the rest by the kernel, whose
-        columns are grouped GROUP at a time in the order of their first row in R: columns
-        that start close share most of their way to the root (for contacts: the nodes under
-        one instrument)."""
+        R is walked in order, by segments: a large supernode by BLAS (a triangular solve of its
+        rows, then a product updating the rows below it), the rows between two of them by the
+        kernel, whose columns are grouped GROUP at a time in the order of their first row in
+        R: columns that start close share most of their way to the root (for contacts: the
+        nodes under one instrument), so a segment's non-zero columns are mostly one range.
+        The BLAS calls and G's products take each segment's range of non-zero columns only;
+        G is summed over the segments, each as soon as its rows are final."""
         if sps.issparse(B):
             coo = B.tocoo()
             entries, col, data = coo.row, coo.col, coo.data.astype(np.float64, copy=False)
@@ -236,18 +239,35 @@ class LowerFactor:
         slot = np.empty(c, np.int64)
         slot[order] = np.arange(c)
         Y = np.zeros((r, groups * GROUP))
+        G = np.zeros((groups * GROUP, groups * GROUP)) if gram else None
         if r == 0:
-            return Y, reach, slot
+            return Y, reach, slot, G
         np.add.at(Y, (at, slot[col]), data)
         first_g = np.full(groups * GROUP, r, np.int64)
         first_g[slot] = first
         first_g = first_g.reshape(groups, GROUP).min(axis=1).astype(np.int32)
+        scaled = gram and self.sqrt_dinv is not None
         scale = self.sqrt_dinv[reach] if scaled else np.ones(r)
-        args = [self.Lp, self.Li, self.Lx, self.last, wp.array(reach, dtype=wp.int32, **host),
-                wp.array(pos, dtype=wp.int32, **host), wp.array(first_g, dtype=wp.int32, **host),
-                wp.array(scale, dtype=wp.float64, **host)]
-        Yw = wp.array(Y.reshape(r, groups, GROUP), dtype=vec_group, **host)
-        solve = wp.launch(forward_reach_kernel, groups, args + [0, r, Yw], device=_HOST, record_cmd=True)
+        dinv = None if scaled or not gram else self.dinv[reach]
+        solve = wp.launch(forward_reach_kernel, groups,
+                          [self.Lp, self.Li, self.Lx, self.last, wp.array(reach, dtype=wp.int32, **host),
+                           wp.array(pos, dtype=wp.int32, **host), wp.array(first_g, dtype=wp.int32, **host),
+                           wp.array(scale, dtype=wp.float64, **host), 0, r,
+                           wp.array(Y.reshape(r, groups, GROUP), dtype=vec_group, **host)],
+                          device=_HOST, record_cmd=True)
+
+        def kernel(k0, k1):
+            solve.set_param_at_index_from_ctype(8, k0)
+            solve.set_param_at_index_from_ctype(9, k1)
+            solve.launch()
+            product(k0, k1)
+
+        def product(k0, k1):  # G += Z^T Z on the final rows k0..k1-1, their non-zero columns
+            if gram:
+                lo, hi = _nonzero_columns(Y[k0:k1])
+                Z = Y[k0:k1, lo:hi]
+                G[lo:hi, lo:hi] += Z.T @ Z if dinv is None else Z.T @ (Z * dinv[k0:k1, None])  # syrk, not gemm
+
         done = 0
         for b in np.flatnonzero(pos[self.snode_last] >= 0):  # the large supernodes in R, in order
             sn = self.snodes[b]
@@ -255,41 +275,41 @@ class LowerFactor:
             a = int(np.argmax(inside >= 0))  # R holds the supernode's columns from j0 + a on
             k0, k1 = int(inside[a]), int(inside[-1]) + 1
             if k0 > done:
-                solve.set_param_at_index_from_ctype(8, done)
-                solve.set_param_at_index_from_ctype(9, k0)
-                solve.launch()
-            Ys = Y[k0:k1]
-            # Ys <- T^-1 Ys in place, as Ys^T <- Ys^T T^-T on its (Fortran-ordered) transpose
-            dtrsm(1.0, sn.T[a:, a:], Ys.T, side=1, lower=1, trans_a=1, diag=1, overwrite_b=1)
+                kernel(done, k0)
+            lo, hi = _nonzero_columns(Y[k0:k1])  # the other columns stay zero here and below
+            Ys = Y[k0:k1, lo:hi]
+            # Ys <- T^-1 Ys, as Ys^T <- Ys^T T^-T on its transpose (Fortran order)
+            Ys[:] = dtrsm(1.0, sn.T[a:, a:], Ys.T, side=1, lower=1, trans_a=1, diag=1).T
             if len(sn.rows):
-                Y[pos[sn.rows]] -= sn.below[:, a:] @ Ys
-            Ys *= scale[k0:k1, None]
+                Y[pos[sn.rows], lo:hi] -= sn.below[:, a:] @ Ys
+            Y[k0:k1] *= scale[k0:k1, None]
+            product(k0, k1)
             done = k1
         if done < r:
-            solve.set_param_at_index_from_ctype(8, done)
-            solve.set_param_at_index_from_ctype(9, r)
-            solve.launch()
-        return Y, reach, slot
+            kernel(done, r)
+        return Y, reach, slot, G
 
     def forward(self, B) -> np.ndarray:
         """Y^T = (L^-1 P B)^T, (c, n), for B (n, c) in the original numbering."""
         with one_thread():
-            Y, reach, slot = self._solve_reach(B, scaled=False)
+            Y, reach, slot, _ = self._solve_reach(B, gram=False)
         out = np.zeros((B.shape[1], self.n))
         out[:, reach] = Y[:, slot].T
         return out
 
     def quadratic(self, B) -> np.ndarray:
-        """B^T A^-1 B (c, c), symmetric, for B (n, c) dense or sparse: Z^T Z, Z = D^-1/2 L^-1 P B
-        on the union of the columns' reaches (a symmetric product), from the forward solves
-        alone."""
-        scaled = self.sqrt_dinv is not None
+        """B^T A^-1 B (c, c), symmetric, for B (n, c) dense or sparse: Y^T D^-1 Y, Y = L^-1 P B
+        on the union of the columns' reaches, from the forward solves alone."""
         with one_thread():
-            Y, reach, slot = self._solve_reach(B, scaled)
-            W = Y.T @ Y if scaled else Y.T @ (Y * self.dinv[reach, None])  # numpy: syrk for Y.T @ Y
-        W = W[np.ix_(slot, slot)]
+            _, _, slot, G = self._solve_reach(B, gram=True)
+        W = G[np.ix_(slot, slot)]
         return 0.5 * (W + W.T)
 
+
+def _nonzero_columns(Z: np.ndarray) -> tuple[int, int]:
+    """The range lo..hi-1 of the columns of Z that holds all its non-zero ones (0, 0: none)."""
+    nonzero = np.flatnonzero(Z.any(axis=0))
+    return (int(nonzero[0]), int(nonzero[-1]) + 1) if len(nonzero) else (0, 0)
 
 def rotate_columns(B, dR=None, nodes=None, n_nodes=None) -> sps.coo_matrix:
     """Sparse constraint columns B (3n, c; dense or sparse) node by node into a factor's frame:

@@ -10,14 +10,22 @@ Only the forward solve is needed, not the backward one: half the work of the m f
 of P^-1 H^T. And a contact column has at most 12 non-zeros (one to four nodes, three DOFs
 each), so its forward solve only touches the rows on the paths from those rows to the root
 of the elimination tree (its reach; L_ij != 0, i > j, makes i an ancestor of j). The block is
-solved on the union R of its columns' reaches alone, compacted: Z is dense (|R|, c), the
-rows outside R are zero, and W = Z^T Z is one symmetric rank-|R| product (BLAS syrk).
+solved on the union R of its columns' reaches alone, compacted: Z is dense (|R|, c) and the
+rows outside R are zero. B stays sparse until then.
 
-Why our own kernel: CHOLMOD solves a sparse right-hand side by its reach only for a single
+The solve goes up R by supernodes (columns of L that share their pattern below, found once
+per factor). Near the root they are large and dense (the separators: most of the work), and
+BLAS solves them for all columns at once, a triangular solve and a product for the rows
+below. The small ones, near the leaves, go to a Warp kernel that follows each group of
+columns' own reach. W = Z^T Z is summed segment by segment (symmetric products), each on the
+range of columns not zero there. All of it on one BLAS thread (:mod:`soft_tissue_sim.
+blas_threads`), beside the background factorization.
+
+Why not CHOLMOD's solves: it solves a sparse right-hand side by its reach only for a single
 column (``cholmod_solve2`` with ``Bset``), which scikit-sparse 0.4 does not expose; its
-solves of a block walk all n rows, and scipy's ``spsolve_triangular`` takes dense
-right-hand sides. The kernels run on Warp's CPU backend next to the host factor. On a GPU
-the dense backend gathers W from its inverse instead (:mod:`soft_tissue_sim.dense_inverse`).
+solves of a block (``solve_L``, dense or sparse) walk all n rows of the simplicial factor,
+and scipy's ``spsolve_triangular`` takes dense right-hand sides. On a GPU the dense backend
+gathers W from its inverse instead (:mod:`soft_tissue_sim.dense_inverse`).
 
 The displacement correction dx = P^-1 H^T lambda needs one full solve, of one column.
 """

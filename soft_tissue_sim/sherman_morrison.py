@@ -333,6 +333,9 @@ class ShermanMorrisonCorrection:
         a dense block, on the node blocks B touches only."""
         from .delassus import rotate_columns
 
+        n_cur = len(self.ext_uids) if self.cur_to_ext is None else len(self.cur_to_ext)
+        if B.shape[0] != 3 * n_cur:
+            raise ValueError(f"the corrected preconditioner is for {3 * n_cur} DOFs, got a block of {B.shape[0]} rows")
         return rotate_columns(B, self.dR, self.cur_to_ext, len(self.ext_uids))
 
     def perturbation_nodes(self) -> int:

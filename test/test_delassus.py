@@ -267,6 +267,8 @@ def test_delassus_equals_the_dense_inverse_after_cuts():
         res3 = sim.remove_elements(sim.positions()[-1], 0.012)
         assert res3.changed and res3.nodes_removed > 0
         check(True)
+        with pytest.raises(ValueError, match="DOFs"):  # a block for another numbering
+            inner.delassus(sps.csc_matrix(constraint_columns(rng, sim.fem.n_nodes + 1, 3)))
 
 
 def test_one_blas_thread_inside_the_block_and_the_number_restored():

@@ -121,14 +121,19 @@ SNODE_BLAS = 24  # supernodes of at least this many columns are solved by BLAS, 
 
 @dataclass
 class Supernode:
-    """A supernode of L solved densely: columns j0..j0+s-1 (permuted numbering), ``T`` (s, s)
-    its unit lower triangle (Fortran order, for trsm), ``below`` (m, s) its rows ``rows``
-    (m,) below the triangle, the same for all its columns."""
+    """A supernode of L solved densely: columns j0..j0+s-1 (permuted numbering) and ``rows``
+    (m,), the rows below them (the same for all). ``block`` (s, s + m) holds column j0 + t of
+    L in row t: its unit diagonal at t, then its entries (rows j0+t+1..j0+s-1, then
+    ``rows``); zeros before. So block[:, :s] is the transpose of the unit lower triangle and
+    block[:, s:] that of the rows below."""
 
     j0: int
-    T: np.ndarray
-    below: np.ndarray
+    block: np.ndarray
     rows: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return self.block.shape[0]
 
 
 @dataclass
@@ -150,7 +155,7 @@ class LowerFactor:
         self.iperm[self.perm] = np.arange(len(self.perm))  # original DOF -> permuted row
         # Z = D^-1/2 Y where D > 0 (A positive definite); else Y and the signed D^-1 in the product
         self.sqrt_dinv = np.sqrt(self.dinv) if np.all(self.dinv > 0.0) else None
-        self.snode_last = np.array([sn.j0 + len(sn.T) - 1 for sn in self.snodes], np.int64)
+        self.snode_last = np.array([sn.j0 + sn.size - 1 for sn in self.snodes], np.int64)
 
     @property
     def n(self) -> int:
@@ -179,7 +184,7 @@ class LowerFactor:
         ends = np.flatnonzero(np.append((parent[:-1] != np.arange(1, n)) | (count[:-1] != count[1:] + 1), True))
         starts = np.concatenate([[0], ends[:-1] + 1])
         last = np.repeat(ends, ends - starts + 1).astype(np.int32)
-        snodes = [cls._supernode(Lp, Li, Lx, int(a), int(b)) for a, b in zip(starts, ends) if b - a + 1 >= SNODE_BLAS]
+        snodes = cls._supernodes(Lp, Li, Lx, starts, ends)
         host = dict(device=_HOST, copy=False)  # Warp uses these new arrays in place
         return cls(np.asarray(factor.P(), np.int64), wp.array(Lp, dtype=wp.int32, **host),
                    wp.array(Li, dtype=wp.int32, **host), wp.array(Lx, dtype=wp.float64, **host),
@@ -187,19 +192,22 @@ class LowerFactor:
                    wp.array(last, dtype=wp.int32, **host), snodes)
 
     @staticmethod
-    def _supernode(Lp, Li, Lx, a, b) -> Supernode:
-        """The dense blocks of the supernode of columns a..b: column a + t holds rows
-        a+t+1..b, then the rows below, entries Lp[a+t]...; as a trapezoid (s + m, s)."""
-        s = b - a + 1
-        m = Lp[b + 1] - Lp[b]
-        block = np.zeros((s + m, s))
-        lengths = np.diff(Lp[a:b + 2])  # s - 1 - t + m for column a + t
-        t = np.repeat(np.arange(s), lengths)
-        within = np.arange(Lp[b + 1] - Lp[a]) - np.repeat(Lp[a:b + 1] - Lp[a], lengths)
-        block[t + 1 + within, t] = Lx[Lp[a]:Lp[b + 1]]
-        block[np.arange(s), np.arange(s)] = 1.0
-        return Supernode(a, np.asfortranarray(block[:s]), np.ascontiguousarray(block[s:]),
-                         Li[Lp[b]:Lp[b + 1]].astype(np.int64))
+    def _supernodes(Lp, Li, Lx, starts, ends) -> list:
+        """The supernodes of columns starts[i]..ends[i] of at least SNODE_BLAS columns and their
+        blocks (:class:`Supernode`). Row t of a block from place t + 1 on is column a + t's
+        entries, so the strict upper part of the block, read row by row, is the supernode's
+        entries of L as CHOLMOD stores them (its columns one after the other)."""
+        out = []
+        for a, e in zip(starts, ends):
+            s = int(e - a + 1)
+            if s < SNODE_BLAS:
+                continue
+            width = s + int(Lp[e + 1] - Lp[e])
+            block = np.zeros((s, width))
+            block[~np.tri(s, width, 0, dtype=bool)] = Lx[Lp[a]:Lp[e + 1]]
+            block[np.arange(s), np.arange(s)] = 1.0
+            out.append(Supernode(int(a), block, Li[Lp[e]:Lp[e + 1]].astype(np.int64)))
+        return out
 
     def _solve_reach(self, B, gram: bool):
         """Forward solves of the columns of B (n, c; dense or sparse, original numbering) on
@@ -286,10 +294,11 @@ class LowerFactor:
                 kernel(done, k0)
             lo, hi = _nonzero_columns(Y[k0:k1])  # the other columns stay zero here and below
             Ys = Y[k0:k1, lo:hi]
-            # Ys <- T^-1 Ys, as Ys^T <- Ys^T T^-T on its transpose (Fortran order)
-            Ys[:] = dtrsm(1.0, sn.T[a:, a:], Ys.T, side=1, lower=1, trans_a=1, diag=1).T
+            # Ys <- T^-1 Ys, as Ys^T <- Ys^T T^-T on its transpose (Fortran order); T^T is C-ordered
+            s = sn.size
+            Ys[:] = dtrsm(1.0, sn.block[a:, a:s].T, Ys.T, side=1, lower=1, trans_a=1, diag=1).T
             if len(sn.rows):
-                Y[pos[sn.rows], lo:hi] -= sn.below[:, a:] @ Ys
+                Y[pos[sn.rows], lo:hi] -= sn.block[a:, s:].T @ Ys
             Y[k0:k1] *= scale[k0:k1, None]
             product(k0, k1)
             done = k1

@@ -246,7 +246,7 @@ def _serve(conn, mode, ordering, want_lower):
             elif msg[0] == "solve":
                 conn.send(("solved", factor(msg[1])))
             else:  # ("quadratic", B sparse)
-                conn.send(("quadratic", lower.quadratic(msg[1].toarray())))
+                conn.send(("quadratic", lower.quadratic(msg[1])))
         except Exception as exc:  # noqa: BLE001 - sent back, the caller reports it
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
 
@@ -317,7 +317,7 @@ class RemoteFactor:
         return self.worker.ask("solve", np.ascontiguousarray(B, dtype=np.float64))
 
     def quadratic(self, B):
-        return self.worker.ask("quadratic", sps.csc_matrix(np.asarray(B, dtype=np.float64)))
+        return self.worker.ask("quadratic", sps.csc_matrix(B, dtype=np.float64))
 
 
 class _Processes:
@@ -568,14 +568,16 @@ class AsyncLDLTPreconditioner:
         preconditioner keeps no host L (``lower_factor`` off): use :meth:`apply_columns`."""
         if self.lower is None:
             return None
-        B = B.toarray() if sps.issparse(B) else np.asarray(B, dtype=np.float64)
+        from .delassus import rotate_columns
+
+        B = sps.coo_matrix(B)  # a contact column touches 1 to 4 nodes: kept sparse throughout
         if self.correction is not None and self.correction.active:
             return self.correction.delassus(B, self.lower)
         if self.R_tu is None or 3 * len(self.R_tu) != B.shape[0]:
             raise ValueError(f"preconditioner is for {3 * (0 if self.R_tu is None else len(self.R_tu))} DOFs, "
                              f"got a block of {B.shape[0]} rows: invalidate() after a size change")
         if self.dR is not None:
-            B = rotate_nodes(self.dR, B, transpose=True)
+            B = rotate_columns(B, self.dR)
         return self.lower.quadratic(B)
 
     def invalidate(self) -> None:

@@ -44,7 +44,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sps
 
+from .blas_threads import one_thread
 from .ldlt_preconditioner import rotate_nodes
 
 
@@ -306,22 +308,35 @@ class ShermanMorrisonCorrection:
         X = X.reshape(n_ext, 3, c)
         out[:] = (X if self.cur_to_ext is None else X[self.cur_to_ext]).reshape(-1, c)
 
-    def delassus(self, B: np.ndarray, lower) -> np.ndarray:
-        """B^T P~^-1 B for constraint columns B (3n, c) in the current numbering (eq. 11-12):
-        W^a from the factor's forward solves (``lower``: a :class:`soft_tissue_sim.delassus.
-        LowerFactor` of the installed factor), plus the identity padding of added DOFs (eq. 12),
-        minus the corrections W^c = sum (U^T B)^T Q (U^T B), the rotations around all (eq. 8)."""
-        Be = self._to_ext(np.asarray(B, dtype=np.float64))
+    def delassus(self, B, lower) -> np.ndarray:
+        """B^T P~^-1 B for constraint columns B (3n, c; dense or sparse) in the current numbering
+        (eq. 11-12): W^a from the factor's forward solves (``lower``: a :class:`soft_tissue_sim.
+        delassus.LowerFactor` of the installed factor), plus the identity padding of added DOFs
+        (eq. 12), minus the corrections W^c = sum (U^T B)^T Q (U^T B), the rotations around all
+        (eq. 8). B stays sparse: a constraint column touches a few DOFs."""
+        Be = self._to_ext_sparse(B)
         nf3 = 3 * self.n_factor
-        W = lower.quadratic(Be[:nf3])
-        Ba = Be[nf3:]
-        W += Ba.T @ Ba
-        rows = np.flatnonzero(np.any(Be != 0.0, axis=1))  # a constraint column touches a few DOFs
-        for U, Q, _ in self.terms:
-            r = rows[rows < U.shape[0]]
-            V = U[r].T @ Be[r]  # U^T B (3k, c)
-            W -= V.T @ (Q @ V)
+        c = Be.shape[1]
+        inside = Be.row < nf3
+        W = lower.quadratic(sps.coo_matrix((Be.data[inside], (Be.row[inside], Be.col[inside])), shape=(nf3, c)))
+        Ba = sps.csr_matrix((Be.data[~inside], (Be.col[~inside], Be.row[~inside] - nf3)), shape=(c, Be.shape[0] - nf3))
+        W += (Ba @ Ba.T).toarray()
+        with one_thread():
+            for U, Q, _ in self.terms:
+                m = Be.row < U.shape[0]  # U's rows: the DOFs of its time, later ones are zero
+                Vt = sps.csr_matrix((Be.data[m], (Be.col[m], Be.row[m])), shape=(c, U.shape[0])) @ U  # (U^T B)^T
+                W -= Vt @ (Q @ Vt.T)
         return 0.5 * (W + W.T)
+
+    def _to_ext_sparse(self, B) -> sps.coo_matrix:
+        """D^T B in the extended numbering (3 n_ext, c), sparse: what :meth:`_to_ext` does for
+        a dense block, on the node blocks B touches only."""
+        from .delassus import rotate_columns
+
+        n_cur = len(self.ext_uids) if self.cur_to_ext is None else len(self.cur_to_ext)
+        if B.shape[0] != 3 * n_cur:
+            raise ValueError(f"the corrected preconditioner is for {3 * n_cur} DOFs, got a block of {B.shape[0]} rows")
+        return rotate_columns(B, self.dR, self.cur_to_ext, len(self.ext_uids))
 
     def perturbation_nodes(self) -> int:
         """Nodes of the perturbation N = G^T (P~ - P) G against the factor in use (eq. 5): every

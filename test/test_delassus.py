@@ -5,12 +5,12 @@ import pytest
 import scipy.sparse as sps
 from sksparse.cholmod import analyze
 
-from soft_tissue_sim import load_scene
-from soft_tissue_sim.delassus import GROUP, LowerFactor
+from soft_tissue_sim import blas_threads, delassus, load_scene
+from soft_tissue_sim.delassus import GROUP, LowerFactor, rotate_columns
 from soft_tissue_sim.device_preconditioner import constraint_rows
-from soft_tissue_sim.ldlt_preconditioner import _drop_decoupled
+from soft_tissue_sim.ldlt_preconditioner import _drop_decoupled, rotate_nodes
 
-from test_cutting import beam_scene, lengthwise
+from test_cutting import beam_scene, crosswise, lengthwise
 
 
 def constraint_columns(rng, n_nodes, m, nodes=None):
@@ -49,10 +49,12 @@ def test_quadratic_form_of_the_forward_solves_equals_the_full_solves(mode):
     B[:, 7] = 0.0  # a column that touches nothing
     ref = B.T @ f(B)
     lower = LowerFactor.from_cholmod(f)  # a supernodal factor turns simplicial, its solves keep working
+    assert len(lower.snodes) > 0  # the top separator by BLAS, the rest by the kernel
     W = lower.quadratic(B)
     assert np.abs(W - ref).max() <= 1e-12 * np.abs(ref).max()
     np.testing.assert_array_equal(W, W.T)
     assert np.all(W[7] == 0.0)
+    np.testing.assert_allclose(lower.quadratic(sps.csc_matrix(B)), W, rtol=0, atol=1e-14 * np.abs(ref).max())
     Yt = lower.forward(B)  # L^-1 P B itself, row by row
     Lref = f.solve_L(f.apply_P(B), use_LDLt_decomposition=True)
     assert np.abs(Yt.T - Lref).max() <= 1e-12 * np.abs(Lref).max()
@@ -146,3 +148,148 @@ def test_dense_delassus_equals_its_columns_rotated_and_corrected():
         check()
         with pytest.raises(ValueError, match="more than 4 nodes"):
             pre.delassus(np.ones((3 * sim.fem.n_nodes, 1)))
+
+
+def dense_reference(A, B):
+    """B^T A^-1 B by a dense solve."""
+    return B.T @ np.linalg.solve(A.toarray() if sps.issparse(A) else A, B)
+
+
+@pytest.mark.parametrize("blas_from", [2, 10**9])
+def test_kernel_and_blas_supernodes_give_the_dense_inverse(monkeypatch, blas_from):
+    """W by the kernel alone (no supernode large enough for BLAS) and with BLAS on nearly
+    every supernode: both B^T A^-1 B of the dense inverse, whatever the columns (one to 4
+    nodes, several in the same place, a column given twice, an empty one)."""
+    monkeypatch.setattr(delassus, "SNODE_BLAS", blas_from)
+    rng = np.random.default_rng(3)
+    A, n = beam_matrix()
+    f = analyze(A, mode="simplicial")
+    f.cholesky_inplace(A)
+    lower = LowerFactor.from_cholmod(f)
+    assert (len(lower.snodes) == 0) == (blas_from > n)
+    for m in (1, 3, GROUP, 3 * GROUP + 1):
+        B = constraint_columns(rng, n, m, nodes=rng.choice(n, max(4, m // 3), replace=False))
+        if m > 3:
+            B[:, 1] = B[:, 0]
+            B[:, 2] = 0.0
+        ref = dense_reference(A, B)
+        W = lower.quadratic(sps.coo_matrix(B))
+        assert np.abs(W - ref).max() <= 1e-10 * np.abs(ref).max()
+        np.testing.assert_array_equal(W, W.T)
+
+
+def test_a_factor_with_negative_pivots_gives_its_own_inverse():
+    """An LDL^T with some D < 0 (an indefinite matrix): no D^-1/2, the signed D^-1 instead;
+    W is still B^T (P^T L D L^T P)^-1 B."""
+    rng = np.random.default_rng(4)
+    A, n = beam_matrix()
+    f = analyze(A, mode="simplicial")
+    f.cholesky_inplace(A)
+    LD = f.LD().tocsc()
+    first = LD.indptr[:-1]
+    LD.data[first[::7]] *= -1.0  # flip some pivots
+
+    class Factor:
+        def LD(self):
+            return LD.copy()
+
+        def P(self):
+            return f.P()
+
+    lower = LowerFactor.from_cholmod(Factor())
+    assert lower.sqrt_dinv is None
+    L = sps.tril(LD, -1).tocsc() + sps.eye(3 * n)
+    Ap = (L @ sps.diags(LD.diagonal()) @ L.T).toarray()  # the permuted matrix
+    inv_p = np.empty_like(f.P())
+    inv_p[f.P()] = np.arange(3 * n)
+    A_neg = Ap[np.ix_(inv_p, inv_p)]
+    B = constraint_columns(rng, n, 2 * GROUP + 3)
+    ref = dense_reference(A_neg, B)
+    W = lower.quadratic(B)
+    assert np.abs(W - ref).max() <= 1e-10 * np.abs(ref).max()
+
+
+def test_rotate_columns_equals_the_dense_rotation():
+    """The sparse rotation of constraint columns into a factor's frame (node map and dR^T)
+    equals the dense one of the preconditioner (rotate_nodes on the scattered block)."""
+    rng = np.random.default_rng(6)
+    n, n_ext = 30, 41
+    B = constraint_columns(rng, n, 12)
+    q = rng.standard_normal((n_ext, 3, 3))
+    dR = np.linalg.qr(q)[0]
+    nodes = rng.choice(n_ext, n, replace=False)
+    Be = np.zeros((n_ext, 3, 12))
+    Be[nodes] = B.reshape(n, 3, 12)
+    ref = rotate_nodes(dR, Be.reshape(-1, 12), transpose=True)
+    out = rotate_columns(sps.csc_matrix(B), dR, nodes, n_ext)
+    assert out.shape == (3 * n_ext, 12)
+    np.testing.assert_allclose(out.toarray(), ref, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(rotate_columns(B).toarray(), B, rtol=0, atol=0)
+
+
+def test_delassus_equals_the_dense_inverse_after_cuts():
+    """inner.delassus(H^T) = H A^-1 H^T of the dense inverse of the current A: with the factor
+    just made, then after a cut that splits nodes, a second cut (two chained corrections) and
+    an element removal (nodes vanish): the corrected factor is the new A's (eq. 5-12; not
+    rotated, as in test_cutting's exactness test), and W follows it, on random column sets of
+    several sizes (the kernel's groups, BLAS's supernodes)."""
+    rng = np.random.default_rng(8)
+    cfg = beam_scene(n_long=10, n_cross=3, rotate=False)
+    cfg["obstacles"] = [{"type": "plane", "point": [0, 0, -1.0], "normal": [0, 0, 1]}]  # contact: far below
+    with load_scene(cfg) as sim:
+        integ, pre = sim.integrator, sim.preconditioner
+        inner = pre.inner
+        for _ in range(3):
+            sim.step()
+        sim.fem.update_rotations(integ.x)
+        pre.refresh(integ)
+        assert inner.lower is not None and len(inner.lower.snodes) > 0
+
+        def check(corrected):
+            sim.fem.update_rotations(integ.x)
+            pre.begin_step(integ)
+            assert (inner.correction is not None and inner.correction.active) == corrected
+            A = sim.fem.assemble_scipy(integ.m_coef, integ.k_coef)
+            n = sim.fem.n_nodes
+            for m in (1, 7, 2 * GROUP + 5, 70):
+                B = constraint_columns(rng, n, m)
+                ref = dense_reference(A, B)
+                W = inner.delassus(sps.csc_matrix(B))
+                assert np.abs(W - ref).max() <= 1e-10 * np.abs(ref).max()
+
+        check(False)
+        res = lengthwise(sim, 0.035, 0.08)
+        assert res.changed and res.nodes_added > 0
+        check(True)
+        assert crosswise(sim, 0.055).changed
+        assert len(inner.correction.terms) == 2
+        check(True)
+        res3 = sim.remove_elements(sim.positions()[-1], 0.012)
+        assert res3.changed and res3.nodes_removed > 0
+        check(True)
+        with pytest.raises(ValueError, match="DOFs"):  # a block for another numbering
+            inner.delassus(sps.csc_matrix(constraint_columns(rng, sim.fem.n_nodes + 1, 3)))
+
+
+def test_one_blas_thread_inside_the_block_and_the_number_restored():
+    if not blas_threads.available():
+        pytest.skip("no OpenBLAS with openblas_set_num_threads_local loaded")
+    setters = blas_threads._find_setters()
+
+    def numbers():
+        now = [f(1) for f in setters]  # each returns the number it had
+        for f, k in zip(setters, now):
+            f(k)
+        return now
+
+    before = numbers()
+    for f in setters:
+        f(2)
+    with blas_threads.one_thread():
+        assert numbers() == [1] * len(setters)
+        with blas_threads.one_thread():  # nested (or another thread's): the outer one restores
+            pass
+        assert numbers() == [1] * len(setters)
+    assert numbers() == [2] * len(setters)
+    for f, n in zip(setters, before):
+        f(n)

@@ -35,7 +35,9 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
                     worker: thread,               # cholmod: thread | process (two factorization processes)
                     release_gil: true},           # cholmod: simplicial factorization with the GIL released
              graph: auto,                         # auto (on CUDA with a device factor) | true | false
-             stream_priority: high}               # CUDA: the simulation's stream ahead of the factor's | default
+             stream_priority: high,               # CUDA: the simulation's stream ahead of the factor's | default
+             blas_threads: one}                   # one: a step's host BLAS on one thread (beside the
+                                                  #   factorization) | default: the libraries' own
 
 ``graph`` captures the PCG solve as a CUDA graph (Warp's API capture on the CPU) replayed each
 step, with every scalar on the device (cg.DevicePCG); it needs a preconditioner that applies on
@@ -44,6 +46,7 @@ the device (none, jacobi, or a dense factor; cuDSS's solve is not capturable).
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import time
@@ -57,6 +60,7 @@ import warp as wp
 import yaml
 
 from . import mesh as mesh_mod
+from .blas_threads import one_thread
 from .body import BodyView
 from .cg import DevicePCG
 from .corotational_fem import CorotationalFEM
@@ -228,6 +232,10 @@ class Simulation:
         priority = str(solver.get("stream_priority", "high"))
         if priority not in ("high", "default"):
             raise ParameterError(f"solver stream_priority must be high or default, got {priority!r}")
+        blas = str(solver.get("blas_threads", "one"))
+        if blas not in ("one", "default"):
+            raise ParameterError(f"solver blas_threads must be one or default, got {blas!r}")
+        self._blas_scope = one_thread if blas == "one" else contextlib.nullcontext
         self.stream = None
         if wp.get_device(self.device).is_cuda and priority == "high":
             # the step's kernels go ahead of a factorization running beside them on another stream
@@ -468,6 +476,10 @@ class Simulation:
     def step(self) -> StepStats:
         if self._closed:
             raise RuntimeError("simulation is closed")
+        with self._blas_scope():  # OpenBLAS spinning on every core slows the step and the factorization
+            return self._step()
+
+    def _step(self) -> StepStats:
         stats, ok = self._free_motion()
         if not ok:
             self.last_stats = stats

@@ -254,3 +254,27 @@ def test_a_step_that_keeps_failing_keeps_the_last_good_state():
         assert not s.converged and s.extra["remedy"].startswith("none")
         np.testing.assert_array_equal(sim.positions(), x_good)
         assert sim.step_count == n_good and sim.integrator.dt == 0.01
+
+
+def test_a_step_runs_its_host_blas_on_one_thread_unless_told_otherwise(monkeypatch):
+    """``solver.blas_threads``: one (default) holds the one-thread BLAS scope during the step
+    and leaves it after; default does not enter it; anything else is refused."""
+    from soft_tissue_sim import blas_threads, load_scene
+    from soft_tissue_sim.material import ParameterError
+    from soft_tissue_sim.scene import Simulation
+
+    seen = []
+    real = Simulation._free_motion
+
+    def spy(self):
+        seen.append(blas_threads._inside)
+        return real(self)
+
+    monkeypatch.setattr(Simulation, "_free_motion", spy)
+    for mode, inside in (("one", 1), ("default", 0)):
+        with load_scene("test_small.yaml", overrides={"solver": {"blas_threads": mode}}) as sim:
+            seen.clear()
+            sim.step()
+            assert seen == [inside] and blas_threads._inside == 0
+    with pytest.raises(ParameterError, match="blas_threads"):
+        load_scene("test_small.yaml", overrides={"solver": {"blas_threads": 2}})

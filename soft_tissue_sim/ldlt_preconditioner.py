@@ -4,9 +4,12 @@ A background worker factorizes A(t_u) with CHOLMOD while the simulation
 goes on with the last factor; the factor is applied rotated by the per-node rotations
 between now and t_u:  P^-1 r = dR (LDL^T)^-1 dR^T r,  dR_n = R_n(t) R_n(t_u)^T.
 
-The snapshot (assembly of A and the nodal rotations) is taken on the caller's thread;
-only the factorization runs in the worker. The symbolic analysis is reused while the
-sparsity pattern is unchanged.
+The snapshot (what A depends on, and the nodal rotations) is taken on the caller's thread;
+A is assembled and factorized in the worker. ``snapshot_fn`` gives A as a scipy sparse
+matrix, or as an object with a ``csc()`` method that assembles it (an
+:class:`~soft_tissue_sim.host_assembly.AssemblyState`: copies of the element rotations, the
+topology and the coefficients, assembled with NumPy alone): then the caller's thread only
+copies. The symbolic analysis is reused while the sparsity pattern is unchanged.
 
 Two workers (``worker``):
 
@@ -106,6 +109,8 @@ def _drop_decoupled(A: sps.csc_matrix) -> sps.csc_matrix:
 
 
 def _factorize(state, A):
+    if hasattr(A, "csc"):  # a frozen state: assembled here, in the worker
+        A = A.csc()
     A = sps.csc_matrix(A)
     A.sort_indices()
     if A.shape[0] == A.shape[1]:
@@ -459,7 +464,7 @@ class AsyncLDLTPreconditioner:
 
     # -------------------------------------------------------------- worker
     def _snapshot(self, step):
-        snap = self.snapshot_fn()  # (A, R) or (A, R, meta); meta: node uids and mesh version
+        snap = self.snapshot_fn()  # (A, R) or (A, R, meta); A: sparse or with csc(); meta: node uids and mesh version
         A, R = snap[0], snap[1]
         meta = dict(snap[2]) if len(snap) > 2 else {}
         return {"A": A, "R": np.array(R, dtype=np.float64, copy=True), "step": step, "t0": time.perf_counter(),

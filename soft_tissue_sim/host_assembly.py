@@ -66,7 +66,7 @@ class ScatterMap:
         indptr[1:] = np.cumsum(np.repeat(3 * count, 3))
         target = place[inv.ravel()]  # (16 m + n, 3, 3)
         elem = target[: 16 * m].reshape(m, 4, 4, 3, 3).transpose(1, 2, 3, 4, 0)  # the order of entries()
-        target = np.concatenate([elem.ravel(), target[16 * m:].ravel()]).astype(np.intp)
+        target = np.concatenate([elem.ravel(), target[16 * m:].ravel()]).astype(np.int32)
         return cls(n, tets, indptr, indices, target)
 
     def matches(self, n: int, tets: np.ndarray) -> bool:
@@ -74,7 +74,7 @@ class ScatterMap:
 
 
 _CACHE: list[ScatterMap] = []  # the most recently used first
-_CACHE_SIZE = 4
+_CACHE_SIZE = 2  # the topology in use and the one before it (a snapshot taken before a cut)
 _CACHE_LOCK = threading.Lock()
 
 

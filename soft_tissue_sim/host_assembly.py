@@ -8,19 +8,24 @@ thread copies those (:class:`AssemblyState`, made by
 scipy CSC matrix from them (:meth:`AssemblyState.csc`) with NumPy only, no Warp launch, so
 any thread or process may call it.
 
-The element blocks (same formula as ``element_block`` in :mod:`corotational_fem`), with the
+The element blocks (the formula of ``element_block`` in :mod:`corotational_fem`), with the
 rotated gradients h_k = R_e g_k:
 
     A_ij += k_coef V (mu (g_i . g_j) I + mu h_j h_i^T + lam h_i h_j^T) + mass_ij I,
     mass_ij = m_coef rho V (1 + d_ij) / 20 (consistent)  or  m_coef rho V d_ij / 4 (lumped),
 
 each multiplied by free_i free_j (fixed nodes filtered out), and the identity on the diagonal
-block of each fixed node. The pattern is that of the Warp BSR assembly: every 3x3 block of
-every element pair (i, j) and every diagonal block, stored in full (zeros kept), columns
-sorted. It depends on the topology alone, so it is found once per topology
-(:class:`ScatterMap`: the CSC pattern and, for each entry of the element blocks, its place in
-the CSC data) and kept in a small cache; each assembly is then the blocks and one ``bincount``
-that sums them into place.
+block of each fixed node. Element block (j, i) is block (i, j) transposed, so only the entries
+a <= b of each block are computed; entry (b, a) of block (I, J) is entry (a, b) of block (J, I).
+
+The pattern holds every 3x3 block between two free nodes of one element and every diagonal
+block of a free node, in full, and the three diagonal entries of a fixed node: the pattern of
+the Warp assembly less the stored zeros that couple the decoupled rows of fixed nodes (what
+:func:`soft_tissue_sim.ldlt_preconditioner._drop_decoupled` removes). It depends on the
+topology and the fixed nodes alone, so it is found once for them (:class:`ScatterMap`: the CSC
+pattern, the block of each element pair, where each block entry lands) and kept in a small
+cache; each assembly is then, for each entry (a, b), the element entries and one ``bincount``
+that sums them per block, and one scatter into the CSC data.
 """
 
 from __future__ import annotations
@@ -32,45 +37,64 @@ import numpy as np
 import scipy.sparse as sps
 
 
+UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the entries (a, b), a <= b, of a 3x3 block
+
+
 @dataclass
 class ScatterMap:
-    """The CSC pattern of A for one topology (n nodes, tets (m, 4)) and where each entry of
-    :meth:`AssemblyState.entries` lands in its data: ``data = bincount(target, entries)``."""
+    """The CSC pattern of A for one topology (n nodes, tets (m, 4), the fixed nodes) and how the
+    element entries reach its data. Blocks are numbered in CSC order (by column J, then row I);
+    number ``nblocks`` is a sink for the element pairs outside the pattern (a fixed node)."""
 
     n: int
     tets: np.ndarray
+    fixed: np.ndarray  # (n,) bool
     indptr: np.ndarray
     indices: np.ndarray
-    target: np.ndarray
+    pair_block: np.ndarray  # (16 m,): the block of element pair (i, j, e), in that order
+    transpose: np.ndarray  # (nblocks + 1,): the block (J, I) of block (I, J); the sink's is the sink
+    diag: np.ndarray  # (n,): the block (i, i)
+    place: np.ndarray  # (9, nblocks + 1): where entry (a, b) of each block lands in the data; nnz: nowhere
+
+    @property
+    def nblocks(self) -> int:
+        return len(self.transpose) - 1
 
     @classmethod
-    def build(cls, n: int, tets: np.ndarray) -> "ScatterMap":
+    def build(cls, n: int, tets: np.ndarray, fixed: np.ndarray) -> "ScatterMap":
         tets = np.array(tets, dtype=np.int64)
-        m = len(tets)
-        # block (I, J) of each element pair (e, i, j), then each diagonal block; sorted by column, then row
-        bi = np.concatenate([np.repeat(tets, 4, axis=1).ravel(), np.arange(n)])
-        bj = np.concatenate([np.tile(tets, (1, 4)).ravel(), np.arange(n)])
-        blocks, inv = np.unique(bj * n + bi, return_inverse=True)
+        fixed = np.array(fixed, dtype=bool)
+        bi = np.concatenate([np.repeat(tets.T, 4, axis=0).ravel(), np.arange(n)])  # pairs (i, j, e), then (k, k)
+        bj = np.concatenate([np.tile(tets.T, (4, 1)).ravel(), np.arange(n)])
+        keep = (bi == bj) | ~(fixed[bi] | fixed[bj])
+        blocks, inv = np.unique((bj * n + bi)[keep], return_inverse=True)
+        nb = len(blocks)
+        block = np.full(len(bi), nb, dtype=np.int64)
+        block[keep] = inv.ravel()
         col_b, row_b = np.divmod(blocks, n)
-        count = np.bincount(col_b, minlength=n)  # blocks per block column
-        start = np.concatenate([[0], np.cumsum(count)])[col_b]  # first block of the block's column
-        # column 3J+b holds the rows 3I+a of the blocks of block column J, in order: entry (a, b)
-        # of a block at 9 start + 3 count b + 3 rank + a, rank = its place in its block column
-        base = 9 * start + 3 * (np.arange(len(blocks)) - start)
-        stride = 3 * count[col_b]
-        a = np.arange(3)
-        place = base[:, None, None] + a[:, None] + stride[:, None, None] * a  # (blocks, a, b)
-        indices = np.empty(9 * len(blocks), dtype=np.int32)
-        indices[place.ravel()] = np.repeat(3 * row_b, 9) + np.tile(np.repeat(a, 3), len(blocks))
-        indptr = np.zeros(3 * n + 1, dtype=np.int32)
-        indptr[1:] = np.cumsum(np.repeat(3 * count, 3))
-        target = place[inv.ravel()]  # (16 m + n, 3, 3)
-        elem = target[: 16 * m].reshape(m, 4, 4, 3, 3).transpose(1, 2, 3, 4, 0)  # the order of entries()
-        target = np.concatenate([elem.ravel(), target[16 * m:].ravel()]).astype(np.int32)
-        return cls(n, tets, indptr, indices, target)
+        transpose = np.append(np.searchsorted(blocks, row_b * n + col_b), nb)
+        # CSC: column 3J + b holds entry (a, b) of the blocks of block column J in block order,
+        # rows 3I + a: 3 count_J entries, at 3 rank + a; a fixed J has its diagonal entry alone
+        count = np.bincount(col_b, minlength=n)
+        free_col = ~fixed
+        length = np.repeat(np.where(free_col, 3 * count, 1), 3)
+        indptr = np.zeros(3 * n + 1, dtype=np.int64)
+        np.cumsum(length, out=indptr[1:])
+        nnz = int(indptr[-1])
+        rank = np.arange(nb) - np.concatenate([[0], np.cumsum(count)])[col_b]
+        a, b = np.divmod(np.arange(9), 3)
+        place = indptr[3 * col_b[None, :] + b[:, None]] + np.where(free_col[col_b][None, :],
+                                                                  3 * rank[None, :] + a[:, None], 0)
+        place[(a != b)[:, None] & fixed[col_b][None, :]] = nnz  # a fixed node: its diagonal alone
+        place = np.concatenate([place, np.full((9, 1), nnz)], axis=1)  # the sink
+        indices = np.empty(nnz + 1, dtype=np.int32)
+        indices[place[:, :nb]] = 3 * row_b[None, :] + a[:, None]
+        return cls(n, tets, fixed, indptr.astype(np.int32), indices[:nnz], block[: 16 * len(tets)].astype(np.int32),
+                   transpose, block[16 * len(tets):], place)
 
-    def matches(self, n: int, tets: np.ndarray) -> bool:
-        return n == self.n and tets.shape == self.tets.shape and np.array_equal(tets, self.tets)
+    def matches(self, n: int, tets: np.ndarray, fixed: np.ndarray) -> bool:
+        return (n == self.n and tets.shape == self.tets.shape and np.array_equal(tets, self.tets)
+                and np.array_equal(fixed, self.fixed))
 
 
 _CACHE: list[ScatterMap] = []  # the most recently used first
@@ -78,14 +102,14 @@ _CACHE_SIZE = 2  # the topology in use and the one before it (a snapshot taken b
 _CACHE_LOCK = threading.Lock()
 
 
-def scatter_map(n: int, tets: np.ndarray) -> ScatterMap:
-    """The :class:`ScatterMap` of this topology, from the cache or built (and cached)."""
+def scatter_map(n: int, tets: np.ndarray, fixed: np.ndarray) -> ScatterMap:
+    """The :class:`ScatterMap` of this topology and these fixed nodes, from the cache or built (and cached)."""
     with _CACHE_LOCK:
         for i, s in enumerate(_CACHE):
-            if s.matches(n, tets):
+            if s.matches(n, tets, fixed):
                 _CACHE.insert(0, _CACHE.pop(i))
                 return s
-    s = ScatterMap.build(n, tets)
+    s = ScatterMap.build(n, tets, fixed)
     with _CACHE_LOCK:
         _CACHE.insert(0, s)
         del _CACHE[_CACHE_SIZE:]
@@ -121,37 +145,51 @@ class AssemblyState:
     k_coef: float
     consistent: bool
 
-    def entries(self) -> np.ndarray:
-        """Every contribution to A, flat: the element blocks ordered (i, j, a, b, e) (block (i, j)
-        of element e, row a, column b; element last, so that each operation runs along the m
-        elements), then the diagonal block (a, b) of each node (the identity on fixed nodes)."""
-        m = len(self.tets)
-        G = shape_gradients(self.Dm_inv)
-        w = self.free[self.tets]  # (m, 4): filtering the gradients filters the outer products
-        h = np.matmul(G, np.swapaxes(self.R, 1, 2)) * w[:, :, None]  # h_k = R g_k, (m, 4, 3)
-        h = np.ascontiguousarray(h.transpose(1, 2, 0))  # (4, 3, m)
+    def _gradients(self):
+        """The rotated, filtered gradients h[a, k, e] = (R_e g_k w_k)_a, the filtered g[c, k, e] and
+        w (4, m), element last (each operation runs along the m elements)."""
+        w = self.free[self.tets].T  # (4, m): filtering the gradients filters their products
+        g = np.empty((3, 4, len(self.tets)))
+        g[:, 1:] = self.Dm_inv.transpose(2, 1, 0)
+        g[:, 0] = -g[:, 1:].sum(axis=1)
+        g *= w
+        R = self.R.transpose(1, 2, 0)  # R[a, c, e]
+        h = R[:, 0, None] * g[0] + R[:, 1, None] * g[1] + R[:, 2, None] * g[2]
+        return h, g, w
+
+    def block_sums(self, smap: ScatterMap) -> np.ndarray:
+        """(9, nblocks + 1): entry (a, b) of every block of the pattern (the last: the sink).
+
+        Entry (a, b), a <= b, of element block (i, j) is lam' h_i[a] h_j[b] + mu' h_j[a] h_i[b]
+        (+ mu' g_i.g_j + mass_ij where a = b), lam' = k_coef V lam, mu' = k_coef V mu; one
+        (4, 4, m) buffer at a time, summed per block by ``bincount``."""
+        h, g, w = self._gradients()
         kv = self.k_coef * self.volume
-        out = np.empty(144 * m + 9 * self.n)
-        blocks = out[: 144 * m].reshape(4, 4, 3, 3, m)
-        np.multiply(h[:, None, :, None], (h * (kv * self.lam))[None, :, None, :], out=blocks)  # lam h_i[a] h_j[b]
-        blocks += h[None, :, :, None] * (h * (kv * self.mu))[:, None, None, :]  # mu h_j[a] h_i[b]
-        diag = np.matmul(G, np.swapaxes(G, 1, 2)).transpose(1, 2, 0) * (kv * self.mu)  # mu (g_i . g_j), (4, 4, m)
-        mv = self.m_coef * self.rho * self.volume
-        if self.consistent:
-            diag += (1.0 + np.eye(4))[:, :, None] * (mv / 20.0)
-        else:
-            diag += np.eye(4)[:, :, None] * (mv / 4.0)
-        diag *= w.T[:, None] * w.T[None, :]
-        for a in range(3):
-            blocks[:, :, a, a] += diag
-        out[144 * m:].reshape(-1, 9)[:] = (1.0 - self.free)[:, None] * np.eye(3).reshape(1, 9)
-        return out
+        p, q = h * (kv * self.lam), h * (kv * self.mu)
+        diag = (g[:, :, None] * g[:, None, :]).sum(axis=0)  # g_i . g_j, filtered, (4, 4, m)
+        diag *= kv * self.mu
+        mass = (1.0 + np.eye(4)) * (1.0 / 20.0) if self.consistent else np.eye(4) * 0.25
+        diag += mass[:, :, None] * (self.m_coef * self.rho * self.volume) * (w[:, None] * w[None, :])
+        nb = smap.nblocks
+        sums = np.empty((9, nb + 1))
+        vals, tmp = np.empty((2, 4, 4, len(self.tets)))
+        for a, b in UPPER:
+            np.multiply(h[a][:, None], p[b][None, :], out=vals)
+            vals += np.multiply(h[a][None, :], q[b][:, None], out=tmp)
+            if a == b:
+                vals += diag
+            sums[3 * a + b] = np.bincount(smap.pair_block, weights=vals.reshape(-1), minlength=nb + 1)
+            if a != b:
+                sums[3 * b + a] = sums[3 * a + b][smap.transpose]
+        sums[::4, smap.diag] += 1.0 - self.free  # the identity on fixed nodes
+        return sums
 
     def csc(self) -> sps.csc_matrix:
-        """A as scipy CSC (full symmetric pattern, sorted indices)."""
-        smap = scatter_map(self.n, self.tets)
-        data = np.bincount(smap.target, weights=self.entries(), minlength=len(smap.indices))
+        """A as scipy CSC, sorted indices, in the pattern of :class:`ScatterMap`."""
+        smap = scatter_map(self.n, self.tets, self.free == 0.0)
+        data = np.empty(len(smap.indices) + 1)
+        data[smap.place] = self.block_sums(smap)  # entries outside the pattern (exact zeros) go to the last, dropped
         n3 = 3 * self.n
-        A = sps.csc_matrix((data, smap.indices, smap.indptr), shape=(n3, n3))
+        A = sps.csc_matrix((data[:-1], smap.indices, smap.indptr), shape=(n3, n3))
         A.has_sorted_indices = True
         return A

@@ -109,12 +109,13 @@ def _drop_decoupled(A: sps.csc_matrix) -> sps.csc_matrix:
 
 
 def _factorize(state, A):
-    if hasattr(A, "csc"):  # a frozen state: assembled here, in the worker
+    if hasattr(A, "csc"):  # a frozen state: assembled here, in the worker, without the decoupled zeros
         A = A.csc()
-    A = sps.csc_matrix(A)
-    A.sort_indices()
-    if A.shape[0] == A.shape[1]:
-        A = _drop_decoupled(A)
+    else:
+        A = sps.csc_matrix(A)
+        A.sort_indices()
+        if A.shape[0] == A.shape[1]:
+            A = _drop_decoupled(A)
     key = (A.shape, A.indptr.tobytes(), A.indices.tobytes())
     if state.get("pattern") != key:
         mode = state.get("mode", "auto")

@@ -37,6 +37,23 @@ import numpy as np
 import scipy.sparse as sps
 
 
+def _unique_pairs(rows: np.ndarray, cols: np.ndarray, n: int):
+    """The distinct keys col * n + row, sorted, and the index of each pair's among them
+    (``np.unique(keys, return_inverse=True)``); below 2^16 nodes by two stable radix sorts."""
+    keys = cols * n + rows
+    if n >= 1 << 16:
+        return np.unique(keys, return_inverse=True)
+    by_row = np.argsort(rows.astype(np.uint16), kind="stable")
+    order = by_row[np.argsort(cols[by_row].astype(np.uint16), kind="stable")]
+    ks = keys[order]
+    first = np.empty(len(ks), dtype=bool)
+    first[:1] = True
+    np.not_equal(ks[1:], ks[:-1], out=first[1:])
+    inv = np.empty(len(ks), dtype=np.int64)
+    inv[order] = np.cumsum(first) - 1
+    return ks[first], inv
+
+
 UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the entries (a, b), a <= b, of a 3x3 block
 
 
@@ -67,7 +84,7 @@ class ScatterMap:
         bi = np.concatenate([np.repeat(tets.T, 4, axis=0).ravel(), np.arange(n)])  # pairs (i, j, e), then (k, k)
         bj = np.concatenate([np.tile(tets.T, (4, 1)).ravel(), np.arange(n)])
         keep = (bi == bj) | ~(fixed[bi] | fixed[bj])
-        blocks, inv = np.unique((bj * n + bi)[keep], return_inverse=True)
+        blocks, inv = _unique_pairs(bi[keep], bj[keep], n)
         nb = len(blocks)
         block = np.full(len(bi), nb, dtype=np.int64)
         block[keep] = inv.ravel()

@@ -88,9 +88,10 @@ def _ms_since(t0):
 def _drop_decoupled(A: sps.csc_matrix) -> sps.csc_matrix:
     """A without the stored zeros that couple decoupled rows (the identity rows of fixed nodes).
 
-    The assembled pattern keeps the blocks between fixed and free nodes, filled with exact
-    zeros. A row whose off-diagonal values are all zero stays decoupled in the factor too,
-    so dropping those entries leaves the matrix -- and the factor's numbers -- unchanged
+    A block pattern (a matrix handed in sparse) keeps the blocks between fixed and free
+    nodes, filled with exact zeros; a state's ``csc()`` leaves them out already, so its A
+    does not come here. A row whose off-diagonal values are all zero stays decoupled in the
+    factor too, so dropping those entries leaves the matrix -- and the factor's numbers -- unchanged
     while the pattern, the fill and the elimination tree shrink (the brain: 36% fewer
     nonzeros in L, a factorization 1.6-1.9x faster, 242 instead of 280 levels). The test is
     on rows, which are fixed or not for good, so the pattern stays stable between steps."""

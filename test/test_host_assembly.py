@@ -145,3 +145,16 @@ def test_a_factor_assembled_in_the_worker_equals_one_assembled_on_the_callers_th
     np.testing.assert_array_equal(factors["worker"], factors["caller"])
     ref = spla.spsolve(A_ref, B)
     assert np.abs(factors["worker"] - ref).max() < 1e-9 * np.abs(ref).max()
+
+
+@pytest.mark.parametrize("n", [50, 65_535])  # the radix path, to its largest n
+def test_unique_pairs_is_numpys_unique_of_the_keys(n):
+    from soft_tissue_sim.host_assembly import _unique_pairs
+
+    rng = np.random.default_rng(n)
+    rows, cols = rng.integers(0, n, 5000), rng.integers(0, n, 5000)
+    rows[:100], cols[:100] = rows[100:200], cols[100:200]  # duplicates
+    keys, inv = _unique_pairs(rows, cols, n)
+    ref_keys, ref_inv = np.unique(cols * n + rows, return_inverse=True)
+    np.testing.assert_array_equal(keys, ref_keys)
+    np.testing.assert_array_equal(inv, ref_inv)

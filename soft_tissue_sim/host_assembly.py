@@ -133,14 +133,6 @@ def scatter_map(n: int, tets: np.ndarray, fixed: np.ndarray) -> ScatterMap:
     return s
 
 
-def shape_gradients(Dm_inv: np.ndarray) -> np.ndarray:
-    """(m, 4, 3): the rest gradients g_0..g_3 of each element (rows of Dm^-1; g_0 = -sum)."""
-    G = np.empty((len(Dm_inv), 4, 3))
-    G[:, 1:] = Dm_inv
-    G[:, 0] = -Dm_inv.sum(axis=1)
-    return G
-
-
 @dataclass
 class AssemblyState:
     """Host copies of what the filtered A = m_coef M + k_coef K depends on at one state.

@@ -18,8 +18,9 @@ with Rayleigh damping B = -(alpha M + beta K). Nodes marked fixed are filtered o
 definite and CG never moves them.
 
 Host code (:class:`CorotationalFEM`) owns the arrays and launches; the kernels hold the
-arithmetic. The matrix-free product with A and the sparse assembly of A (a Warp BSR
-matrix of 3x3 blocks, handed to CHOLMOD as scipy CSC) use the same element formulas.
+arithmetic. The matrix-free product with A, the COO triplets of A (the device factors) and
+the host assembly of A as scipy CSC for CHOLMOD (:mod:`soft_tissue_sim.host_assembly`, NumPy,
+from a copy of the state) use the same element formulas.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sps
 import warp as wp
-import warp.sparse as wps
 
+from .host_assembly import AssemblyState
 from .material import MaterialTable
 from .mesh import TetMesh
 
@@ -398,9 +399,6 @@ class CorotationalFEM:
         self._rows = wp.empty(nt, dtype=wp.int32, device=d)  # assemble_triplets writes every entry
         self._cols = wp.empty(nt, dtype=wp.int32, device=d)
         self._vals = wp.empty(nt, dtype=wp.mat33d, device=d)
-        self._bsr = wps.bsr_zeros(n, n, wp.mat33d, device=d)
-        self._triplet_map = None
-        self._csc_map = None
         self.total_mass = float(lumped.sum())
         self._rest_tets = (Xt, Dm_inv, vol)  # what the next set_mesh may take over (tet_source)
 
@@ -505,20 +503,6 @@ class CorotationalFEM:
         )
         return self._rows, self._cols, self._vals
 
-    def assemble(self, m_coef: float, k_coef: float) -> wps.BsrMatrix:
-        """Assemble the filtered A = m_coef M + k_coef K as a Warp BSR matrix (3x3 blocks).
-
-        The sparsity pattern is built once per topology (a Warp triplet map) and reused.
-        """
-        self.assemble_triplets(m_coef, k_coef)
-        if self._triplet_map is None:
-            self._triplet_map = wps.bsr_set_from_triplets(
-                self._bsr, self._rows, self._cols, self._vals, prune_numerical_zeros=False, build_mapping=True
-            )
-        else:
-            wps.bsr_set_from_mapped_values(self._bsr, self._triplet_map, self._vals)
-        return self._bsr
-
     def element_blocks(self, tet_ids, m_coef: float, k_coef: float):
         """The filtered 3x3 blocks of A = m_coef M + k_coef K contributed by the elements ``tet_ids``,
         with the current element rotations: (rows, cols, values) numpy arrays of 16 blocks each."""
@@ -539,23 +523,18 @@ class CorotationalFEM:
         )
         return rows.numpy(), cols.numpy(), vals.numpy()
 
+    def assembly_state(self, m_coef: float, k_coef: float) -> AssemblyState:
+        """Host copies of what the filtered A = m_coef M + k_coef K depends on now (the element
+        rotations of the last :meth:`update_rotations`, topology, rest gradients, material,
+        fixed flags): :meth:`AssemblyState.csc` assembles A from them on any thread, with NumPy."""
+        host = (lambda a: a.numpy().copy()) if self.device.is_cpu else (lambda a: a.numpy())
+        return AssemblyState(self.n_nodes, host(self.tets), host(self.Dm_inv), host(self.volume), host(self.mu),
+                             host(self.lam), host(self.rho), host(self.free), host(self.rotations), float(m_coef),
+                             float(k_coef), self.consistent_mass)
+
     def assemble_scipy(self, m_coef: float, k_coef: float) -> sps.csc_matrix:
         """The filtered A as a scipy CSC matrix (for CHOLMOD and direct solves)."""
-        A = self.assemble(m_coef, k_coef)
-        nnz = A.nnz_sync() if hasattr(A, "nnz_sync") else A.nnz
-        offsets = A.offsets.numpy()[: self.n_nodes + 1]
-        cols = A.columns.numpy()[:nnz]
-        vals = A.values.numpy()[:nnz]
-        n3 = 3 * self.n_nodes
-        if getattr(self, "_csc_map", None) is None or self._csc_map[0] is not self._triplet_map:
-            # Once per pattern: where each BSR coefficient lands in CSC order (convert an index
-            # matrix), so later conversions are a single gather.
-            idx = np.arange(1, vals.size + 1, dtype=np.float64).reshape(vals.shape)
-            C = sps.bsr_matrix((idx, cols, offsets), shape=(n3, n3)).tocsc()
-            C.sort_indices()
-            self._csc_map = (self._triplet_map, C.indptr.copy(), C.indices.copy(), C.data.astype(np.int64) - 1)
-        _, indptr, indices, perm = self._csc_map
-        return sps.csc_matrix((vals.reshape(-1)[perm], indices, indptr), shape=(n3, n3))
+        return self.assembly_state(m_coef, k_coef).csc()
 
     # ------------------------------------------------------------ rotations
     def update_node_rotations(self) -> wp.array:

@@ -127,8 +127,8 @@ def choose_backend(backend: str, device, n_dofs: int, contact: bool, cutting: bo
 def make_preconditioner(kind: str, options: dict, snapshot_fn, meta_fn=None, device="cpu", n_dofs: int = 0,
                         contact: bool = False, cutting: bool = False):
     """The preconditioner a scene's ``solver`` names (see the module docstring). ``snapshot_fn``
-    gives (A as scipy CSC, node rotations, topology) for the host factorization; ``meta_fn`` the
-    topology alone ({"uids", "version"}) for the device backends."""
+    gives (A or a state that assembles it, node rotations, topology) for the host factorization;
+    ``meta_fn`` the topology alone ({"uids", "version"}) for the device backends."""
     if kind == "none":
         return IdentityPreconditioner()
     if kind == "jacobi":

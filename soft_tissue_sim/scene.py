@@ -298,9 +298,11 @@ class Simulation:
         return self.cutting is not None
 
     def _snapshot(self):
-        """(A at the current state as scipy CSC, per-node rotations, topology) for the LDL^T factorization."""
+        """(A at the current state, per-node rotations, topology) for the LDL^T factorization. A is
+        an :class:`~soft_tissue_sim.host_assembly.AssemblyState` (copies of what A depends on): the
+        worker assembles it (``csc()``), so the simulation thread only copies."""
         integ = self.integrator
-        return (self.fem.assemble_scipy(integ.m_coef, integ.k_coef), self.fem.node_rotations(), self._topology())
+        return (self.fem.assembly_state(integ.m_coef, integ.k_coef), self.fem.node_rotations(), self._topology())
 
     def _topology(self) -> dict:
         """The node uids (stable across cuts) and the mesh version: what a factor was made from."""

@@ -31,6 +31,7 @@ Contact. W = H P^-1 H^T (eq. 4, 11-12) is gathered from the inverse by the backe
 from __future__ import annotations
 
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -38,6 +39,7 @@ import scipy.sparse as sps
 import warp as wp
 
 from .sherman_morrison import Modification, perturbation, woodbury_q
+from .sm_partition import partitioned_stream
 
 
 @wp.kernel
@@ -141,7 +143,7 @@ class AsyncDevicePreconditioner:
     """
 
     def __init__(self, backend, meta_fn, device, *, rotate=True, refresh_every=1, deterministic=False, lag=0,
-                 name="async_ldlt"):
+                 reserve_sms=0, name="async_ldlt"):
         if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
             raise ValueError(f"lag must be a whole number of steps >= 0, got {lag!r}")
         if lag and not deterministic:
@@ -154,7 +156,13 @@ class AsyncDevicePreconditioner:
         self.refresh_every = max(1, int(refresh_every))
         self.deterministic = bool(deterministic)
         self.lag = int(lag)
-        self._side = wp.Stream(self.device) if self.device.is_cuda else None
+        # the factor's stream: on a GPU confined to all but `reserve_sms` SMs where the driver can
+        # (sm_partition), so that the steps never wait for a factorization's blocks
+        self.partition, self.partition_error = partitioned_stream(self.device, int(reserve_sms))
+        if self.partition is not None:
+            self._side = self.partition.stream
+        else:
+            self._side = wp.Stream(self.device) if self.device.is_cuda else None
         self._vec = None  # (r, z) of apply_vector
         self.correction: FoldedCorrection | None = None
         self.mods: list[Modification] = []
@@ -251,6 +259,11 @@ class AsyncDevicePreconditioner:
             self.worker_error = f"{type(exc).__name__}: {exc}"
             self.failures += 1
             self._busy = None
+            if self.partition is not None:  # the library refused the partitioned stream: a plain one from now on
+                warnings.warn(f"factorization on the SM-partitioned stream failed ({self.worker_error}); "
+                              "using a plain stream", RuntimeWarning, stacklevel=2)
+                self.partition, self.partition_error = None, self.worker_error
+                self._side = wp.Stream(self.device)
             return False
         if done is not None:
             self._main.wait_event(done)
@@ -449,6 +462,7 @@ class AsyncDevicePreconditioner:
             "refresh_interval": float(np.mean(np.diff(sw))) if len(sw) > 1 else 0.0,
             "precond_ms": self.precond_ms,
             "worker": "device stream" if self._side is not None else "synchronous",
+            "factor_sms": self.partition.sms if self.partition is not None else None,
             "backend": self.backend.name,
             "worker_error": self.worker_error,
             "factor_count": self.factor_count,

@@ -46,7 +46,8 @@ BACKENDS = ("auto", "cholmod", "dense", "cudss")
 DENSE_MAX_DOFS = 12_000  # auto: the dense inverse up to this size on a GPU (bench backends, docs/benchmarks.md)
 _RETIRED = {"apply_on", "columns_on", "lanes", "tail_width", "tail_block", "cols_lanes", "min_device_columns"}
 _LDLT_KEYS = {"backend", "rotate", "refresh_every", "device_refresh_every", "deterministic", "lag", "mode",
-              "ordering", "worker", "release_gil", "dense_max_dofs"}
+              "ordering", "worker", "release_gil", "dense_max_dofs", "reserve_sms"}
+RESERVE_SMS = 16  # auto: SMs a GPU factorization leaves to the steps (sm_partition; docs/benchmarks.md)
 
 
 class HostPreconditioner:
@@ -178,6 +179,12 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, meta_fn=None, dev
         if isinstance(every, bool) or not isinstance(every, int) or every < 1:
             raise ParameterError(f"ldlt device_refresh_every must be a whole number >= 1, got {every!r}")
         sched["refresh_every"] = every
+    reserve = options.get("reserve_sms", "auto")
+    if reserve == "auto":
+        reserve = RESERVE_SMS
+    if isinstance(reserve, bool) or not isinstance(reserve, int) or reserve < 0:
+        raise ParameterError(f"ldlt reserve_sms must be auto or a whole number >= 0, got {reserve!r}")
+    sched["reserve_sms"] = reserve
     if backend == "dense":
         from .dense_inverse import DenseInverse
 

@@ -377,6 +377,55 @@ def test_backend_options():
             choose_backend("cudss", DEVICE, 300, True, False, 12000)
 
 
+def test_reserve_sms_confines_the_factorization_and_changes_no_result():
+    """``ldlt.reserve_sms``: checked; on a GPU the factor's stream is a green context's that
+    leaves at least that many SMs free, with the same trajectory as an unconfined factor; a
+    factorization that fails on it falls back to a plain stream. On the CPU: no partition."""
+    for bad in (-1, 2.5, True, "many"):
+        with pytest.raises(ParameterError, match="reserve_sms"):
+            load_scene("test_small.yaml", device=DEVICE, overrides={"solver": _solver(reserve_sms=bad)})
+    runs = {}
+    for reserve in (0, 16):
+        with load_scene("test_small.yaml", device=DEVICE, overrides={"solver": _solver(refresh_every=2, tol=1e-10,
+                                                                                       reserve_sms=reserve)}) as sim:
+            for _ in range(8):
+                assert sim.step().converged
+            pre = sim.preconditioner
+            runs[reserve] = sim.positions()
+            if reserve and CUDA and pre.partition is not None:
+                assert pre.partition.reserved >= reserve and pre.stats()["factor_sms"] == pre.partition.sms
+                assert pre.stats()["factor_count"] >= 4
+            elif reserve and CUDA:  # the driver cannot partition: said why
+                assert pre.partition_error
+            else:
+                assert pre.partition is None and pre.stats()["factor_sms"] is None
+    np.testing.assert_allclose(runs[16], runs[0], rtol=0, atol=1e-9)
+    if CUDA:  # a library that refuses the partitioned stream: the next factorizations use a plain one
+        ov = {"solver": {"preconditioner": "async_ldlt", "ldlt": {"backend": "dense", "refresh_every": 1,
+                                                                   "reserve_sms": 16}}}
+        with load_scene("test_small.yaml", device=DEVICE, overrides=ov) as sim:
+            sim.step()
+            pre = sim.preconditioner
+            if pre.partition is not None:
+                real = pre.backend.factorize
+                part = pre.partition.stream
+
+                def refuse(stream=None):
+                    if stream is part:
+                        raise RuntimeError("refused")
+                    real(stream=stream)
+
+                pre.backend.factorize = refuse
+                with pytest.warns(RuntimeWarning, match="plain stream"):
+                    for _ in range(6):
+                        assert sim.step().converged
+                assert pre.partition is None and pre.failures >= 1
+                count = pre.factor_count
+                for _ in range(4):
+                    sim.step()
+                assert pre.factor_count > count
+
+
 @pytest.mark.skipif(not CUDA, reason="on the CPU test_cutting runs the same with the dense backend")
 def test_dense_inverse_after_chained_cuts_equals_a_fresh_factorization():
     """On the GPU: the inverse folded after two cuts and an element removal (cuBLAS rank-3k

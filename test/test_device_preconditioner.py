@@ -417,12 +417,11 @@ def test_reserve_sms_confines_the_factorization_and_changes_no_result():
 
                 pre.backend.factorize = refuse
                 with pytest.warns(RuntimeWarning, match="plain stream"):
-                    for _ in range(6):
-                        assert sim.step().converged
-                assert pre.partition is None and pre.failures >= 1
+                    assert not pre._install(pre._request(sim.integrator, background=True))
+                assert pre.partition is None and pre.failures == 1 and "refused" in pre.worker_error
                 count = pre.factor_count
-                for _ in range(4):
-                    sim.step()
+                for _ in range(6):
+                    assert sim.step().converged
                 assert pre.factor_count > count
 
 

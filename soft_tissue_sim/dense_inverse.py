@@ -38,16 +38,14 @@ BLOCK = 256  # threads per node in the matrix-vector product on CUDA
 @wp.kernel
 def scatter_dense_kernel(rows: wp.array(dtype=wp.int32), cols: wp.array(dtype=wp.int32),
                          vals: wp.array(dtype=wp.mat33d), A: wp.array2d(dtype=wp.float64)):
-    """A += the 3x3 block triplets (rows, cols, vals) (duplicates add up), on and above the
-    diagonal only: the row-major upper triangle is LAPACK's column-major lower one, all that
-    the Cholesky factorization reads; the rest stays zero (the triangular inverse needs it)."""
+    """A += the 3x3 block triplets (rows, cols, vals) (duplicates add up)."""
     t = wp.tid()
     r = 3 * rows[t]
     c = 3 * cols[t]
     v = vals[t]
     for a in range(3):
         for b in range(3):
-            if v[a, b] != wp.float64(0.0) and r + a <= c + b:
+            if v[a, b] != wp.float64(0.0):
                 wp.atomic_add(A, r + a, c + b, v[a, b])
 
 
@@ -163,10 +161,23 @@ def xp_view(xp, a: wp.array):
     return a.numpy() if xp is np else xp.asarray(a)
 
 
+class _StreamHandle:
+    """A raw CUDA stream handle in the ``__cuda_stream__`` protocol."""
+
+    def __init__(self, handle: int):
+        self.handle = int(handle)
+
+    def __cuda_stream__(self):
+        return (0, self.handle)
+
+
 def xp_stream(xp, stream):
     """Context in which ``xp`` enqueues on the Warp ``stream`` (no-op on the CPU)."""
     if xp is np or stream is None:
         return contextlib.nullcontext()
+    external = getattr(xp.cuda.Stream, "from_external", None)  # CuPy 14; ExternalStream before
+    if external is not None:
+        return external(_StreamHandle(stream.cuda_stream))
     return xp.cuda.ExternalStream(stream.cuda_stream)
 
 
@@ -182,7 +193,6 @@ class DenseInverse:
     """
 
     name = "dense"
-    inverse = "trtri"  # GPU: how the inverse is made from the Cholesky factor: trtri | potrs (see factorize)
 
     def __init__(self, device):
         self.device = wp.get_device(device)
@@ -194,13 +204,10 @@ class DenseInverse:
         self._handle = None  # cuSOLVER
         if self.device.is_cuda:  # loaded here, not first in the thread that enqueues factorizations
             wp.load_module(sys.modules[__name__], device=self.device)
-        self._rhs = None  # GPU: potrs: the identity, then the inverse; trtri: A^-1's lower triangle
+        self._rhs = None  # GPU: the identity, then the inverse
         self._result = None  # the buffer holding the finished inverse
         self._lwork = 0
         self._workspace = None
-        self._blas = None  # cuBLAS
-        self._trtri_ws = None  # (device buffer, its bytes, host buffer, its bytes)
-        self._scalars = np.array([1.0, 0.0, -1.0])  # host scalars of the cuBLAS calls
 
     # ----------------------------------------------------------- making one
     @property
@@ -222,8 +229,7 @@ class DenseInverse:
     def _prepare_gpu(self, n: int, stream) -> None:
         """What the GPU factorization needs, made on the caller's thread and stream before it is
         enqueued (possibly by another thread, which then allocates and launches nothing): the
-        cuSOLVER and cuBLAS handles, the workspaces, and the second buffer (zero for ``syrk``,
-        or the identity as the right-hand side of ``potrs``)."""
+        cuSOLVER handle, its workspace, and the identity as the right-hand side of ``potrs``."""
         from nvmath.bindings import cusolverDn
 
         if self._handle is None:
@@ -235,26 +241,11 @@ class DenseInverse:
             self._lwork = lwork
         if self._rhs is None or self._rhs.shape[0] != n:
             self._rhs = wp.empty((n, n), dtype=wp.float64, device=self.device)
-        if self.inverse == "potrs":
-            wp.launch(identity_matrix_kernel, (n, n), [self._rhs], device=self.device, stream=stream)
-            return
-        from nvmath.bindings import cublas
-
-        if self._blas is None:
-            self._blas = cublas.create()
-        self._rhs.zero_()  # syrk writes the lower triangle only
-        dbytes, hbytes = cusolverDn.xtrtri_buffer_size(self._handle, lower, 0, n, 1, self.work.ptr, n)  # 1: R_64F
-        if self._trtri_ws is None or self._trtri_ws[1] < dbytes or self._trtri_ws[3] < hbytes:
-            self._trtri_ws = (wp.empty(max(dbytes, 8), dtype=wp.uint8, device=self.device), max(dbytes, 8),
-                              np.empty(max(hbytes, 8), dtype=np.uint8), max(hbytes, 8))
+        wp.launch(identity_matrix_kernel, (n, n), [self._rhs], device=self.device, stream=stream)
 
     def factorize(self, stream=None) -> None:
-        """Work buffer A -> A^-1, on ``stream``; only cuSOLVER and cuBLAS calls (see
-        :meth:`assemble`). GPU: Cholesky A = L L^T (``potrf``), then (``inverse`` trtri)
-        L^-1 in place (``trtri``; the triangle above stays zero), A^-1 = L^-T L^-1 (``syrk``, its
-        lower triangle, into the second buffer) and the full matrix back in the work buffer
-        (``geam``: the triangle plus its transpose, ``axpy``: the diagonal once); or (``inverse``
-        potrs) ``potrs`` against the identity in the second buffer.
+        """Work buffer A -> A^-1, on ``stream``. GPU: Cholesky (``potrf``), then ``potrs``
+        against the identity into a second buffer; only cuSOLVER calls (see :meth:`assemble`).
         CPU: LAPACK's ``potrf`` and ``potri`` in place, the missing triangle mirrored."""
         n = self.work.shape[0]
         if self.xp is np:
@@ -276,22 +267,8 @@ class DenseInverse:
         lower = 0  # CUBLAS_FILL_MODE_LOWER
         info = self._info.ptr
         cusolverDn.dpotrf(self._handle, lower, n, self.work.ptr, n, self._workspace.ptr, self._lwork, info)
-        if self.inverse == "potrs":
-            cusolverDn.dpotrs(self._handle, lower, n, n, self.work.ptr, n, self._rhs.ptr, n, info + 4)
-            self._result = self._rhs
-            return
-        from nvmath.bindings import cublas
-
-        dbuf, dbytes, hbuf, hbytes = self._trtri_ws
-        cusolverDn.xtrtri(self._handle, lower, 0, n, 1, self.work.ptr, n, dbuf.ptr, dbytes, hbuf.ctypes.data, hbytes,
-                          info + 4)
-        h = self._blas
-        cublas.set_stream(h, stream.cuda_stream if stream is not None else 0)
-        one, zero, minus_one = (self._scalars.ctypes.data + 8 * k for k in range(3))
-        cublas.dsyrk(h, lower, 1, n, n, one, self.work.ptr, n, zero, self._rhs.ptr, n)  # 1: transposed
-        cublas.dgeam(h, 0, 1, n, n, one, self._rhs.ptr, n, one, self._rhs.ptr, n, self.work.ptr, n)
-        cublas.daxpy(h, n, minus_one, self._rhs.ptr, n + 1, self.work.ptr, n + 1)
-        self._result = self.work
+        cusolverDn.dpotrs(self._handle, lower, n, n, self.work.ptr, n, self._rhs.ptr, n, info + 4)
+        self._result = self._rhs
 
     def install(self, stream=None) -> str | None:
         """The finished work buffer becomes the inverse in use; returns why not, or None."""
@@ -371,9 +348,4 @@ class DenseInverse:
 
             cusolverDn.destroy(self._handle)
             self._handle = None
-        if self._blas is not None:
-            from nvmath.bindings import cublas
-
-            cublas.destroy(self._blas)
-            self._blas = None
-        self.inv = self.work = self._workspace = self._rhs = self._result = self._trtri_ws = None
+        self.inv = self.work = self._workspace = self._rhs = self._result = None

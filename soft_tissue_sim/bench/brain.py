@@ -36,7 +36,7 @@ from .common import columns, figure, parser, publish, resolved_device, save_figu
 
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
         backend="auto", scheme=None, worker=None, synchronous=False, refresh_every=None, snap=None,
-        margin=0.0, radial=0, progress=False, lag=0):
+        margin=0.0, radial=0, progress=False, lag=0, reserve_sms=None):
     cfg = read_scene(scene)[0]
     solver = dict(cfg.get("solver") or {})
     solver["ldlt"] = {**(solver.get("ldlt") or {}), "backend": backend}
@@ -45,6 +45,8 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
     if refresh_every is not None:  # on every device
         solver["ldlt"]["refresh_every"] = int(refresh_every)
         solver["ldlt"].pop("device_refresh_every", None)
+    if reserve_sms is not None:  # SMs a GPU factorization leaves to the steps
+        solver["ldlt"]["reserve_sms"] = int(reserve_sms)
     if synchronous or lag:  # the factor made in the step that requests it (no background worker)
         solver["ldlt"]["deterministic"] = True
     if lag:  # ... and installed lag steps later (the paper's background factorization took about 5.6)
@@ -166,7 +168,11 @@ def main(argv=None) -> int:
     ap.add_argument("--lag", type=int, default=0,
                     help="factorize in the step that requests the factor and install it this many steps later: "
                          "the schedule of a background factorization that takes that long, reproducibly")
+    ap.add_argument("--reserve-sms", type=int, default=None,
+                    help="GPU: SMs the factorization leaves to the steps (ldlt.reserve_sms; default: the scene's)")
     args = ap.parse_args(argv)
+    if args.reserve_sms is not None and args.reserve_sms < 0:
+        ap.error("--reserve-sms is a number of SMs >= 0")
     if args.lag < 0:
         ap.error("--lag is a number of steps >= 0")
     if args.margin < 0 or (args.radial > 0) != (args.margin > 0) or args.radial < 0:
@@ -177,7 +183,7 @@ def main(argv=None) -> int:
                                                         args.max_cleanup, args.cleanup_radius, args.backend,
                                                         args.scheme, args.worker, args.synchronous,
                                                         args.refresh_every, args.snap, args.margin, args.radial,
-                                                        progress=True, lag=args.lag)
+                                                        progress=True, lag=args.lag, reserve_sms=args.reserve_sms)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
     summary = {

@@ -193,6 +193,7 @@ class DenseInverse:
     """
 
     name = "dense"
+    inverse = "trmm"  # GPU: the inverse from the Cholesky factor: trmm | potrs (see factorize)
 
     def __init__(self, device):
         self.device = wp.get_device(device)
@@ -208,6 +209,8 @@ class DenseInverse:
         self._result = None  # the buffer holding the finished inverse
         self._lwork = 0
         self._workspace = None
+        self._blas = None  # cuBLAS
+        self._one = np.ones(1)  # the host scalar of the cuBLAS calls
 
     # ----------------------------------------------------------- making one
     @property
@@ -242,10 +245,17 @@ class DenseInverse:
         if self._rhs is None or self._rhs.shape[0] != n:
             self._rhs = wp.empty((n, n), dtype=wp.float64, device=self.device)
         wp.launch(identity_matrix_kernel, (n, n), [self._rhs], device=self.device, stream=stream)
+        if self.inverse == "trmm" and self._blas is None:
+            from nvmath.bindings import cublas
+
+            self._blas = cublas.create()
 
     def factorize(self, stream=None) -> None:
-        """Work buffer A -> A^-1, on ``stream``. GPU: Cholesky (``potrf``), then ``potrs``
-        against the identity into a second buffer; only cuSOLVER calls (see :meth:`assemble`).
+        """Work buffer A -> A^-1, on ``stream``; only cuSOLVER and cuBLAS calls (see
+        :meth:`assemble`). GPU: Cholesky A = L L^T (``potrf``), then (``inverse`` trmm)
+        X = L^-1 against the identity in the second buffer (``trsm``: X's upper triangle comes
+        out exactly zero) and A^-1 = X^T X into the work buffer (``trmm``, X read as triangular
+        on the left and whole on the right); or (``inverse`` potrs) ``potrs`` against the identity.
         CPU: LAPACK's ``potrf`` and ``potri`` in place, the missing triangle mirrored."""
         n = self.work.shape[0]
         if self.xp is np:
@@ -267,8 +277,18 @@ class DenseInverse:
         lower = 0  # CUBLAS_FILL_MODE_LOWER
         info = self._info.ptr
         cusolverDn.dpotrf(self._handle, lower, n, self.work.ptr, n, self._workspace.ptr, self._lwork, info)
-        cusolverDn.dpotrs(self._handle, lower, n, n, self.work.ptr, n, self._rhs.ptr, n, info + 4)
-        self._result = self._rhs
+        if self.inverse == "potrs":
+            cusolverDn.dpotrs(self._handle, lower, n, n, self.work.ptr, n, self._rhs.ptr, n, info + 4)
+            self._result = self._rhs
+            return
+        from nvmath.bindings import cublas
+
+        h, one = self._blas, self._one.ctypes.data
+        cublas.set_stream(h, stream.cuda_stream if stream is not None else 0)
+        # (side left, lower, op, non-unit diagonal): X = L^-1 I, then A^-1 = X^T X
+        cublas.dtrsm(h, 0, lower, 0, 0, n, n, one, self.work.ptr, n, self._rhs.ptr, n)
+        cublas.dtrmm(h, 0, lower, 1, 0, n, n, one, self._rhs.ptr, n, self._rhs.ptr, n, self.work.ptr, n)
+        self._result = self.work
 
     def install(self, stream=None) -> str | None:
         """The finished work buffer becomes the inverse in use; returns why not, or None."""
@@ -348,4 +368,9 @@ class DenseInverse:
 
             cusolverDn.destroy(self._handle)
             self._handle = None
+        if self._blas is not None:
+            from nvmath.bindings import cublas
+
+            cublas.destroy(self._blas)
+            self._blas = None
         self.inv = self.work = self._workspace = self._rhs = self._result = None

@@ -5,8 +5,8 @@ device memory (8 n3^2 bytes: 216 MB for the 1,734-node brain), and what the meth
 its factor becomes dense linear algebra that a GPU does at memory speed:
 
 * the factor is cuSOLVER's Cholesky factorization and the inverse from it (``potrf``, then
-  ``potrs`` with the identity as right-hand side, through nvmath-python's bindings; SciPy's
-  LAPACK ``potrf`` and ``potri`` on the CPU);
+  cuBLAS's ``trsm`` against the identity and ``trmm``, through nvmath-python's bindings;
+  SciPy's LAPACK ``potrf`` and ``potri`` on the CPU);
 * an application of eq. (2), z = dR A^-1 dR^T r, is one matrix-vector product between two
   rotations (:func:`dense_apply_kernel`: a block of threads per node, its three rows against
   the rotated vector);
@@ -193,7 +193,6 @@ class DenseInverse:
     """
 
     name = "dense"
-    inverse = "trmm"  # GPU: the inverse from the Cholesky factor: trmm | potrs (see factorize)
 
     def __init__(self, device):
         self.device = wp.get_device(device)
@@ -232,7 +231,8 @@ class DenseInverse:
     def _prepare_gpu(self, n: int, stream) -> None:
         """What the GPU factorization needs, made on the caller's thread and stream before it is
         enqueued (possibly by another thread, which then allocates and launches nothing): the
-        cuSOLVER handle, its workspace, and the identity as the right-hand side of ``potrs``."""
+        cuSOLVER and cuBLAS handles, the workspace, and the identity as the right-hand side of
+        ``trsm``."""
         from nvmath.bindings import cusolverDn
 
         if self._handle is None:
@@ -245,17 +245,17 @@ class DenseInverse:
         if self._rhs is None or self._rhs.shape[0] != n:
             self._rhs = wp.empty((n, n), dtype=wp.float64, device=self.device)
         wp.launch(identity_matrix_kernel, (n, n), [self._rhs], device=self.device, stream=stream)
-        if self.inverse == "trmm" and self._blas is None:
+        if self._blas is None:
             from nvmath.bindings import cublas
 
             self._blas = cublas.create()
 
     def factorize(self, stream=None) -> None:
         """Work buffer A -> A^-1, on ``stream``; only cuSOLVER and cuBLAS calls (see
-        :meth:`assemble`). GPU: Cholesky A = L L^T (``potrf``), then (``inverse`` trmm)
-        X = L^-1 against the identity in the second buffer (``trsm``: X's upper triangle comes
-        out exactly zero) and A^-1 = X^T X into the work buffer (``trmm``, X read as triangular
-        on the left and whole on the right); or (``inverse`` potrs) ``potrs`` against the identity.
+        :meth:`assemble`). GPU: Cholesky A = L L^T (``potrf``), then X = L^-1 against the
+        identity in the second buffer (``trsm``: X's upper triangle comes out exactly zero) and
+        A^-1 = X^T X into the work buffer (``trmm``, X read as triangular on the left and whole
+        on the right): one triangular solve fewer than ``potrs`` against the identity.
         CPU: LAPACK's ``potrf`` and ``potri`` in place, the missing triangle mirrored."""
         n = self.work.shape[0]
         if self.xp is np:
@@ -277,10 +277,6 @@ class DenseInverse:
         lower = 0  # CUBLAS_FILL_MODE_LOWER
         info = self._info.ptr
         cusolverDn.dpotrf(self._handle, lower, n, self.work.ptr, n, self._workspace.ptr, self._lwork, info)
-        if self.inverse == "potrs":
-            cusolverDn.dpotrs(self._handle, lower, n, n, self.work.ptr, n, self._rhs.ptr, n, info + 4)
-            self._result = self._rhs
-            return
         from nvmath.bindings import cublas
 
         h, one = self._blas, self._one.ctypes.data

@@ -157,8 +157,12 @@ class AsyncDevicePreconditioner:
         self.deterministic = bool(deterministic)
         self.lag = int(lag)
         # the factor's stream: on a GPU confined to all but `reserve_sms` SMs where the driver can
-        # (sm_partition), so that the steps never wait for a factorization's blocks
-        self.partition, self.partition_error = partitioned_stream(self.device, int(reserve_sms))
+        # (sm_partition), so that the steps never wait for a factorization's blocks; none for a
+        # backend that factorizes on the simulation's stream (cuDSS)
+        if getattr(backend, "one_stream", False):
+            self.partition, self.partition_error = None, "the backend factorizes on the simulation's stream"
+        else:
+            self.partition, self.partition_error = partitioned_stream(self.device, int(reserve_sms))
         if self.partition is not None:
             self._side = self.partition.stream
         else:

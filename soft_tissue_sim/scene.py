@@ -34,7 +34,7 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
                     ordering: default,            # cholmod: default | amd | metis | nesdis | best | ...
                     worker: thread,               # cholmod: thread | process (two factorization processes)
                     release_gil: true,            # cholmod: simplicial factorization with the GIL released
-                    reserve_sms: auto},           # dense/cudss on a GPU: SMs the factorization leaves to the
+                    reserve_sms: auto},           # dense on a GPU: SMs the factorization leaves to the
                                                   #   steps (auto: 16; 0: it may take them all)
              graph: auto,                         # auto (on CUDA with a device factor) | true | false
              stream_priority: high,               # CUDA: the simulation's stream ahead of the factor's | default

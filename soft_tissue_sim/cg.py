@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from . import graphs
+
 
 @wp.kernel
 def _axpy2_kernel(
@@ -420,8 +422,9 @@ class DevicePCG(PCG):
     (CUDA graph with a conditional while node; Warp's API capture on the CPU) on the second
     solve with the same key -- vector size, array addresses, the operator's ``graph_key()``
     (found on a bound method's owner) and the preconditioner's -- and replays it afterwards;
-    a new key (a cut, a new factor
-    pattern, a changed dt) runs uncaptured once, then is captured again. A capture that fails
+    once a capture has succeeded (its kernels are loaded), a new key (a cut, a new factor
+    pattern, a changed dt) is captured at its first solve. A replaced graph goes to
+    :mod:`soft_tissue_sim.graphs` (its release waits for the whole device). A capture that fails
     (work another thread enqueues meanwhile can invalidate it) runs that solve uncaptured and
     is tried again with the next solves; graphs are given up after ``MAX_CAPTURE_FAILURES``
     failures in a row. Without a graph the
@@ -455,6 +458,7 @@ class DevicePCG(PCG):
         self._block = _RED_BLOCK if d.is_cuda else 1
         nb = min(128, max(1, -(-n // (2 * _RED_BLOCK)))) if d.is_cuda else 1
         self._partials = wp.zeros(nb, dtype=wp.float64, device=d)
+        graphs.retire(getattr(self, "_graph", None))  # released where no factorization runs
         self._graph = None
         self._graph_key = None
         self._seen_key = None
@@ -530,7 +534,10 @@ class DevicePCG(PCG):
         if key is not None and self._graph is not None and key == self._graph_key:
             wp.capture_launch(self._graph)
             self.replays += 1
-        elif key is not None and key == self._seen_key:
+        elif key is not None and (key == self._seen_key or self.captures > 0):
+            # a new key is captured at once where a capture already loaded the kernels (a cut
+            # changes the key every few steps), else the second time it is seen
+            graphs.retire(self._graph)
             self._graph = None
             try:
                 with wp.ScopedCapture(device=self.device) as cap:

@@ -38,6 +38,7 @@ import numpy as np
 import scipy.sparse as sps
 import warp as wp
 
+from . import graphs
 from .sherman_morrison import Modification, perturbation, woodbury_q
 from .sm_partition import partitioned_stream
 
@@ -293,6 +294,19 @@ class AsyncDevicePreconditioner:
         self._upload_R_ref()
         return True
 
+    def factorizing(self) -> bool:
+        """Whether a factorization enqueued on the device has not finished (asks, never waits)."""
+        t = self._busy
+        if t is None or self._side is None:
+            return False
+        if t.future is not None and not t.future.done():
+            return True
+        try:
+            _, done = t.events()
+        except Exception:  # noqa: BLE001 - a failed enqueue left nothing running
+            return False
+        return done is not None and not done.is_complete
+
     def refresh(self, system) -> None:
         """A factor of the current state, made and installed now (waits for it)."""
         self._refresh_now(system)
@@ -326,6 +340,8 @@ class AsyncDevicePreconditioner:
             if t is not None and t.ready():
                 self._pending = None
                 self._install(t)
+            if not self.factorizing():
+                graphs.release()  # nothing long in flight: replaced graphs go now, before the next request
             if self._pending is None and self.step - self.last_request_step >= self.refresh_every:
                 self._pending = self._request(system, background=True)
         if self.backend.n3 != 3 * fem.n_nodes:  # a size change no modification announced

@@ -61,6 +61,7 @@ import numpy as np
 import warp as wp
 import yaml
 
+from . import graphs
 from . import mesh as mesh_mod
 from .blas_threads import one_thread
 from .body import BodyView
@@ -493,6 +494,8 @@ class Simulation:
         if self.cutting is not None:  # blade motion -> mesh change + SMF, eq. (5)-(12)
             ops = self.cutting.step(self.step_count, self._instruments())
             stats.cutting = self.cutting.step_stats([self._modify(op(self.tissue())) for op in ops])
+        if not getattr(self.preconditioner, "factorizing", lambda: False)():
+            graphs.release()  # graphs replaced by a cut, now that no factorization runs beside the steps
         self.last_stats = stats
         return stats
 

@@ -19,6 +19,7 @@ import numpy as np
 import scipy.sparse as sps
 import warp as wp
 
+from .. import graphs
 from ..body import BodyView
 from ..instrument import Instrument, MeshObstacle, obstacle_from_config
 from ..material import ParameterError
@@ -135,14 +136,23 @@ class ContactSolver:
         for obs in self.obstacles.values():
             obs.force[:] = 0.0
             obs.torque[:] = 0.0
+        self._retire_topology()
         self._topo = None
         self._warm = {}
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0
 
     # ------------------------------------------------------------ detection
+    def _retire_topology(self) -> None:
+        """Hand the captured detections of the surface being replaced to :mod:`..graphs`
+        (released where no factorization runs)."""
+        if self._topo is not None:
+            graphs.retire_all(self._topo.graphs.values())
+            self._topo.graphs.clear()
+
     def _topology(self, fem) -> SurfaceTopology:
         if self._topo is None or not self._topo.matches(fem):
+            self._retire_topology()
             self._topo = SurfaceTopology(fem, self.options["self_collision"], self.objects)
         return self._topo
 

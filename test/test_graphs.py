@@ -1,0 +1,105 @@
+"""Replaced CUDA graphs are parked and released where no factorization runs (soft_tissue_sim.graphs).
+
+Releasing a graph waits for the whole device on CUDA; the logic of when that happens runs the
+same on Warp's CPU backend, where the PCG is captured as a Warp graph too.
+``STS_TEST_DEVICE=cuda:0`` runs these on a GPU.
+"""
+
+import os
+
+import numpy as np
+import pytest
+import warp as wp
+
+from soft_tissue_sim import graphs, load_scene
+
+DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
+
+
+@pytest.fixture(autouse=True)
+def _empty_park():
+    graphs.release()
+    yield
+    graphs.release()
+
+
+def _graph():
+    """A graph object that owns no CUDA graph (its release is free)."""
+    return wp.Graph(wp.get_device("cpu"), 0)
+
+
+def test_retire_keeps_graphs_until_release_and_ignores_other_values():
+    g = _graph()
+    graphs.retire(g)
+    graphs.retire(None)
+    graphs.retire("seen")  # the detection's marker of a key seen once
+    graphs.retire_all([False, _graph()])
+    assert graphs.parked() == 2
+    assert graphs.release() == 2
+    assert graphs.parked() == 0
+
+
+def test_the_park_is_bounded(monkeypatch):
+    monkeypatch.setattr(graphs, "MAX_PARKED", 3)
+    for _ in range(4):
+        graphs.retire(_graph())
+    assert graphs.parked() == 0  # the fourth went over the bound: all released
+    graphs.retire(_graph())
+    assert graphs.parked() == 1
+
+
+def _captured_sim():
+    sim = load_scene("test_small.yaml", device=DEVICE,
+                     overrides={"solver": {"graph": "true", "preconditioner": "jacobi"}})
+    for _ in range(3):  # uncaptured, captured, replayed
+        sim.step()
+    assert sim.integrator.cg.captures >= 1 and sim.integrator.cg._graph is not None
+    return sim
+
+
+def test_a_resized_pcg_parks_its_graph_and_a_step_without_factorization_releases_it():
+    with _captured_sim() as sim:
+        cg = sim.integrator.cg
+        old = cg._graph
+        cg.resize(cg.n)
+        assert cg._graph is None and graphs.parked() == 1
+        assert graphs._parked[0] is old
+        captures = cg.captures
+        sim.step()
+        assert graphs.parked() == 0
+        assert cg.captures == captures + 1  # a new key is captured at its first solve once kernels are loaded
+
+
+def test_graphs_stay_parked_while_the_preconditioner_factorizes():
+    with _captured_sim() as sim:
+        sim.preconditioner.factorizing = lambda: True
+        cg = sim.integrator.cg
+        cg.resize(cg.n)
+        sim.step()
+        assert graphs.parked() == 1  # a release now would wait for the factorization
+        sim.preconditioner.factorizing = lambda: False
+        sim.step()
+        assert graphs.parked() == 0
+
+
+def test_a_new_surface_retires_the_captured_detections():
+    with load_scene("default.yaml", device=DEVICE) as sim:
+        sim.step()
+        topo = sim.contact._topo
+        assert topo is not None
+        topo.graphs[("key",)] = _graph()
+        topo.graphs[("other",)] = "seen"
+        sim.preconditioner.factorizing = lambda: True  # keep them parked to look at them
+        sim.contact.reset()
+        assert sim.contact._topo is None and graphs.parked() == 1
+
+
+def test_the_same_trajectory_with_graphs_replaced_by_resizes():
+    """Parking changes when graphs are released, never what a solve computes."""
+    with _captured_sim() as a, _captured_sim() as b:
+        for k in range(4):
+            if k % 2 == 0:
+                b.integrator.cg.resize(b.integrator.cg.n)  # b re-captures every other step
+            a.step()
+            b.step()
+        assert np.array_equal(a.positions(), b.positions())

@@ -102,4 +102,5 @@ def test_the_same_trajectory_with_graphs_replaced_by_resizes():
                 b.integrator.cg.resize(b.integrator.cg.n)  # b re-captures every other step
             a.step()
             b.step()
-        assert np.array_equal(a.positions(), b.positions())
+        # equal up to the order of the FEM kernels' atomic sums on a GPU (bit for bit on the CPU)
+        np.testing.assert_allclose(a.positions(), b.positions(), rtol=0.0, atol=1e-12)

@@ -472,6 +472,18 @@ class AsyncDevicePreconditioner:
         self._reset_counters()
         self.backend.reset()
 
+    def _close_after(self, busy: _Ticket) -> None:
+        """On the enqueueing thread, after the enqueue of ``busy``: wait on the host for that
+        factorization to end (so nothing still writes the buffers), then free the backend. Launches
+        and allocates nothing of Warp's."""
+        try:
+            _, done = busy.events()
+            if done is not None:
+                wp.synchronize_event(done)
+        except Exception:  # noqa: BLE001 - a failed enqueue left nothing running
+            pass
+        self.backend.close()
+
     def stats(self) -> dict:
         sw = self.swaps
         extra = self.correction.stats() if self.correction is not None else {}
@@ -490,10 +502,17 @@ class AsyncDevicePreconditioner:
         }
 
     def close(self) -> None:
-        """Returns at once: a factorization in flight is abandoned with the buffers."""
+        """Returns at once: a factorization in flight is abandoned with the buffers. Where its
+        enqueue still runs on the background thread (a library's first call there can block
+        for a second), the rest of the close follows it on that thread instead of waiting."""
         self._pending = self._held = None
+        busy = self._busy
+        if self._pool is not None and busy is not None and busy.future is not None and not busy.future.done():
+            self._pool.submit(self._close_after, busy)
+            self._pool.shutdown(wait=False)
+            return
         if self._pool is not None:
-            self._pool.shutdown(wait=True)  # the enqueue, not the factorization: short
+            self._pool.shutdown(wait=True)  # the enqueue is over: returns at once
         if self._busy is not None and self._main is not None:
             try:  # the buffers are freed on the simulation's stream: after the factorization ends there
                 self._main.wait_event(self._busy.events()[1])

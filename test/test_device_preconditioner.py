@@ -319,6 +319,34 @@ def test_close_returns_at_once_with_a_factorization_in_flight():
         sim.step()
 
 
+def test_close_does_not_wait_for_an_enqueue_that_blocks():
+    """An enqueue still running on the background thread (a library's first call there can
+    block for a second): close() returns at once, and the backend is freed on that thread once
+    the enqueue is over, not before."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from soft_tissue_sim.device_preconditioner import AsyncDevicePreconditioner, _Ticket
+
+    class Backend:
+        def __init__(self):
+            self.closed = threading.Event()
+
+        def close(self):
+            self.closed.set()
+
+    pre = AsyncDevicePreconditioner(Backend(), lambda: {}, "cpu")
+    gate = threading.Event()
+    pre._pool = ThreadPoolExecutor(max_workers=1)
+    pre._busy = _Ticket(0, 0, None, 0, None, future=pre._pool.submit(lambda: (gate.wait(10.0), (None, None))[1]))
+    t0 = time.perf_counter()
+    pre.close()
+    assert time.perf_counter() - t0 < 0.5
+    assert not pre.backend.closed.wait(0.2)  # the enqueue still holds the buffers
+    gate.set()
+    assert pre.backend.closed.wait(5.0)
+
+
 def test_invalidate_starts_afresh_and_reset_gives_the_same_trajectory():
     ov = {"solver": _solver(refresh_every=5, tol=1e-9)}
     with load_scene("test_small.yaml", device=DEVICE, overrides=ov) as sim:

@@ -105,27 +105,46 @@ class Outputs:
         return None
 
 
+_NODE, _FACE, _SELF = 0, 1, 2  # SlotMap.kind: what a slot's thread was (Section.kind)
+
+
+class SlotMap:
+    """What each output slot of a detection stands for, so that its active slots are read in
+    one pass: ``obj`` (its section's object), ``kind`` (0 node, 1 face, 2 self), ``node`` (the
+    surface node, -1 on a face's slot), ``face`` (the surface face of a face's slot, else 0)."""
+
+    def __init__(self, sections: list[Section], n_slots: int, surface: np.ndarray):
+        self.obj = np.full(n_slots, -2, np.int64)
+        self.kind = np.zeros(n_slots, np.int8)
+        self.node = np.full(n_slots, -1, np.int64)
+        self.face = np.zeros(n_slots, np.int64)
+        for sec in sections:
+            sl = slice(sec.base, sec.base + sec.size)
+            self.obj[sl] = sec.obj
+            if sec.kind == "face":
+                self.kind[sl] = _FACE
+                self.face[sl] = np.arange(sec.size)
+            else:
+                self.kind[sl] = _SELF if sec.kind == "self" else _NODE
+                self.node[sl] = surface[: sec.size]
+
+
 def collect(topo: "SurfaceTopology", host: list) -> Contacts:
     """The contacts of one detection from its outputs read to the host (``host``: the arrays of
-    :attr:`Outputs.arrays`), section by section in launch order."""
+    :attr:`Outputs.arrays`), in slot order (section by section in launch order)."""
     active, gap, normal, point, tri, bary = host
-    parts = []
-    for sec in topo.out.sections:
-        sl = slice(sec.base, sec.base + sec.size)
-        act = active[sl].astype(bool)
-        if not act.any():
-            continue
-        k = int(act.sum())
-        if sec.kind == "face":
-            node = np.full(k, -1, np.int64)
-            tris = topo.faces[act].astype(np.int64)
-        else:
-            node = topo.surface[act].astype(np.int64)
-            tris = topo.faces[tri[sl][act]].astype(np.int64) if sec.kind == "self" else np.full((k, 3), -1, np.int64)
-        w = bary[sl][act] if sec.kind != "node" else np.zeros((k, 3))
-        parts.append(Contacts(node, np.full(k, sec.obj, np.int64), gap[sl][act], normal[sl][act], point[sl][act],
-                              tris, w))
-    return Contacts.concat(parts)
+    idx = np.flatnonzero(active)
+    if not len(idx):
+        return Contacts.empty()
+    slots = topo.slot_map
+    kind = slots.kind[idx]
+    t = np.flatnonzero(kind != _NODE)  # rows with a triangle: its face, by slot or by the kernel
+    face = np.where(kind[t] == _FACE, slots.face[idx[t]], tri[idx[t]])
+    tris = np.full((len(idx), 3), -1, np.int64)
+    tris[t] = topo.faces[face]
+    w = np.zeros((len(idx), 3))
+    w[t] = bary[idx[t]]
+    return Contacts(slots.node[idx], slots.obj[idx], gap[idx], normal[idx], point[idx], tris, w)
 
 
 class SurfaceTopology:
@@ -180,6 +199,7 @@ class SurfaceTopology:
         if self.wmesh is not None:
             sections.append(Section(-1, "self", base, ns))
         self.out = Outputs(sections, dev)
+        self.slot_map = SlotMap(sections, self.out.active.shape[0], self.surface)
         # state of one detection on the device: the step's start, the reach of the free motion,
         # which instruments were through the surface at the start, the smallest gap
         self.x_start = wp.zeros(fem.n_nodes, dtype=wp.vec3d, device=dev)

@@ -200,7 +200,7 @@ class DenseInverse:
         self._workspace = None
         self._blas = None  # cuBLAS
         self._one = np.ones(1)  # the host scalar of the cuBLAS calls
-        self._W = self._W_host = None  # delassus: W on the device and its host mirror
+        self._W = self._W_host = self._W_np = None  # delassus: W on the device, its host mirror, a view
 
     # ----------------------------------------------------------- making one
     @property
@@ -315,11 +315,12 @@ class DenseInverse:
             self._W = wp.empty(m * m, dtype=wp.float64, device=self.device)
             self._W_host = self._W if self.device.is_cpu else wp.empty(m * m, dtype=wp.float64, device="cpu",
                                                                         pinned=True)
+            self._W_np = self._W_host.numpy()
         wp.launch(delassus_kernel, (m, m), [self.inv, nodes, coef, dR, m, self._W], device=self.device)
         if self._W_host is not self._W:
             wp.copy(self._W_host, self._W, count=m * m)
             wp.synchronize_stream(wp.get_stream(self.device))
-        return self._W_host.numpy()[: m * m].reshape(m, m)
+        return self._W_np[: m * m].reshape(m, m)
 
     # ----------------------------------------------------------- changing it
     def fold(self, rows: np.ndarray, Q_fn) -> None:

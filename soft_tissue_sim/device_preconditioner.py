@@ -167,8 +167,8 @@ class AsyncDevicePreconditioner:
             self._side = self.partition.stream
         else:
             self._side = wp.Stream(self.device) if self.device.is_cuda else None
-        self._vec = None  # (r, z, pinned staging of r, event of its last upload) of apply_vector
-        self._rows = None  # delassus_rows: constraint rows on the device (nodes, coef) and their host staging
+        self._vec = None  # (r, z, pinned staging of r and its numpy view, event of its last upload) of apply_vector
+        self._rows = None  # delassus_rows: constraint rows on the device (nodes, coef), their host staging and its numpy views
         self.correction: FoldedCorrection | None = None
         self.mods: list[Modification] = []
         self._busy = None  # the last factorization enqueued (its work buffer is in use until it ends)
@@ -427,16 +427,14 @@ class AsyncDevicePreconditioner:
         if self._vec is None or self._vec[0].shape[0] != len(b):
             r = wp.empty(len(b), dtype=wp.vec3d, device=self.device)
             staged = r if self.device.is_cpu else wp.empty(len(b), dtype=wp.vec3d, device="cpu", pinned=True)
-            self._vec = (r, wp.empty(len(b), dtype=wp.vec3d, device=self.device), staged, [None])
-        r, z, staged, sent = self._vec
+            self._vec = (r, wp.empty(len(b), dtype=wp.vec3d, device=self.device), staged, staged.numpy(), [None])
+        r, z, staged, staged_np, sent = self._vec
+        if staged is not r and sent[0] is not None:
+            wp.synchronize_event(sent[0])
+        staged_np[:] = b
         if staged is not r:
-            if sent[0] is not None:
-                wp.synchronize_event(sent[0])
-            staged.numpy()[:] = b
             wp.copy(r, staged)
             sent[0] = wp.get_stream(self.device).record_event(sent[0])
-        else:
-            r.numpy()[:] = b
         self.apply(r, z)
         return z
 
@@ -462,10 +460,10 @@ class AsyncDevicePreconditioner:
                    wp.empty((m, 4), dtype=wp.vec3d, device=self.device)]
             host = dev if self.device.is_cpu else [wp.empty((m, 4), dtype=a.dtype, device="cpu", pinned=True)
                                                    for a in dev]
-            bufs = self._rows = (*dev, *host)
-        d_nodes, d_coef, h_nodes, h_coef = bufs
-        h_nodes.numpy()[:m] = nodes
-        h_coef.numpy()[:m] = coef
+            bufs = self._rows = (*dev, *host, host[0].numpy(), host[1].numpy())
+        d_nodes, d_coef, h_nodes, h_coef, nodes_np, coef_np = bufs
+        nodes_np[:m] = nodes
+        coef_np[:m] = coef
         if h_nodes is not d_nodes:  # the previous call's copies ended with its read of W
             wp.copy(d_nodes, h_nodes, count=4 * m)
             wp.copy(d_coef, h_coef, count=4 * m)

@@ -209,6 +209,11 @@ class SurfaceTopology:
         # the objects' geometry of the step, on the device (see upload_objects)
         self.geom = wp.zeros(4 * max(len(objects), 1), dtype=wp.vec3d, device=dev)
         self.params = wp.zeros(3 * max(len(objects), 1), dtype=wp.float64, device=dev)
+        # their host side: the arrays themselves on the CPU, pinned mirrors on a GPU
+        on_cpu = wp.get_device(dev).is_cpu
+        self.geom_host = self.geom if on_cpu else wp.zeros_like(self.geom, device="cpu", pinned=True)
+        self.params_host = self.params if on_cpu else wp.zeros_like(self.params, device="cpu", pinned=True)
+        self.geom_np, self.params_np = self.geom_host.numpy(), self.params_host.numpy()
         self.graphs: dict = {}  # captured detections (CUDA), by their arguments
 
     def matches(self, fem) -> bool:
@@ -220,9 +225,12 @@ def upload_objects(topo: SurfaceTopology, objects: list) -> None:
     """The objects' geometry of this step into ``topo.geom`` / ``topo.params``, where the
     kernels read it (so that a captured detection replays with new poses): per object ``oi``,
     geom[4 oi ...] = an instrument's axis (a, b) at the step's pose and at the previous step's
-    pose, or a plane's (point, normal); params[3 oi ...] = (radius, blade_lo, blade_hi)."""
-    geom = np.zeros((len(topo.geom), 3))
-    params = np.zeros(len(topo.params))
+    pose, or a plane's (point, normal); params[3 oi ...] = (radius, blade_lo, blade_hi).
+    Written in place on the CPU; on a GPU into pinned mirrors, then copied (the previous step's
+    copies ended with its read of the detection)."""
+    geom, params = topo.geom_np, topo.params_np
+    geom[:] = 0.0
+    params[:] = 0.0
     for oi, obj in enumerate(objects):
         if isinstance(obj, Instrument):
             geom[4 * oi: 4 * oi + 2] = obj.segment_world()
@@ -230,8 +238,9 @@ def upload_objects(topo: SurfaceTopology, objects: list) -> None:
             params[3 * oi: 3 * oi + 3] = (obj.radius, *blade_span(obj))
         elif isinstance(obj, PlaneObstacle):
             geom[4 * oi], geom[4 * oi + 1] = obj.point, obj.normal
-    topo.geom.assign(geom)
-    topo.params.assign(params)
+    if topo.geom_host is not topo.geom:
+        wp.copy(topo.geom, topo.geom_host)
+        wp.copy(topo.params, topo.params_host)
 
 
 def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_features: wp.array, distance: float,

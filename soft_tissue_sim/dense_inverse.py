@@ -115,36 +115,26 @@ def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.flo
 
 
 @wp.kernel
-def rotate_rows_kernel(nodes: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.vec3d),
-                       dR: wp.array(dtype=wp.mat33d), out: wp.array2d(dtype=wp.vec3d)):
-    """out[a, s] = dR_n^T coef[a, s] for the node n = nodes[a, s] of constraint row a (-1: none)."""
-    a, k = wp.tid()
-    n = nodes[a, k]
-    if n >= 0:
-        out[a, k] = wp.transpose(dR[n]) * coef[a, k]
-    else:
-        out[a, k] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-
-
-@wp.kernel
 def delassus_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.int32),
-                    coef: wp.array2d(dtype=wp.vec3d), W: wp.array2d(dtype=wp.float64)):
-    """W[a, b] = h_a^T P h_b for constraint rows given as up to 4 (node, 3-vector) pairs each
-    (already rotated into the factor's frame): 3x3 blocks of P gathered, one entry per thread."""
+                    coef: wp.array2d(dtype=wp.vec3d), dR: wp.array(dtype=wp.mat33d), m: int,
+                    W: wp.array(dtype=wp.float64)):
+    """W[a m + b] = h_a^T dR P dR^T h_b for the first m constraint rows, given as up to 4 (node,
+    3-vector) pairs each (node -1: none): each pair rotated into the factor's frame by dR_n^T,
+    then 3x3 blocks of P gathered, one entry per thread (W row-major with row length m)."""
     a, b = wp.tid()
     acc = wp.float64(0.0)
     for k in range(4):
         i = nodes[a, k]
         if i >= 0:
-            ca = coef[a, k]
+            ca = wp.transpose(dR[i]) * coef[a, k]
             for l in range(4):
                 j = nodes[b, l]
                 if j >= 0:
-                    cb = coef[b, l]
+                    cb = wp.transpose(dR[j]) * coef[b, l]
                     for p in range(3):
                         for q in range(3):
                             acc += ca[p] * P[3 * i + p, 3 * j + q] * cb[q]
-    W[a, b] = acc
+    W[a * m + b] = acc
 
 
 def array_module(device):
@@ -210,6 +200,7 @@ class DenseInverse:
         self._workspace = None
         self._blas = None  # cuBLAS
         self._one = np.ones(1)  # the host scalar of the cuBLAS calls
+        self._W = self._W_host = self._W_np = None  # delassus: W on the device, its host mirror, a view
 
     # ----------------------------------------------------------- making one
     @property
@@ -314,14 +305,22 @@ class DenseInverse:
         """The inverse in use as an ``xp`` array (a view)."""
         return xp_view(self.xp, self.inv)
 
-    def delassus(self, nodes: wp.array, coef: wp.array, dR: wp.array) -> np.ndarray:
-        """W = H dR A^-1 dR^T H^T (m x m, host) for constraint rows in node form (m, 4)."""
-        m = nodes.shape[0]
-        rot = wp.empty((m, 4), dtype=wp.vec3d, device=self.device)
-        wp.launch(rotate_rows_kernel, (m, 4), [nodes, coef, dR, rot], device=self.device)
-        W = wp.empty((m, m), dtype=wp.float64, device=self.device)
-        wp.launch(delassus_kernel, (m, m), [self.inv, nodes, rot, W], device=self.device)
-        return W.numpy()
+    def delassus(self, nodes: wp.array, coef: wp.array, dR: wp.array, m: int | None = None) -> np.ndarray:
+        """W = H dR A^-1 dR^T H^T (m x m, host) for the first ``m`` (default: all) constraint rows
+        in node form (arrays (>= m, 4)). W is gathered into a buffer kept between calls and only
+        its m x m entries are read back (through a pinned mirror on a GPU); the result is a view
+        of that buffer, valid until the next call."""
+        m = nodes.shape[0] if m is None else int(m)
+        if self._W is None or self._W.shape[0] < m * m:
+            self._W = wp.empty(m * m, dtype=wp.float64, device=self.device)
+            self._W_host = self._W if self.device.is_cpu else wp.empty(m * m, dtype=wp.float64, device="cpu",
+                                                                        pinned=True)
+            self._W_np = self._W_host.numpy()
+        wp.launch(delassus_kernel, (m, m), [self.inv, nodes, coef, dR, m, self._W], device=self.device)
+        if self._W_host is not self._W:
+            wp.copy(self._W_host, self._W, count=m * m)
+            wp.synchronize_stream(wp.get_stream(self.device))
+        return self._W_np[: m * m].reshape(m, m)
 
     # ----------------------------------------------------------- changing it
     def fold(self, rows: np.ndarray, Q_fn) -> None:

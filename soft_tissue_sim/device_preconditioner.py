@@ -168,7 +168,8 @@ class AsyncDevicePreconditioner:
             self._side = self.partition.stream
         else:
             self._side = wp.Stream(self.device) if self.device.is_cuda else None
-        self._vec = None  # (r, z) of apply_vector
+        self._vec = None  # (r, z, pinned staging of r and its numpy view, event of its last upload) of apply_vector
+        self._rows = None  # delassus_rows: constraint rows on the device (nodes, coef), their host staging and its numpy views
         self.correction: FoldedCorrection | None = None
         self.mods: list[Modification] = []
         self._busy = None  # the last factorization enqueued (its work buffer is in use until it ends)
@@ -436,13 +437,20 @@ class AsyncDevicePreconditioner:
 
     def apply_vector(self, b: np.ndarray) -> wp.array:
         """P^-1 b for one host vector b (3n,), left on the device: a (n,) vec3d array that the
-        next call overwrites (no wait for the device)."""
-        b = np.ascontiguousarray(b, dtype=np.float64).reshape(-1, 3)
+        next call overwrites (no wait for the device). b goes up through a pinned buffer (on a
+        GPU) that the next call refills only once this copy has left it."""
+        b = np.asarray(b, dtype=np.float64).reshape(-1, 3)
         if self._vec is None or self._vec[0].shape[0] != len(b):
-            self._vec = (wp.empty(len(b), dtype=wp.vec3d, device=self.device),
-                         wp.empty(len(b), dtype=wp.vec3d, device=self.device))
-        r, z = self._vec
-        r.assign(b)
+            r = wp.empty(len(b), dtype=wp.vec3d, device=self.device)
+            staged = r if self.device.is_cpu else wp.empty(len(b), dtype=wp.vec3d, device="cpu", pinned=True)
+            self._vec = (r, wp.empty(len(b), dtype=wp.vec3d, device=self.device), staged, staged.numpy(), [None])
+        r, z, staged, staged_np, sent = self._vec
+        if staged is not r and sent[0] is not None:
+            wp.synchronize_event(sent[0])
+        staged_np[:] = b
+        if staged is not r:
+            wp.copy(r, staged)
+            sent[0] = wp.get_stream(self.device).record_event(sent[0])
         self.apply(r, z)
         return z
 
@@ -454,15 +462,28 @@ class AsyncDevicePreconditioner:
         return self.delassus_rows(*constraint_rows(B, self.dR.shape[0]))
 
     def delassus_rows(self, nodes: np.ndarray, coef: np.ndarray) -> np.ndarray | None:
-        """:meth:`delassus` for columns given in node form (see :func:`constraint_rows`)."""
+        """:meth:`delassus` for columns given in node form (see :func:`constraint_rows`). The rows
+        go up into device buffers kept between calls (grown to the largest m seen; through
+        pinned host buffers on a GPU), so that a call allocates nothing in the steady state."""
         if not hasattr(self.backend, "delassus"):
             return None
-        if len(nodes) == 0:
+        m = len(nodes)
+        if m == 0:
             return np.zeros((0, 0))
-        W = self.backend.delassus(wp.array(np.ascontiguousarray(nodes, dtype=np.int32), dtype=wp.int32,
-                                           device=self.device),
-                                  wp.array(np.ascontiguousarray(coef, dtype=np.float64), dtype=wp.vec3d,
-                                           device=self.device), self.dR)
+        bufs = self._rows
+        if bufs is None or bufs[0].shape[0] < m:
+            dev = [wp.empty((m, 4), dtype=wp.int32, device=self.device),
+                   wp.empty((m, 4), dtype=wp.vec3d, device=self.device)]
+            host = dev if self.device.is_cpu else [wp.empty((m, 4), dtype=a.dtype, device="cpu", pinned=True)
+                                                   for a in dev]
+            bufs = self._rows = (*dev, *host, host[0].numpy(), host[1].numpy())
+        d_nodes, d_coef, h_nodes, h_coef, nodes_np, coef_np = bufs
+        nodes_np[:m] = nodes
+        coef_np[:m] = coef
+        if h_nodes is not d_nodes:  # the previous call's copies ended with its read of W
+            wp.copy(d_nodes, h_nodes, count=4 * m)
+            wp.copy(d_coef, h_coef, count=4 * m)
+        W = self.backend.delassus(d_nodes, d_coef, self.dR, m)
         return 0.5 * (W + W.T)
 
     # -------------------------------------------------------------- lifecycle

@@ -748,3 +748,78 @@ BAD_SCENES = [
 def test_bad_contact_parameters_are_rejected_with_a_message(extra, match):
     with pytest.raises(ParameterError, match=match):
         load_scene(scene(**extra))
+
+
+# ------------------------------------------------------------- host data of the response
+def test_the_node_form_jacobian_scatters_what_its_sparse_matrix_multiplies():
+    """H^T lambda scattered from the node form (several rows on one node, rows with fewer than
+    four nodes) equals the product with the sparse H the host modes use, and that matrix
+    has the node form's entries."""
+    from soft_tissue_sim.contact.jacobian import ConstraintRows
+
+    rng = np.random.default_rng(2)
+    n, m = 9, 12
+    nodes = rng.integers(0, n, (m, 4)).astype(np.int32)
+    nodes[:, 1:] = np.where(rng.random((m, 3)) < 0.4, -1, nodes[:, 1:])  # node contacts: 1 node
+    nodes[0] = [3, 3 + 1, 3 + 2, -1]
+    nodes[1] = [3, -1, -1, -1]  # node 3 shared by rows 0 and 1
+    for r in range(m):  # the nodes of one row are distinct (a node and a triangle not its own)
+        seen = set()
+        for s in range(4):
+            if nodes[r, s] in seen:
+                nodes[r, s] = -1
+            seen.add(int(nodes[r, s]))
+    coef = rng.standard_normal((m, 4, 3))
+    H = ConstraintRows(nodes, coef, n)
+    lam = rng.standard_normal(m)
+    Hs = H.csr()
+    np.testing.assert_allclose(H.transpose_times(lam), Hs.T @ lam, rtol=1e-14, atol=1e-14)
+    dense = np.zeros((m, 3 * n))
+    for r in range(m):
+        for s in range(4):
+            if nodes[r, s] >= 0:
+                dense[r, 3 * nodes[r, s]: 3 * nodes[r, s] + 3] += coef[r, s]
+    np.testing.assert_array_equal(Hs.toarray(), dense)
+    assert H.csr() is Hs  # made once
+
+
+def _warm_start_by_dict(stored, forces, names):
+    """The warm start's semantics as a dict keyed by tuples: (obj, node) or (obj, sorted
+    triangle); the last stored row of a name wins."""
+    key = lambda row: tuple(int(v) for v in row if v != -1) if row[2] == -1 else tuple(int(v) for v in row)  # noqa: E731
+    table = {key(r): f for r, f in zip(stored, forces)}
+    found = np.array([key(r) in table for r in names], bool)
+    return found, np.array([table[key(r)] for r, ok in zip(names, found) if ok]).reshape(-1, 3)
+
+
+def test_warm_start_finds_the_forces_of_the_same_contacts_by_name():
+    """Names match as whole rows: a node's contact never meets a triangle's, nor the same node
+    against another object; triangles match whatever the order of their nodes; uids name the
+    nodes (renumbering keeps the match); a repeated name keeps its last force."""
+    from soft_tissue_sim.contact.warm import WarmStart, contact_names
+
+    uids = np.array([10, 11, 12, 13, 14, 15, 40, 41])
+    obj = np.array([0, 0, 1, -1, 0, 1, 0])
+    node = np.array([2, 3, 2, 5, -1, -1, 3])
+    tri = np.array([[-1] * 3, [-1] * 3, [-1] * 3, [0, 1, 4], [4, 6, 7], [1, 2, 3], [-1] * 3])
+    names = contact_names(obj, node, tri, uids)
+    np.testing.assert_array_equal(names[4], [0, 14, 40, 41])  # sorted uids of the triangle
+    np.testing.assert_array_equal(names[0], [0, 12, -1, -1])
+    forces = np.arange(21, dtype=float).reshape(7, 3)
+    warm = WarmStart(names, forces)
+    # next step: the nodes renumbered (uids follow), a triangle listed in another order, new
+    # contacts, a node's contact on the node of an earlier triangle
+    perm = np.array([7, 6, 5, 4, 3, 2, 1, 0])  # new index -> old index
+    new_uids = uids[perm]
+    inv = np.argsort(perm)  # old index -> new index
+    q_obj = np.array([0, 1, 0, 0, 1, 2, 0])
+    q_node = np.array([inv[3], inv[2], -1, inv[4], -1, inv[2], inv[0]])
+    q_tri = np.array([[-1] * 3, [-1] * 3, inv[[7, 4, 6]], [-1] * 3, inv[[3, 2, 1]], [-1] * 3, [-1] * 3])
+    q = contact_names(q_obj, q_node, q_tri, new_uids)
+    found, f = warm.lookup(q)
+    ref_found, ref_f = _warm_start_by_dict(names, forces, q)
+    np.testing.assert_array_equal(found, ref_found)
+    np.testing.assert_array_equal(f, ref_f)
+    np.testing.assert_array_equal(found, [True, True, True, False, True, False, False])
+    np.testing.assert_array_equal(f[0], forces[6])  # (0, node 13) was stored twice: the last row
+    assert WarmStart().lookup(q)[0].sum() == 0

@@ -6,7 +6,7 @@ import itertools
 import numpy as np
 import pytest
 
-from soft_tissue_sim.contact.pgs import solve_pgs
+from soft_tissue_sim.contact.pgs import PGS, solve_pgs
 
 
 def _spd(rng, m):
@@ -69,3 +69,25 @@ def test_friction_stays_in_its_cone_and_the_normal_rows_are_complementary(pyrami
     inside = np.linalg.norm(t, axis=1) < lim - 1e-9 if not pyramid else (np.abs(t) < lim[:, None] - 1e-9).all(axis=1)
     for c in np.flatnonzero(inside):
         assert np.abs(d[3 * c + 1: 3 * c + 3]).max() <= 1e-8
+
+
+def test_a_reused_solver_solves_each_problem_as_a_fresh_one():
+    """PGS keeps its buffers between solves (sized to the largest problem seen): a larger
+    problem, then smaller ones (stale rows beyond them in the buffers), then a larger one again,
+    each equal to the exact LCP solution and to a fresh solver's answer."""
+    rng = np.random.default_rng(3)
+    pgs = PGS()
+    for m in (20, 7, 3, 7, 40):
+        W = _spd(rng, m)
+        d0 = rng.standard_normal(m)
+        args = (W, d0, np.arange(m, dtype=np.int32), np.ones(m, np.int32), np.zeros(m), 5000, 1e-13, False,
+                np.zeros(m))
+        lam, its, res = pgs.solve(*args)
+        fresh = solve_pgs(*args)
+        assert res <= 1e-13 and its < 5000
+        np.testing.assert_array_equal(lam, fresh[0])
+        assert (its, res) == fresh[1:]
+        if m <= 7:
+            ref = _lcp_by_enumeration(W, d0)
+            np.testing.assert_allclose(lam, ref, atol=1e-10 * np.abs(ref).max())
+    assert pgs.rows_cap == 40

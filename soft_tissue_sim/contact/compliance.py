@@ -29,26 +29,28 @@ import numpy as np
 import scipy.sparse as sps
 import warp as wp
 
+from .jacobian import ConstraintRows
 
-def compliance(H: sps.csr_matrix, mode: str, preconditioner, integrator, fem, node_rows=None):
-    """(W / dt^2 = H P^-1 H^T dense, a function lam -> P^-1 H^T lam, the kind used).
-    ``node_rows``: H in node form, (nodes (m, 4) int32, -1 for none; coef (m, 4, 3)), which a
-    device factor gathers W from directly."""
+
+def compliance(H: ConstraintRows, mode: str, preconditioner, integrator, fem):
+    """(W / dt^2 = H P^-1 H^T dense, a function lam -> P^-1 H^T lam, the kind used), for the
+    contacts' Jacobian ``H`` in node form: a device factor gathers W from that form, and H^T lam
+    is scattered from it; the sparse matrix is made only for the modes that multiply by it."""
     inner = getattr(preconditioner, "inner", None)
     if mode == "preconditioner" and inner is None:
         mode = "diagonal"  # jacobi / none: no factorization to use
     Yt = None  # rows: P^-1 applied to the rows of H
     if mode == "preconditioner":
         try:
-            if node_rows is not None and hasattr(inner, "delassus_rows"):
-                W = inner.delassus_rows(*node_rows)
+            if hasattr(inner, "delassus_rows"):
+                W = inner.delassus_rows(H.nodes, H.coef)
             else:
-                W = inner.delassus(H.T.tocsc()) if hasattr(inner, "delassus") else None
+                W = inner.delassus(H.csr().T.tocsc()) if hasattr(inner, "delassus") else None
             if W is not None:  # forward solves alone (host) or gathered (device); dx by one application
                 if hasattr(inner, "apply_vector"):  # a device factor: the result stays there
-                    return W, (lambda lam: inner.apply_vector(H.T @ lam)), mode
-                return W, (lambda lam: inner.apply_columns((H.T @ lam)[:, None])[:, 0]), mode
-            Hd = H.toarray()  # (m, 3n): one row per constraint
+                    return W, (lambda lam: inner.apply_vector(H.transpose_times(lam))), mode
+                return W, (lambda lam: inner.apply_columns(H.transpose_times(lam)[:, None])[:, 0]), mode
+            Hd = H.csr().toarray()  # (m, 3n): one row per constraint
             if hasattr(inner, "apply_columns"):
                 Yt = np.ascontiguousarray(np.asarray(inner.apply_columns(np.ascontiguousarray(Hd.T))).T)
             else:
@@ -60,7 +62,7 @@ def compliance(H: sps.csr_matrix, mode: str, preconditioner, integrator, fem, no
                           stacklevel=3)
             mode, Yt = "diagonal (fallback)", None
     elif mode == "exact":  # A^-1 by one PCG solve per row, to the integrator's tolerance
-        Hd = H.toarray()
+        Hd = H.csr().toarray()
         Yt = np.empty_like(Hd)
         y = wp.zeros(fem.n_nodes, dtype=wp.vec3d, device=fem.device)
         for r in range(Hd.shape[0]):
@@ -68,14 +70,15 @@ def compliance(H: sps.csr_matrix, mode: str, preconditioner, integrator, fem, no
                                 y, integrator.preconditioner)
             Yt[r] = y.numpy().reshape(-1)
     if Yt is not None:
-        return np.asarray(H @ Yt.T), (lambda lam: Yt.T @ lam), mode
+        return np.asarray(H.csr() @ Yt.T), (lambda lam: Yt.T @ lam), mode
     n = fem.n_nodes
     D = wp.zeros(n, dtype=wp.mat33d, device=fem.device)
     fem.diagonal_blocks(integrator.m_coef, integrator.k_coef, D)
     Dinv = np.linalg.inv(D.numpy())
     B = sps.bsr_matrix((Dinv, np.arange(n), np.arange(n + 1)), shape=(3 * n, 3 * n)).tocsr()
-    Y = (B @ H.T).tocsc()
-    return (H @ Y).toarray(), (lambda lam: Y @ lam), mode
+    Hs = H.csr()
+    Y = (B @ Hs.T).tocsc()
+    return (Hs @ Y).toarray(), (lambda lam: Y @ lam), mode
 
 
 def positive_definite(W: np.ndarray, dense_check_up_to: int = 1500) -> bool:

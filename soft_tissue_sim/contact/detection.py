@@ -105,27 +105,46 @@ class Outputs:
         return None
 
 
+_NODE, _FACE, _SELF = 0, 1, 2  # SlotMap.kind: what a slot's thread was (Section.kind)
+
+
+class SlotMap:
+    """What each output slot of a detection stands for, so that its active slots are read in
+    one pass: ``obj`` (its section's object), ``kind`` (0 node, 1 face, 2 self), ``node`` (the
+    surface node, -1 on a face's slot), ``face`` (the surface face of a face's slot, else 0)."""
+
+    def __init__(self, sections: list[Section], n_slots: int, surface: np.ndarray):
+        self.obj = np.full(n_slots, -2, np.int64)
+        self.kind = np.zeros(n_slots, np.int8)
+        self.node = np.full(n_slots, -1, np.int64)
+        self.face = np.zeros(n_slots, np.int64)
+        for sec in sections:
+            sl = slice(sec.base, sec.base + sec.size)
+            self.obj[sl] = sec.obj
+            if sec.kind == "face":
+                self.kind[sl] = _FACE
+                self.face[sl] = np.arange(sec.size)
+            else:
+                self.kind[sl] = _SELF if sec.kind == "self" else _NODE
+                self.node[sl] = surface[: sec.size]
+
+
 def collect(topo: "SurfaceTopology", host: list) -> Contacts:
     """The contacts of one detection from its outputs read to the host (``host``: the arrays of
-    :attr:`Outputs.arrays`), section by section in launch order."""
+    :attr:`Outputs.arrays`), in slot order (section by section in launch order)."""
     active, gap, normal, point, tri, bary = host
-    parts = []
-    for sec in topo.out.sections:
-        sl = slice(sec.base, sec.base + sec.size)
-        act = active[sl].astype(bool)
-        if not act.any():
-            continue
-        k = int(act.sum())
-        if sec.kind == "face":
-            node = np.full(k, -1, np.int64)
-            tris = topo.faces[act].astype(np.int64)
-        else:
-            node = topo.surface[act].astype(np.int64)
-            tris = topo.faces[tri[sl][act]].astype(np.int64) if sec.kind == "self" else np.full((k, 3), -1, np.int64)
-        w = bary[sl][act] if sec.kind != "node" else np.zeros((k, 3))
-        parts.append(Contacts(node, np.full(k, sec.obj, np.int64), gap[sl][act], normal[sl][act], point[sl][act],
-                              tris, w))
-    return Contacts.concat(parts)
+    idx = np.flatnonzero(active)
+    if not len(idx):
+        return Contacts.empty()
+    slots = topo.slot_map
+    kind = slots.kind[idx]
+    t = np.flatnonzero(kind != _NODE)  # rows with a triangle: its face, by slot or by the kernel
+    face = np.where(kind[t] == _FACE, slots.face[idx[t]], tri[idx[t]])
+    tris = np.full((len(idx), 3), -1, np.int64)
+    tris[t] = topo.faces[face]
+    w = np.zeros((len(idx), 3))
+    w[t] = bary[idx[t]]
+    return Contacts(slots.node[idx], slots.obj[idx], gap[idx], normal[idx], point[idx], tris, w)
 
 
 class SurfaceTopology:
@@ -180,6 +199,7 @@ class SurfaceTopology:
         if self.wmesh is not None:
             sections.append(Section(-1, "self", base, ns))
         self.out = Outputs(sections, dev)
+        self.slot_map = SlotMap(sections, self.out.active.shape[0], self.surface)
         # state of one detection on the device: the step's start, the reach of the free motion,
         # which instruments were through the surface at the start, the smallest gap
         self.x_start = wp.zeros(fem.n_nodes, dtype=wp.vec3d, device=dev)
@@ -189,6 +209,11 @@ class SurfaceTopology:
         # the objects' geometry of the step, on the device (see upload_objects)
         self.geom = wp.zeros(4 * max(len(objects), 1), dtype=wp.vec3d, device=dev)
         self.params = wp.zeros(3 * max(len(objects), 1), dtype=wp.float64, device=dev)
+        # their host side: the arrays themselves on the CPU, pinned mirrors on a GPU
+        on_cpu = wp.get_device(dev).is_cpu
+        self.geom_host = self.geom if on_cpu else wp.zeros_like(self.geom, device="cpu", pinned=True)
+        self.params_host = self.params if on_cpu else wp.zeros_like(self.params, device="cpu", pinned=True)
+        self.geom_np, self.params_np = self.geom_host.numpy(), self.params_host.numpy()
         self.graphs: dict = {}  # captured detections (CUDA), by their arguments
 
     def matches(self, fem) -> bool:
@@ -200,9 +225,12 @@ def upload_objects(topo: SurfaceTopology, objects: list) -> None:
     """The objects' geometry of this step into ``topo.geom`` / ``topo.params``, where the
     kernels read it (so that a captured detection replays with new poses): per object ``oi``,
     geom[4 oi ...] = an instrument's axis (a, b) at the step's pose and at the previous step's
-    pose, or a plane's (point, normal); params[3 oi ...] = (radius, blade_lo, blade_hi)."""
-    geom = np.zeros((len(topo.geom), 3))
-    params = np.zeros(len(topo.params))
+    pose, or a plane's (point, normal); params[3 oi ...] = (radius, blade_lo, blade_hi).
+    Written in place on the CPU; on a GPU into pinned mirrors, then copied (the previous step's
+    copies ended with its read of the detection)."""
+    geom, params = topo.geom_np, topo.params_np
+    geom[:] = 0.0
+    params[:] = 0.0
     for oi, obj in enumerate(objects):
         if isinstance(obj, Instrument):
             geom[4 * oi: 4 * oi + 2] = obj.segment_world()
@@ -210,8 +238,9 @@ def upload_objects(topo: SurfaceTopology, objects: list) -> None:
             params[3 * oi: 3 * oi + 3] = (obj.radius, *blade_span(obj))
         elif isinstance(obj, PlaneObstacle):
             geom[4 * oi], geom[4 * oi + 1] = obj.point, obj.normal
-    topo.geom.assign(geom)
-    topo.params.assign(params)
+    if topo.geom_host is not topo.geom:
+        wp.copy(topo.geom, topo.geom_host)
+        wp.copy(topo.params, topo.params_host)
 
 
 def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_features: wp.array, distance: float,

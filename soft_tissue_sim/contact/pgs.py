@@ -68,9 +68,9 @@ def contact_update(
 
 @wp.func
 def exact_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64),
-                delta: wp.array(dtype=wp.float64)):
-    """delta = W lambda + d0, summed afresh (the sweeps update it incrementally)."""
-    m = W.shape[0]
+                delta: wp.array(dtype=wp.float64), m: int):
+    """delta = W lambda + d0 over the first m rows, summed afresh (the sweeps update it
+    incrementally)."""
     for i in range(m):
         d = d0[i]
         for j in range(m):
@@ -80,11 +80,11 @@ def exact_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
 
 @wp.func
 def move(W: wp.array2d(dtype=wp.float64), delta: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64),
-         j: int, value: wp.float64):
+         j: int, value: wp.float64, m: int):
     """lambda_j <- value, and delta by W's column j (W symmetric: its row j) times the change."""
     d = value - lam[j]
     if d != F64(0.0):
-        for i in range(W.shape[0]):
+        for i in range(m):
             delta[i] += W[j, i] * d
         lam[j] = value
 
@@ -99,12 +99,14 @@ def pgs_residual(
     n_rows: wp.array(dtype=wp.int32),
     mu: wp.array(dtype=wp.float64),
     pyramid: int,
+    m: int,
+    nc: int,
 ):
     """Largest change a (Jacobi) sweep would make: 0 exactly at a solution of the LCP [m].
     delta is first summed afresh from lambda."""
-    exact_delta(W, d0, lam, delta)
+    exact_delta(W, d0, lam, delta, m)
     res = F64(0.0)
-    for c in range(row_start.shape[0]):
+    for c in range(nc):
         ln, l1, l2, ch = contact_update(W, delta, lam, row_start[c], n_rows[c], mu[c], pyramid)
         res = wp.max(res, ch)
     return res
@@ -117,6 +119,8 @@ def pgs_kernel(
     row_start: wp.array(dtype=wp.int32),
     n_rows: wp.array(dtype=wp.int32),
     mu: wp.array(dtype=wp.float64),
+    m: int,
+    nc: int,
     max_iterations: int,
     tolerance: wp.float64,
     pyramid: int,
@@ -131,11 +135,11 @@ def pgs_kernel(
     W's column j times it), so a contact whose forces do not change (one apart, say) costs
     O(1) a sweep; it is summed afresh for each residual. Sweeps until the largest change (see
     :func:`contact_update`) of a sweep and the residual (:func:`pgs_residual`) are <=
-    tolerance. info = [sweeps, residual]. W symmetric. One thread: launched with dim 1 on the
-    CPU.
+    tolerance. info = [sweeps, residual]. W symmetric. The problem is the first m rows and nc
+    contacts of the arrays (which may be larger: reused buffers). One thread: launched with
+    dim 1 on the CPU.
     """
-    nc = row_start.shape[0]
-    exact_delta(W, d0, lam, delta)
+    exact_delta(W, d0, lam, delta, m)
     it = int(0)
     res = F64(-1.0)
     for sweep in range(max_iterations):
@@ -143,32 +147,71 @@ def pgs_kernel(
         for c in range(nc):
             r = row_start[c]
             ln, l1, l2, ch = contact_update(W, delta, lam, r, n_rows[c], mu[c], pyramid)
-            move(W, delta, lam, r, ln)
+            move(W, delta, lam, r, ln, m)
             if n_rows[c] == 3:
-                move(W, delta, lam, r + 1, l1)
-                move(W, delta, lam, r + 2, l2)
+                move(W, delta, lam, r + 1, l1, m)
+                move(W, delta, lam, r + 2, l2, m)
             change = wp.max(change, ch)
         it = sweep + 1
         res = F64(-1.0)
         if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-            res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid)
+            res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid, m, nc)
             if res <= tolerance:
                 break
     if res < F64(0.0):
-        res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid)
+        res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid, m, nc)
     info[0] = F64(it)
     info[1] = res
 
 
+class PGS:
+    """The projected Gauss-Seidel solver with its CPU buffers kept between solves: they grow to
+    the largest problem seen and are filled in place, and the kernel's launch is recorded once
+    per set of buffers, so that a solve allocates no Warp array and makes one launch."""
+
+    def __init__(self):
+        self.rows_cap = self.contacts_cap = 0
+        self._cmd = None
+
+    def _reserve(self, m: int, nc: int) -> None:
+        """Buffers for at least m rows and nc contacts (and the recorded launch over them)."""
+        if m <= self.rows_cap and nc <= self.contacts_cap:
+            return
+        self.rows_cap, self.contacts_cap = max(m, self.rows_cap, 16), max(nc, self.contacts_cap, 16)
+        rc, cc = self.rows_cap, self.contacts_cap
+        z = lambda shape, dtype: wp.zeros(shape, dtype=dtype, device="cpu")  # noqa: E731
+        self.W, self.d0, self.lam, self.delta = z((rc, rc), wp.float64), z(rc, wp.float64), z(rc, wp.float64), \
+            z(rc, wp.float64)
+        self.row_start, self.n_rows, self.mu = z(cc, wp.int32), z(cc, wp.int32), z(cc, wp.float64)
+        self.info = z(2, wp.float64)
+        self._cmd = wp.launch(pgs_kernel, 1, [self.W, self.d0, self.row_start, self.n_rows, self.mu, 0, 0, 0, 0.0, 0,
+                                              self.lam, self.delta, self.info], device="cpu", record_cmd=True)
+        self._np = {name: getattr(self, name).numpy() for name in
+                    ("W", "d0", "lam", "row_start", "n_rows", "mu", "info")}
+
+    def solve(self, W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, rows: np.ndarray, mu: np.ndarray,
+              max_iterations: int, tolerance: float, pyramid: bool,
+              lam0: np.ndarray) -> tuple[np.ndarray, int, float]:
+        """Solve the LCP from the warm start ``lam0``: (lambda, sweeps, residual [m])."""
+        m, nc = len(d0), len(row_start)
+        self._reserve(m, nc)
+        a = self._np
+        a["W"][:m, :m] = W
+        a["d0"][:m] = d0
+        a["lam"][:m] = lam0
+        a["row_start"][:nc] = row_start
+        a["n_rows"][:nc] = rows
+        a["mu"][:nc] = mu
+        cmd = self._cmd
+        for index, value in ((5, m), (6, nc), (7, int(max_iterations)), (8, float(tolerance)), (9, int(pyramid))):
+            cmd.set_param_at_index(index, value)
+        cmd.launch()
+        its, res = a["info"]
+        return a["lam"][:m].copy(), int(its), float(res)
+
+
 def solve_pgs(W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, rows: np.ndarray, mu: np.ndarray,
               max_iterations: int, tolerance: float, pyramid: bool, lam0: np.ndarray) -> tuple[np.ndarray, int, float]:
-    """Solve the LCP from the warm start ``lam0``: (lambda, sweeps, residual [m])."""
-    lam_wp = wp.array(lam0, dtype=wp.float64, device="cpu")
-    info = wp.zeros(2, dtype=wp.float64, device="cpu")
-    wp.launch(pgs_kernel, 1,
-              [wp.array(W, dtype=wp.float64, device="cpu"), wp.array(d0, dtype=wp.float64, device="cpu"),
-               wp.array(row_start, dtype=wp.int32, device="cpu"), wp.array(rows, dtype=wp.int32, device="cpu"),
-               wp.array(mu, dtype=wp.float64, device="cpu"), int(max_iterations), float(tolerance), int(pyramid),
-               lam_wp, wp.zeros(len(d0), dtype=wp.float64, device="cpu"), info], device="cpu")
-    its, res = info.numpy()
-    return lam_wp.numpy().copy(), int(its), float(res)
+    """Solve the LCP from the warm start ``lam0``: (lambda, sweeps, residual [m]), with buffers of
+    its own (a solver that repeats solves keeps a :class:`PGS`)."""
+    return PGS().solve(W, d0, row_start, rows, mu, max_iterations, tolerance, pyramid, lam0)

@@ -16,7 +16,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import scipy.sparse as sps
 import warp as wp
 
 from .. import graphs
@@ -27,10 +26,12 @@ from ..stats import ContactStats
 from ..transfer import to_host
 from .compliance import compliance, positive_definite
 from .detection import SurfaceTopology, collect, launch_detection, launch_min_gap, launch_start, upload_objects
-from .geometry import tangent_basis
+from .geometry import cross, tangent_basis
+from .jacobian import ConstraintRows
 from .options import parse_options
-from .pgs import solve_pgs
+from .pgs import PGS
 from .records import ContactResponse, Contacts
+from .warm import WarmStart, contact_names
 
 
 @wp.kernel
@@ -84,7 +85,9 @@ class ContactSolver:
             self.obstacles[obs.name] = obs
         self.objects = list(self.instruments.values()) + list(self.obstacles.values())
         self._topo: SurfaceTopology | None = None
-        self._warm: dict = {}
+        self._warm = WarmStart()
+        self._pgs = PGS()
+        self._dx: wp.array | None = None  # the device correction, overwritten each step
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite
 
@@ -138,7 +141,7 @@ class ContactSolver:
             obs.torque[:] = 0.0
         self._retire_topology()
         self._topo = None
-        self._warm = {}
+        self._warm = WarmStart()
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0
 
@@ -216,9 +219,9 @@ class ContactSolver:
         launch_start(topo, integ.x, integ.v, dt, self.device)
         upload_objects(topo, self.objects)
         self._launch(topo, integ.x, topo.x_start, topo.x_start)
+        # views, valid until the next read of these arrays (none in this step)
         x, x_start, free, *outputs = to_host(integ.x, topo.x_start, body.fem.free, *topo.out.arrays)
         c = collect(topo, outputs) if len(topo.surface) else Contacts.empty()
-        x, x_start, free = x.copy(), x_start.copy(), free.copy()
         tri_feature = c.obj < 0
         for oi, obj in enumerate(self.objects):
             if isinstance(obj, MeshObstacle):
@@ -263,7 +266,7 @@ class ContactSolver:
         dx = None
         if k == 0:
             self.contacts = Contacts.empty(responded=True)
-            self._warm = {}
+            self._warm = WarmStart()
         else:
             dx = self._respond(body, c, nodes4, w4, ws4, free, x, x_start, stats)
         stats.contact_ms = 1000.0 * (time.perf_counter() - t0)
@@ -282,39 +285,34 @@ class ContactSolver:
         k = len(c.node)
         normal = c.normal
         t1, t2 = tangent_basis(normal)
-        mu = np.full(k, o["friction"])
-        for oi, obj in enumerate(self.objects):
-            if obj.friction is not None:
-                mu[c.obj == oi] = obj.friction
+        obj_mu = np.array([o["friction"] if obj.friction is None else obj.friction for obj in self.objects] or [0.0])
+        mu = np.where(c.obj >= 0, obj_mu[np.maximum(c.obj, 0)], o["friction"])
         rows = np.where(mu > 0.0, 3, 1).astype(np.int32)
-        row_start = np.concatenate([[0], np.cumsum(rows)[:-1]]).astype(np.int32)
+        row_start = (np.cumsum(rows) - rows).astype(np.int32)
         m = int(rows.sum())
         fr = rows == 3
-        # relative displacement during the step of the tissue point against the other surface
-        valid = nodes4 >= 0
-        disp = x - x_start
-        rel = np.einsum("ks,ksj->kj", ws4, disp[np.clip(nodes4, 0, None)])
-        for oi, obj in enumerate(self.objects):
-            sel = c.obj == oi
-            if sel.any() and fr[sel].any():
-                rel[sel] -= obj.point_displacement(c.point[sel], dt)
-        # H (m x 3n) and delta^0 (m)
+        # H (m x 3n) in node form and delta^0 (m): row r moves the nodes of its contact along its
+        # direction (the normal, then the two tangents with friction) times their weights
         d0 = np.zeros(m)
         d0[row_start] = c.gap
-        d0[row_start[fr] + 1] = np.einsum("kj,kj->k", t1[fr], rel[fr])
-        d0[row_start[fr] + 2] = np.einsum("kj,kj->k", t2[fr], rel[fr])
-        # H in node form: row r moves nodes rnodes[r] (-1: none) along rcoef[r] (the weight times
-        # the row's direction: the normal, then the two tangents with friction)
         dirs = np.empty((m, 3))
         dirs[row_start] = normal
-        dirs[row_start[fr] + 1], dirs[row_start[fr] + 2] = t1[fr], t2[fr]
+        if fr.any():
+            # relative displacement during the step of the tissue point against the other surface
+            f_rows = np.flatnonzero(fr)
+            nf = np.maximum(nodes4[f_rows], 0)
+            rel = np.einsum("ks,ksj->kj", ws4[f_rows], x[nf] - x_start[nf])
+            for oi, obj in enumerate(self.objects):
+                sel = c.obj[f_rows] == oi
+                if sel.any():
+                    rel[sel] -= obj.point_displacement(c.point[f_rows[sel]], dt)
+            rs = row_start[f_rows]
+            d0[rs + 1] = np.einsum("kj,kj->k", t1[f_rows], rel)
+            d0[rs + 2] = np.einsum("kj,kj->k", t2[f_rows], rel)
+            dirs[rs + 1], dirs[rs + 2] = t1[f_rows], t2[f_rows]
         owner = np.repeat(np.arange(k), rows)
-        rnodes = np.where(valid[owner], nodes4[owner], -1).astype(np.int32)
-        rcoef = w4[owner][:, :, None] * dirs[:, None, :]
-        r_i, s_i = np.nonzero(rnodes >= 0)
-        cols = (3 * rnodes[r_i, s_i].astype(np.int64))[:, None] + np.arange(3)
-        H = sps.csr_matrix((rcoef[r_i, s_i].ravel(), (np.repeat(r_i, 3), cols.ravel())), shape=(m, 3 * n))
-        W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem, (rnodes, rcoef))
+        H = ConstraintRows(nodes4[owner].astype(np.int32), w4[owner][:, :, None] * dirs[:, None, :], n)
+        W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
         W = dt * dt * 0.5 * (W0 + W0.T)
         if kind != "diagonal" and not positive_definite(W):
             # A factor corrected by many cuts, stale, with identity-padded DOFs, can stop being
@@ -330,39 +328,48 @@ class ContactSolver:
         # across cuts), else by index
         uids = body.node_uids
         uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
-        node_u = uids[np.clip(c.node, 0, None)]
-        tri_u = np.sort(uids[np.clip(c.tri, 0, None)], axis=1)
-        keys = [(int(c.obj[i]), int(node_u[i])) if c.node[i] >= 0
-                else (int(c.obj[i]), *(int(u_) for u_ in tri_u[i])) for i in range(k)]
+        names = contact_names(c.obj, c.node, c.tri, uids)
         lam = np.zeros(m)
-        for i in range(k):
-            f = self._warm.get(keys[i])
-            if f is not None:
-                r = row_start[i]
-                lam[r] = max(0.0, float(f @ normal[i]))
-                if fr[i]:
-                    lam[r + 1], lam[r + 2] = float(f @ t1[i]), float(f @ t2[i])
-        lam, its, res = solve_pgs(W, d0, row_start, rows, mu, o["max_iterations"], o["tolerance"],
-                                  o["friction_cone"] == "pyramid", lam)
+        found, f = self._warm.lookup(names)
+        r = row_start[found]
+        lam[r] = np.maximum(0.0, np.einsum("kj,kj->k", f, normal[found]))
+        ff = fr[found]
+        lam[r[ff] + 1] = np.einsum("kj,kj->k", f[ff], t1[found][ff])
+        lam[r[ff] + 2] = np.einsum("kj,kj->k", f[ff], t2[found][ff])
+        lam, its, res = self._pgs.solve(W, d0, row_start, rows, mu, o["max_iterations"], o["tolerance"],
+                                        o["friction_cone"] == "pyramid", lam)
         stats.gs_iterations, stats.lcp_residual, stats.compliance = its, res, kind
         # correction with the same compliance: dx = dt^2 P^-1 H^T lambda, v += dx / dt
         y = apply_y(lam)
         if isinstance(y, wp.array):  # on the device: scaled there, never read back
-            dx = wp.empty(n, dtype=wp.vec3d, device=self.device)
+            if self._dx is None or self._dx.shape[0] != n:
+                self._dx = wp.empty(n, dtype=wp.vec3d, device=self.device)
+            dx = self._dx
             wp.launch(_scaled_free_kernel, n, [y, float(dt * dt), body.fem.free, dx], device=self.device)
         else:
             dx = (dt * dt) * np.asarray(y).reshape(n, 3) * free[:, None]
         # forces on the tissue, wrenches on the objects, warm start
         ln = lam[row_start]
         force = ln[:, None] * normal
-        force[fr] += lam[row_start[fr] + 1][:, None] * t1[fr] + lam[row_start[fr] + 2][:, None] * t2[fr]
-        for oi, obj in enumerate(self.objects):
-            sel = c.obj == oi
-            if sel.any():
-                f_obj = -force[sel]
-                obj.force = f_obj.sum(axis=0)
-                obj.torque = np.cross(c.point[sel] - obj.origin, f_obj).sum(axis=0)
-        self._warm = {keys[i]: force[i] for i in range(k) if ln[i] > 0.0}
+        rs = row_start[fr]
+        force[fr] += lam[rs + 1][:, None] * t1[fr] + lam[rs + 2][:, None] * t2[fr]
+        self._set_wrenches(c, force)
+        pressed = ln > 0.0
+        self._warm = WarmStart(names[pressed], force[pressed])
         self.contacts = c.responded(ln, force)
-        stats.active_contacts = int(np.sum(ln > 0.0))
+        stats.active_contacts = int(np.sum(pressed))
         return dx
+
+    def _set_wrenches(self, c: Contacts, force: np.ndarray) -> None:
+        """Each object's wrench from the forces ``force`` (k, 3) on the tissue at the contacts
+        ``c`` (see the module docstring); zero for an object without contacts."""
+        on = np.flatnonzero(c.obj >= 0)
+        obj = c.obj[on]
+        f_obj = -force[on]
+        origins = np.array([o.origin for o in self.objects], dtype=np.float64).reshape(-1, 3)
+        F = np.zeros((len(self.objects), 3))
+        T = np.zeros((len(self.objects), 3))
+        np.add.at(F, obj, f_obj)
+        np.add.at(T, obj, cross(c.point[on] - origins[obj], f_obj))
+        for oi, o in enumerate(self.objects):
+            o.force, o.torque = F[oi], T[oi]

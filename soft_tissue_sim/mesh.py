@@ -170,11 +170,15 @@ class TetMesh:
 
     def edges(self) -> np.ndarray:
         """(e, 2) unique edges, each as (i, j) with i < j, rows sorted."""
-        e = np.sort(self.tets[:, _EDGES].reshape(-1, 2), axis=1).astype(np.int64)
-        base = int(e.max()) + 1 if len(e) else 1
+        T = np.asarray(self.tets, dtype=np.int64)
+        a, b = T[:, _EDGES[:, 0]].ravel(), T[:, _EDGES[:, 1]].ravel()
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        base = int(hi.max()) + 1 if len(hi) else 1
         if base * base >= 2**62:
-            return unique_rows(e).astype(np.int32)
-        key = np.unique(e[:, 0] * base + e[:, 1])  # one packed key per edge: sorted as the rows are
+            return unique_rows(np.stack([lo, hi], axis=1)).astype(np.int32)
+        key = lo * base + hi  # one packed key per edge: sorted as the rows are
+        key.sort()
+        key = key[np.concatenate(([True], key[1:] != key[:-1]))] if len(key) else key
         return np.stack([key // base, key % base], axis=1).astype(np.int32)
 
 

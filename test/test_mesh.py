@@ -309,6 +309,8 @@ def test_edges_and_euler_characteristic(brain):
     for m in (beam_mesh(7, n_cross=3), brain):
         e = m.edges()
         assert np.all(e[:, 0] < e[:, 1]) and len(np.unique(e, axis=0)) == len(e)
+        every = m.tets[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]].reshape(-1, 2)
+        assert np.array_equal(e, np.unique(np.sort(every, axis=1), axis=0))  # sorted rows, each edge once
         faces = np.unique(np.sort(m.tets[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]].reshape(-1, 3), axis=1), axis=0)
         assert m.n_nodes - len(e) + len(faces) - m.n_tets == 1  # a ball
     one = TetMesh(REGULAR, np.array([[0, 1, 2, 3]]))

@@ -289,6 +289,10 @@ class Simulation:
         self._energy_floor = self.fem.total_mass * (g * size + 0.5)  # weight over the body size + 1 m/s
         self._closed = False
         self._ke_checked = None  # kinetic energy after the free motion's guard (None: not checked)
+        # the kinetic energy of the state a guard last read, and which arrays held that state
+        # (their addresses: the integrator's set_state makes new ones); None: changed since
+        self._ke_state = None
+        self._copies: dict = {}  # device copies of the state a step may go back to, by purpose
         self._finalizer = weakref.finalize(self, self.preconditioner.close)
 
     # ----------------------------------------------------------- components
@@ -338,6 +342,7 @@ class Simulation:
         makes (the blocks of the removed and added elements, with the rotations of one state)
         goes to the cutter's correction, or the preconditioner starts afresh without one."""
         change, fem, integ = plan.change, self.fem, self.integrator
+        self._ke_state = None
         m_coef, k_coef = integ.m_coef, integ.k_coef
         fem.update_rotations(integ.x)
         R_nodes = fem.node_rotations()
@@ -368,6 +373,28 @@ class Simulation:
     def step_count(self) -> int:
         return self.integrator.step_index
 
+    def _state_key(self) -> tuple:
+        integ = self.integrator
+        return (integ.x.ptr, integ.v.ptr, integ.step_index)
+
+    def _copy_state(self, purpose: str) -> tuple:
+        """(x, v) copied on the device into buffers kept for ``purpose`` (reused while the node
+        count holds): a state the step may go back to."""
+        integ = self.integrator
+        bufs = self._copies.get(purpose)
+        if bufs is None or bufs[0].shape != integ.x.shape:
+            bufs = (wp.empty_like(integ.x), wp.empty_like(integ.v))
+            self._copies[purpose] = bufs
+        wp.copy(bufs[0], integ.x)
+        wp.copy(bufs[1], integ.v)
+        return bufs
+
+    def _restore_state(self, bufs: tuple) -> None:
+        """The state copied by :meth:`_copy_state`, back into the integrator's own arrays (their
+        addresses, which captured graphs use, are kept)."""
+        wp.copy(self.integrator.x, bufs[0])
+        wp.copy(self.integrator.v, bufs[1])
+
     def _kinetic_energy(self) -> float:
         return self.integrator.energy_kinetic()
 
@@ -392,10 +419,14 @@ class Simulation:
         the last good state is kept. The event is reported in the step statistics.
         """
         integ = self.integrator
-        x_prev, v_prev = wp.clone(integ.x), wp.clone(integ.v)  # last good state
+        prev = self._copy_state("last good")
         k0, t0 = integ.step_index, integ.time
         self._ke_checked = None
-        ke_before = self._kinetic_energy() if self.guard_ratio > 0 else 0.0
+        ke_before = 0.0
+        if self.guard_ratio > 0:  # the last guard's reading where the state has not changed since
+            known = self._ke_state
+            ke_before = known[0] if known is not None and known[1] == self._state_key() else self._kinetic_energy()
+        self._ke_state = None
         stats = integ.step()
         reason = self._diverged(stats, ke_before) if self.guard_ratio > 0 else (
             None if np.isfinite(stats.residual) and np.isfinite(to_host(integ.x)[0]).all() else "non-finite state")
@@ -403,7 +434,7 @@ class Simulation:
             return stats, True
 
         def rollback():
-            integ.x, integ.v = wp.clone(x_prev), wp.clone(v_prev)
+            self._restore_state(prev)
             integ.step_index, integ.time = k0, t0
 
         self.rollbacks += 1
@@ -447,7 +478,7 @@ class Simulation:
         and corrects again) and reported as ``contact_rejected``. Fills ``stats.contact`` (None
         when the solve failed) and the guard's contact fields."""
         integ = self.integrator
-        x_free, v_free = wp.clone(integ.x), wp.clone(integ.v)
+        free = self._copy_state("free motion")
         ke_free = 0.0
         if self.guard_ratio > 0:
             ke_free = self._ke_checked if self._ke_checked is not None else self._kinetic_energy()
@@ -470,8 +501,11 @@ class Simulation:
                 reason = "non-finite state after the contact correction"
             elif self.guard_ratio > 0 and not ke <= self.guard_ratio * (ke_free + self._energy_floor):
                 reason = f"runaway energy after the contact correction: kinetic {ke:.3g} J after {ke_free:.3g} J"
-        if reason is not None:
-            integ.x, integ.v = x_free, v_free
+        if reason is None:
+            self._ke_state = (ke, self._state_key()) if self.guard_ratio > 0 else None
+        else:
+            self._restore_state(free)
+            self._ke_state = (ke_free, self._state_key()) if self.guard_ratio > 0 else None
             self.contact_rejections += 1
             warnings.warn(f"step {integ.step_index}: {reason}; the free motion stands for this step", stacklevel=2)
         stats.guard = stats.guard or GuardStats()
@@ -491,6 +525,9 @@ class Simulation:
             return stats
         if self.contact is not None:
             self._contact_response(stats)  # LCP correction of x and v, eq. (3)-(4)
+        else:
+            # the guard read the state the step ends with
+            self._ke_state = None if self._ke_checked is None else (self._ke_checked, self._state_key())
         if self.cutting is not None:  # blade motion -> mesh change + SMF, eq. (5)-(12)
             ops = self.cutting.step(self.step_count, self._instruments())
             stats.cutting = self.cutting.step_stats([self._modify(op(self.tissue())) for op in ops])
@@ -510,6 +547,7 @@ class Simulation:
             self.fem.set_mesh(self.mesh, self._initial_fixed)
         self.node_uids = np.arange(self.mesh.n_nodes, dtype=np.int64)
         self.mesh_version = 0
+        self._ke_state = None
         self.integrator.set_state(self._initial_mesh.points.copy(), np.zeros_like(self._initial_mesh.points))
         self.integrator.step_index = 0
         self.integrator.time = 0.0
@@ -553,6 +591,7 @@ class Simulation:
             arrays.append(a)
         x, v = arrays
         v[self.fem.free.numpy() == 0.0] = 0.0
+        self._ke_state = None
         self.integrator.set_state(x, v)
 
     def surface_triangles(self) -> np.ndarray:

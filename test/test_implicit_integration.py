@@ -278,3 +278,50 @@ def test_a_step_runs_its_host_blas_on_one_thread_unless_told_otherwise(monkeypat
             assert seen == [inside] and blas_threads._inside == 0
     with pytest.raises(ParameterError, match="blas_threads"):
         load_scene("test_small.yaml", overrides={"solver": {"blas_threads": 2}})
+
+
+def test_the_guard_reuses_the_kinetic_energy_it_read_while_the_state_is_unchanged(monkeypatch):
+    """A step's "before" energy is the last guard's reading of the same state; after any change
+    of the state from outside a step it is measured again."""
+    with load_scene(beam_scene(6, 3, preconditioner="async_ldlt")) as sim:
+        calls = []
+        real = sim._kinetic_energy
+        monkeypatch.setattr(sim, "_kinetic_energy", lambda: calls.append(1) or real())
+        sim.step()
+        assert len(calls) == 1  # nothing read yet: measured
+        sim.step()
+        assert len(calls) == 1  # the first step's guard read this state
+        sim.set_state(sim.positions(), sim.velocities())
+        sim.step()
+        assert len(calls) == 2
+        sim.integrator.set_state(sim.positions(), sim.velocities())  # new arrays behind the simulation's back
+        sim.step()
+        assert len(calls) == 3
+        x = sim.integrator.x
+        sim.step()
+        assert len(calls) == 3 and sim.integrator.x is x  # the step kept the integrator's arrays
+
+
+def test_a_rollback_restores_the_state_into_the_same_arrays():
+    with load_scene(beam_scene(10, 3, preconditioner="async_ldlt")) as sim:
+        for _ in range(2):
+            sim.step()
+        x, v = sim.integrator.x, sim.integrator.v
+        real_step = sim.integrator.step
+        state = []
+
+        def kicked_step():
+            if not state:
+                state.append(sim.positions())
+                s = real_step()
+                vv = sim.integrator.v.numpy()
+                vv[-1] += 1000.0
+                sim.integrator.v.assign(vv)
+                return s
+            return real_step()
+
+        sim.integrator.step = kicked_step
+        s = sim.step()
+        assert s.extra["rolled_back"]
+        assert sim.integrator.x is x and sim.integrator.v is v  # graphs captured on them stay valid
+        assert np.abs(sim.velocities()).max() < 10.0

@@ -25,3 +25,12 @@ def test_result_files_hold_the_detail_only_when_asked(tmp_path):
     plotted = json.load(open(tmp_path / "False" / "test_cpu.json"))["figures"]["plot"]["steps"]
     assert plotted["step"] == list(range(500)) and plotted["wall_ms"][0] == 0.33333  # 5 significant digits
 
+
+
+def test_the_commit_can_be_named_for_a_copy_without_its_own_git(monkeypatch):
+    from soft_tissue_sim.bench.common import git_commit
+
+    monkeypatch.setenv("STS_COMMIT", "abc1234")
+    assert git_commit() == "abc1234"
+    monkeypatch.delenv("STS_COMMIT")
+    assert git_commit() != "abc1234"

@@ -58,6 +58,10 @@ def device_description(device: str) -> str:
 
 
 def git_commit() -> str:
+    """The checkout's short commit (``-dirty`` with uncommitted changes); ``STS_COMMIT`` names it
+    where the code runs from a copy whose git state is not its own."""
+    if os.environ.get("STS_COMMIT"):
+        return os.environ["STS_COMMIT"]
     try:
         root = Path(__file__).resolve().parents[2]
         out = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)

@@ -523,13 +523,25 @@ class DevicePCG(PCG):
         return (self.n, b.ptr, x.ptr, self.r.ptr, mk(), pkey, self.tolerance, self.max_iterations)
 
     def solve(self, matvec, b: wp.array, x: wp.array, preconditioner) -> CGResult:
+        done = self.launch(matvec, b, x, preconditioner)
+        return done if done is not None else self.result(self.scalars.numpy())
+
+    @property
+    def scalars(self) -> wp.array:
+        """The device scalars a launched solve leaves (read them for :meth:`result`)."""
+        return self._s
+
+    def launch(self, matvec, b: wp.array, x: wp.array, preconditioner) -> CGResult | None:
+        """Enqueue the solve without waiting for it: None, then :meth:`result` of
+        :attr:`scalars` read to the host (with whatever else the caller reads in that wait);
+        or, where the preconditioner cannot apply on the device, the host solve's result."""
         capable = getattr(preconditioner, "device_capable", None)
         if capable is None or not capable():
             self.host_solves += 1
             return super().solve(matvec, b, x, preconditioner)
         if b.shape[0] != self.n:
             self.resize(b.shape[0])
-        norm_a = self.operator_norm(matvec)  # cached; host reads, so before any capture
+        self._norm_a = self.operator_norm(matvec)  # cached; host reads, so before any capture
         key = self._key(matvec, b, x, preconditioner) if self.graph else None
         if key is not None and self._graph is not None and key == self._graph_key:
             wp.capture_launch(self._graph)
@@ -560,7 +572,11 @@ class DevicePCG(PCG):
         else:
             self._run(matvec, b, x, preconditioner)
             self._seen_key = key
-        s = self._s.numpy()
+        return None
+
+    def result(self, s: np.ndarray) -> CGResult:
+        """The result of the launched solve from its :attr:`scalars` read to the host."""
+        norm_a = self._norm_a
         bb = float(s[_BB])
         if bb == 0.0 or not np.isfinite(bb):
             rel = 0.0 if bb == 0.0 else float("nan")

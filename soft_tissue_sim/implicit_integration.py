@@ -234,6 +234,11 @@ class BackwardEuler:
         self.cg = PCG(fem.n_nodes, fem.device, tolerance, max_iterations)
         self.step_index = 0
         self.time = 0.0
+        # read_guard: a device solve's step also launches the divergence guard (launch_guard) at
+        # the new state and reads it with the solve's scalars: guard_reading (kinetic energy,
+        # non-finite nodes) of the last step, None where it was not read so
+        self.read_guard = False
+        self.guard_reading = None
         self._allocate()
         self.x = wp.clone(fem.rest)
         self.v = wp.zeros_like(fem.rest)
@@ -336,11 +341,22 @@ class BackwardEuler:
         self.build()
         self.preconditioner.begin_step(self)
         t1 = time.perf_counter()
-        res = self.cg.solve(self.matvec, self.b, self.dv, self.preconditioner)
+        self.guard_reading = None
+        launch = getattr(self.cg, "launch", None) if self.read_guard and not newton else None
+        if launch is not None:  # a device solve: its result and the guard's values read in one wait
+            res = launch(self.matvec, self.b, self.dv, self.preconditioner)
+            wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
+                      device=self.device)
+            if res is None:
+                s, guard = to_host(self.cg.scalars, self.launch_guard())
+                res = self.cg.result(s)
+                self.guard_reading = (float(guard[0]), float(guard[1]))
+        else:
+            res = self.cg.solve(self.matvec, self.b, self.dv, self.preconditioner)
+            wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
+                      device=self.device)
         t2 = time.perf_counter()
         solve_s = t2 - t1
-        wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
-                  device=self.device)
         iterations, precond_ms, converged = res.iterations, res.precond_ms, res.converged
         unreachable = res.tolerance_unreachable
         linearisations, nonlinear = 1, float("nan")

@@ -325,3 +325,24 @@ def test_a_rollback_restores_the_state_into_the_same_arrays():
         assert s.extra["rolled_back"]
         assert sim.integrator.x is x and sim.integrator.v is v  # graphs captured on them stay valid
         assert np.abs(sim.velocities()).max() < 10.0
+
+
+def test_a_device_solve_reads_the_guard_with_its_result(monkeypatch):
+    """With the PCG's scalars on the device (a device factor), the step launches the divergence
+    guard after the update and reads it in the same wait: the guard's values are those of the new
+    state, and the simulation does not launch the guard again to judge the step."""
+    cfg = beam_scene(6, 3, preconditioner="async_ldlt")
+    cfg["solver"]["ldlt"] = {"backend": "dense"}
+    with load_scene(cfg) as sim:
+        sim.step()
+        integ = sim.integrator
+        assert hasattr(integ.cg, "launch")
+        launches = []
+        real = integ.launch_guard
+        monkeypatch.setattr(integ, "launch_guard", lambda: launches.append(1) or real())
+        s = sim.step()
+        assert len(launches) == 1 and integ.guard_reading is not None and s.converged
+        ke, nonfinite = integ.guard_reading
+        v, mass = sim.velocities(), integ.fem.lumped_mass.numpy()
+        assert ke == pytest.approx(0.5 * np.sum(mass * np.sum(v * v, axis=1)), rel=1e-12)
+        assert nonfinite == 0.0

@@ -110,10 +110,10 @@ def interior_faces_after_split(faces, tets: np.ndarray, new_tets: np.ndarray, co
     copy_of = np.asarray(copy_of, np.int64)
     base = int(new_tets.max()) + 1 if len(new_tets) else 1
     if (base**3 >= 2**62 or tets.shape != new_tets.shape or len(copy_of) < base
-            or not np.array_equal(copy_of[new_tets], tets)):
+            or not np.array_equal(np.take(copy_of, new_tets), tets)):
         return None
-    changed = np.flatnonzero(np.any(tets != new_tets, axis=1))
-    f = tet_face[changed].ravel()
+    changed = np.flatnonzero((tets != new_tets).view(np.uint32))  # a row's 4 flags as one word
+    f = np.take(tet_face, changed, axis=0).ravel()
     f = np.unique(f[f >= 0])  # the faces of the changed tets
     seen = []
     for side in (0, 1):  # the face's nodes as each of its two tets sees them now, ascending
@@ -127,22 +127,21 @@ def interior_faces_after_split(faces, tets: np.ndarray, new_tets: np.ndarray, co
         return (tri[:, 0] * base + tri[:, 1]) * base + tri[:, 2]
 
     others = np.ones(len(pairs), bool)
-    others[f] = False
-    others = np.flatnonzero(others)  # faces whose nodes are unchanged: still in sorted order
-    ko, km = packed(fnodes[others]), packed(moved_nodes)
+    others[f] = False  # faces whose nodes are unchanged: still in sorted order
+    ko, km = packed(fnodes)[others], packed(moved_nodes)
     om = np.argsort(km)
     moved, moved_nodes, km = moved[om], moved_nodes[om], km[om]
     slot_m = np.searchsorted(ko, km) + np.arange(len(km))  # merged positions
-    is_m = np.zeros(len(others) + len(moved), bool)
+    is_m = np.zeros(len(ko) + len(km), bool)
     is_m[slot_m] = True
     slot_o = np.flatnonzero(~is_m)
+    src = np.empty(len(is_m), np.int64)  # the old face at each new position
+    src[slot_o], src[slot_m] = np.flatnonzero(others), moved
+    new_nodes = np.take(fnodes, src, axis=0)
+    new_nodes[slot_m] = moved_nodes
     new_id = np.full(len(pairs) + 1, -1, np.int64)  # old face -> new face (last: the boundary, -1)
-    new_id[others], new_id[moved] = slot_o, slot_m
-    new_pairs = np.empty((len(is_m), 2), np.int64)
-    new_pairs[slot_o], new_pairs[slot_m] = pairs[others], pairs[moved]
-    new_nodes = np.empty((len(is_m), 3), np.int64)
-    new_nodes[slot_o], new_nodes[slot_m] = fnodes[others], moved_nodes
-    return new_pairs, new_nodes, new_id[tet_face]
+    new_id[src] = np.arange(len(src))
+    return np.take(pairs, src, axis=0), new_nodes, np.take(new_id, tet_face)
 
 
 def interior_faces_after_removal(faces, kept_tets: np.ndarray, kept_nodes: np.ndarray, n_nodes: int):
@@ -154,10 +153,11 @@ def interior_faces_after_removal(faces, kept_tets: np.ndarray, kept_nodes: np.nd
     node_id = np.full(n_nodes, -1, np.int64)
     node_id[kept_nodes] = np.arange(len(kept_nodes))
     tet_id = np.cumsum(kept_tets) - 1
-    keep = kept_tets[pairs[:, 0]] & kept_tets[pairs[:, 1]]
+    keep = np.take(kept_tets, pairs[:, 0]) & np.take(kept_tets, pairs[:, 1])
     new_id = np.full(len(pairs) + 1, -1, np.int64)  # old face -> new face (last: the boundary, -1)
     new_id[np.flatnonzero(keep)] = np.arange(int(keep.sum()))
-    return tet_id[pairs[keep]], node_id[fnodes[keep]], new_id[tet_face[kept_tets]]
+    return (np.take(tet_id, np.compress(keep, pairs, axis=0)), np.take(node_id, np.compress(keep, fnodes, axis=0)),
+            np.take(new_id, np.compress(kept_tets, tet_face, axis=0)))
 
 
 def _list(idx, limit: int = 10) -> str:

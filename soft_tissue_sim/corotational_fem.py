@@ -319,6 +319,20 @@ def orthonormalize_kernel(acc: wp.array(dtype=wp.mat33d), out: wp.array(dtype=wp
     out[i] = rotation_from(acc[i])
 
 
+def _same_rest_shape(X, T, X_old, T_old) -> np.ndarray:
+    """(k,) whether the tets T (k, 4) of points X have the rest positions of the tets T_old of
+    points X_old, node for node (float equality of all 12 coordinates). A node that keeps its
+    index and its position (most of them, across a topology change) is settled by comparing
+    indices; only the other corners' positions are gathered and compared."""
+    n = min(len(X), len(X_old))
+    kept = np.zeros(len(X), bool)
+    kept[:n] = np.all(X[:n] == X_old[:n], axis=1)  # nodes with the same index and rest position
+    same = (T == T_old) & kept[T]
+    other = ~same
+    same[other] = np.all(np.take(X, T[other], axis=0) == np.take(X_old, T_old[other], axis=0), axis=1)
+    return np.all(same, axis=1)
+
+
 class CorotationalFEM:
     """Rest-state data and per-step corotational operators of one tetrahedral body."""
 
@@ -350,21 +364,22 @@ class CorotationalFEM:
         n, m = mesh.n_nodes, mesh.n_tets
         X = mesh.points.astype(np.float64)
         T = mesh.tets.astype(np.int32)
-        Xt = X[T]  # (m, 4, 3) rest positions of each tet's nodes
         prev = getattr(self, "_rest_tets", None)
         reuse, src = np.zeros(m, bool), None
         if tet_source is not None and prev is not None:
             src = np.asarray(tet_source, dtype=np.int64)
-            if src.shape != (m,) or (m and (src.min() < -1 or src.max() >= len(prev[0]))):
-                raise ValueError(f"tet_source must hold one index in [-1, {len(prev[0])}) per tet ({m}), got "
+            if src.shape != (m,) or (m and (src.min() < -1 or src.max() >= len(prev[1]))):
+                raise ValueError(f"tet_source must hold one index in [-1, {len(prev[1])}) per tet ({m}), got "
                                  f"shape {src.shape}")
             k = np.flatnonzero(src >= 0)
-            reuse[k] = np.all((Xt[k] == prev[0][src[k]]).reshape(len(k), 12), axis=1)
-        Dm_inv, vol = np.empty((m, 3, 3)), np.empty(m)
-        if reuse.any():
-            Dm_inv[reuse], vol[reuse] = prev[1][src[reuse]], prev[2][src[reuse]]
-        new = ~reuse
-        Xn = Xt[new]
+            reuse[k] = _same_rest_shape(X, np.take(T, k, axis=0), prev[0], np.take(prev[1], src[k], axis=0))
+        if reuse.any():  # every tet's from its source, then the computed ones overwritten
+            take = np.where(reuse, src, 0)
+            Dm_inv, vol = np.take(prev[2], take, axis=0), np.take(prev[3], take)
+        else:
+            Dm_inv, vol = np.empty((m, 3, 3)), np.empty(m)
+        new = np.flatnonzero(~reuse)
+        Xn = np.take(X, np.take(T, new, axis=0), axis=0)  # (k, 4, 3) the computed tets' rest positions
         Dm = np.stack([Xn[:, 1] - Xn[:, 0], Xn[:, 2] - Xn[:, 0], Xn[:, 3] - Xn[:, 0]], axis=2)
         vol[new] = np.linalg.det(Dm) / 6.0
         if np.any(vol <= 0.0):
@@ -381,26 +396,39 @@ class CorotationalFEM:
         self.n_nodes, self.n_tets = n, m
         self.rest = wp.array(X, dtype=wp.vec3d, device=d)
         self.tets = wp.array(T, dtype=wp.vec4i, device=d)
-        self.Dm_inv = wp.array(Dm_inv, dtype=wp.mat33d, device=d)
-        self.volume = wp.array(vol, dtype=wp.float64, device=d)
-        self.mu = wp.array(mu, dtype=wp.float64, device=d)
-        self.lam = wp.array(lam, dtype=wp.float64, device=d)
-        self.rho = wp.array(rho, dtype=wp.float64, device=d)
+        self.Dm_inv = self._element_array("Dm_inv", Dm_inv, wp.mat33d)
+        self.volume = self._element_array("volume", vol, wp.float64)
+        self.mu = self._element_array("mu", mu, wp.float64)
+        self.lam = self._element_array("lam", lam, wp.float64)
+        self.rho = self._element_array("rho", rho, wp.float64)
         self.lumped_mass = wp.array(lumped, dtype=wp.float64, device=d)
         self.free = wp.array(free, dtype=wp.float64, device=d)
         self.fixed_nodes = np.flatnonzero(free == 0.0)
-        self.rotations = wp.array(np.tile(np.eye(3), (m, 1, 1)), dtype=wp.mat33d, device=d)
+        self.rotations = wp.full(m, wp.mat33d(*np.eye(3).ravel()), dtype=wp.mat33d, device=d)
         self._Kp = wp.zeros(n, dtype=wp.vec3d, device=d)
         self._rot_acc = wp.zeros(n, dtype=wp.mat33d, device=d)
         self._node_rot = wp.zeros(n, dtype=wp.mat33d, device=d)
         # COO triplets of A: 16 blocks per element + one diagonal block per node.
         nt = 16 * m + n
-        self._all_tets = wp.array(np.arange(m, dtype=np.int32), dtype=wp.int32, device=d)
+        self._all_tets = self._element_array("_all_tets", np.arange(m, dtype=np.int32), wp.int32)
         self._rows = wp.empty(nt, dtype=wp.int32, device=d)  # assemble_triplets writes every entry
         self._cols = wp.empty(nt, dtype=wp.int32, device=d)
         self._vals = wp.empty(nt, dtype=wp.mat33d, device=d)
         self.total_mass = float(lumped.sum())
-        self._rest_tets = (Xt, Dm_inv, vol)  # what the next set_mesh may take over (tet_source)
+        self._rest_tets = (X, T, Dm_inv, vol)  # what the next set_mesh may take over (tet_source)
+
+    def _element_array(self, name: str, host: np.ndarray, dtype) -> wp.array:
+        """The device array of the per-element data ``host``: the one ``name`` already holds
+        where it was made from the very same bytes (a topology change keeps most elements, and
+        often all of their rest data and materials), else a new upload. These arrays are never
+        written after set_mesh, so a kept one still holds what it was made from."""
+        made = self.__dict__.setdefault("_element_host", {})
+        old = made.get(name)
+        if (old is not None and old.shape == host.shape and old.dtype == host.dtype
+                and np.array_equal(old.reshape(-1).view(np.uint8), host.reshape(-1).view(np.uint8))):
+            return getattr(self, name)
+        made[name] = host
+        return wp.array(host, dtype=dtype, device=self.device)
 
     def set_fixed_nodes(self, fixed_nodes) -> None:
         free = np.ones(self.n_nodes)

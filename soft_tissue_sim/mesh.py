@@ -21,6 +21,8 @@ __all__ = [
     "TetMesh",
     "tet_quality",
     "interior_faces",
+    "interior_faces_after_split",
+    "interior_faces_after_removal",
     "validate_mesh",
     "load_mesh",
     "save_mesh",
@@ -92,6 +94,72 @@ def interior_faces(tets: np.ndarray):
     return np.stack([a // 4, b // 4], axis=1), key[a], tet_face.reshape(m, 4)
 
 
+def interior_faces_after_split(faces, tets: np.ndarray, new_tets: np.ndarray, copy_of: np.ndarray):
+    """:func:`interior_faces` of ``new_tets`` (m, 4), derived from ``faces``, the table of
+    ``tets`` (m, 4): the same tets, some of whose nodes were replaced by copies (a node
+    split); ``copy_of`` (n_new,) gives the node each node copies (an old node: itself).
+
+    Two tets that share three nodes now shared their originals before, so no face becomes
+    interior; a face stays interior where both of its tets still see the same three nodes; a
+    face away from the changed tets keeps its nodes. So only the faces of the changed tets are
+    looked at, and the changed ones are merged into the sorted order of the others. None where
+    ``new_tets`` is no such split of ``tets``, or where packed face keys could overflow (then
+    compute the table afresh)."""
+    pairs, fnodes, tet_face = faces
+    tets, new_tets = np.asarray(tets, np.int64), np.asarray(new_tets, np.int64)
+    copy_of = np.asarray(copy_of, np.int64)
+    base = int(new_tets.max()) + 1 if len(new_tets) else 1
+    if (base**3 >= 2**62 or tets.shape != new_tets.shape or len(copy_of) < base
+            or not np.array_equal(np.take(copy_of, new_tets), tets)):
+        return None
+    changed = np.flatnonzero((tets != new_tets).view(np.uint32))  # a row's 4 flags as one word
+    f = np.take(tet_face, changed, axis=0).ravel()
+    f = np.unique(f[f >= 0])  # the faces of the changed tets
+    seen = []
+    for side in (0, 1):  # the face's nodes as each of its two tets sees them now, ascending
+        t = pairs[f, side]
+        k = np.argmax(tet_face[t] == f[:, None], axis=1)  # the face's local index in that tet
+        seen.append(np.sort(new_tets[t[:, None], _FACES[k]], axis=1))
+    stays = np.all(seen[0] == seen[1], axis=1)
+    moved, moved_nodes = f[stays], seen[0][stays]
+
+    def packed(tri):
+        return (tri[:, 0] * base + tri[:, 1]) * base + tri[:, 2]
+
+    others = np.ones(len(pairs), bool)
+    others[f] = False  # faces whose nodes are unchanged: still in sorted order
+    ko, km = packed(fnodes)[others], packed(moved_nodes)
+    om = np.argsort(km)
+    moved, moved_nodes, km = moved[om], moved_nodes[om], km[om]
+    slot_m = np.searchsorted(ko, km) + np.arange(len(km))  # merged positions
+    is_m = np.zeros(len(ko) + len(km), bool)
+    is_m[slot_m] = True
+    slot_o = np.flatnonzero(~is_m)
+    src = np.empty(len(is_m), np.int64)  # the old face at each new position
+    src[slot_o], src[slot_m] = np.flatnonzero(others), moved
+    new_nodes = np.take(fnodes, src, axis=0)
+    new_nodes[slot_m] = moved_nodes
+    new_id = np.full(len(pairs) + 1, -1, np.int64)  # old face -> new face (last: the boundary, -1)
+    new_id[src] = np.arange(len(src))
+    return np.take(pairs, src, axis=0), new_nodes, np.take(new_id, tet_face)
+
+
+def interior_faces_after_removal(faces, kept_tets: np.ndarray, kept_nodes: np.ndarray, n_nodes: int):
+    """:func:`interior_faces` of a mesh that keeps the tets ``kept_tets`` (mask) and the nodes
+    ``kept_nodes`` (ascending indices) of a mesh of ``n_nodes`` nodes with table ``faces``,
+    both renumbered in order (element removal): the faces whose two tets are kept, renumbered.
+    The renumberings keep the order of tets and of nodes, so the faces stay sorted."""
+    pairs, fnodes, tet_face = faces
+    node_id = np.full(n_nodes, -1, np.int64)
+    node_id[kept_nodes] = np.arange(len(kept_nodes))
+    tet_id = np.cumsum(kept_tets) - 1
+    keep = np.take(kept_tets, pairs[:, 0]) & np.take(kept_tets, pairs[:, 1])
+    new_id = np.full(len(pairs) + 1, -1, np.int64)  # old face -> new face (last: the boundary, -1)
+    new_id[np.flatnonzero(keep)] = np.arange(int(keep.sum()))
+    return (np.take(tet_id, np.compress(keep, pairs, axis=0)), np.take(node_id, np.compress(keep, fnodes, axis=0)),
+            np.take(new_id, np.compress(kept_tets, tet_face, axis=0)))
+
+
 def _list(idx, limit: int = 10) -> str:
     """'[3, 7, 9]' or '[0, 1, ..., 9] and 25 more (35 in all)'."""
     idx = [int(i) for i in np.asarray(idx).ravel()]
@@ -139,6 +207,19 @@ class TetMesh:
                 a.flags.writeable = False
             cached = self._interior_faces = (self.tets.copy(), faces)
         return cached[1]
+
+    def cached_interior_faces(self):
+        """:meth:`interior_faces` where already computed for the current tets, else None."""
+        cached = self.__dict__.get("_interior_faces")
+        return cached[1] if cached is not None and np.array_equal(cached[0], self.tets) else None
+
+    def set_interior_faces(self, faces) -> None:
+        """Install ``faces``, this mesh's :func:`interior_faces` known otherwise (derived from
+        the mesh it was made from), as the cache of :meth:`interior_faces`."""
+        faces = tuple(np.asarray(a, np.int64) for a in faces)
+        for a in faces:
+            a.flags.writeable = False
+        self._interior_faces = (self.tets.copy(), faces)
 
     def copy(self) -> "TetMesh":
         return TetMesh(self.points.copy(), self.tets.copy(), self.material_ids.copy())

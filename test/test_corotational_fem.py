@@ -189,7 +189,10 @@ def test_rest_data_taken_over_from_the_source_tets_equal_a_fresh_build():
     T[at] = np.where(T[at] == 30, mesh.n_nodes, T[at])
     split = TetMesh(np.concatenate([mesh.points, mesh.points[30:31]]), T)
     removal = TetMesh(split.points, split.tets[5:])
+    moved = TetMesh(removal.points.copy(), removal.tets)
+    moved.points[40] += 0.001  # same numbering, one node moved: its tets computed, the others taken over
     for new, source in ((split, np.arange(mesh.n_tets)), (removal, np.arange(5, mesh.n_tets)),
+                        (moved, np.arange(removal.n_tets)),
                         (removal, np.roll(np.arange(removal.n_tets), 7))):  # the last one wrong: computed
         f.set_mesh(new, np.arange(9), tet_source=source)
         fresh = CorotationalFEM(new, mat, "cpu", fixed_nodes=np.arange(9))
@@ -202,3 +205,27 @@ def test_rest_data_taken_over_from_the_source_tets_equal_a_fresh_build():
     with pytest.raises(ValueError, match="tet_source"):
         f.set_mesh(split, np.arange(9), tet_source=np.full(split.n_tets, removal.n_tets))
     assert f.mesh is removal and all(np.array_equal(a, b) for a, b in zip(before, _rest_arrays(f)))
+
+
+def test_a_split_keeps_the_device_arrays_of_unchanged_element_data():
+    """A node split changes no element's rest shape or material: set_mesh keeps those device
+    arrays (same objects, same bytes); a removal changes them and uploads new ones."""
+    from soft_tissue_sim.mesh import TetMesh
+
+    mesh = beam_mesh(6, n_cross=3, spacing=0.01)
+    mat = MaterialTable({0: Material(1e5, 0.3, 1000.0)})
+    f = CorotationalFEM(mesh, mat, "cpu", fixed_nodes=np.arange(9))
+    T = mesh.tets.copy()
+    at = np.flatnonzero(np.any(T == 30, axis=1))[::2]
+    T[at] = np.where(T[at] == 30, mesh.n_nodes, T[at])
+    split = TetMesh(np.concatenate([mesh.points, mesh.points[30:31]]), T)
+    names = ("Dm_inv", "volume", "mu", "lam", "rho", "_all_tets")
+    before = {k: getattr(f, k) for k in names}
+    f.set_mesh(split, np.arange(9), tet_source=np.arange(mesh.n_tets))
+    assert all(getattr(f, k) is before[k] for k in names)
+    assert f.tets is not None and np.array_equal(f.tets.numpy(), T)
+    f.set_mesh(TetMesh(split.points, split.tets[5:]), np.arange(9), tet_source=np.arange(5, mesh.n_tets))
+    assert not any(getattr(f, k) is before[k] for k in names)
+    fresh = CorotationalFEM(f.mesh, mat, "cpu", fixed_nodes=np.arange(9))
+    for a, b in zip(_rest_arrays(f), _rest_arrays(fresh)):
+        np.testing.assert_array_equal(a, b)

@@ -665,3 +665,41 @@ def test_culled_cut_faces_equal_the_brute_force_ones(jitter):
                     n_hit += len(hit)
             n_cut += int(cut.sum())
     assert n_cut > 100 and n_hit > 100  # the blades did cut
+
+
+@pytest.mark.parametrize("scheme", ["split", "subdivide"])
+def test_the_face_table_a_cut_or_a_removal_hands_on_equals_the_recomputed_one(scheme):
+    """The new mesh of a cut (random blades through a beam, one after the other) and of a
+    removal carries its interior-face table where the change derives it: exactly the table
+    computed afresh from its tets."""
+    from soft_tissue_sim.cutting import Cutter, Tissue
+    from soft_tissue_sim.mesh import beam_mesh, interior_faces
+
+    rng = np.random.default_rng(11)
+    mesh = beam_mesh(8, n_cross=4, spacing=0.01)
+    n = mesh.n_nodes
+    tissue = Tissue(mesh, mesh.points.copy(), np.zeros((n, 3)), np.arange(n, dtype=np.int64), np.ones(n))
+    cutter = Cutter({"scheme": scheme, "min_fragment": 0})
+    carried = 0
+    for _ in range(25):
+        P = tissue.mesh.points
+        tris = _random_blades(rng, P, 2)
+        tissue.mesh.interior_faces()  # as cut_triangles reads it (split); the removal finds it cached
+        plan = cutter.cut_triangles(tissue, tris, frame="rest")
+        if plan.change is None:
+            continue
+        gone = np.zeros(plan.change.mesh.n_tets, bool)
+        gone[rng.integers(plan.change.mesh.n_tets)] = True
+        c = plan.change
+        for m in (c.mesh, None):
+            if m is None:  # a removal on the mesh the cut made
+                c.mesh.interior_faces()
+                r = cutter.remove_tets(Tissue(c.mesh, c.x, c.v, c.node_uids, c.free), gone)
+                m = r.change.mesh
+            got = m.cached_interior_faces()
+            if got is not None:
+                carried += 1
+                for a, b in zip(got, interior_faces(m.tets)):
+                    np.testing.assert_array_equal(a, b)
+        tissue = Tissue(c.mesh, c.x, c.v, c.node_uids, c.free)
+    assert carried >= (20 if scheme == "split" else 3)  # split: the cuts' and removals' tables; subdivide: removals

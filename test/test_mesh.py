@@ -14,6 +14,8 @@ from soft_tissue_sim.mesh import (
     brain_mesh,
     cli,
     interior_faces,
+    interior_faces_after_removal,
+    interior_faces_after_split,
     load_mesh,
     save_mesh,
     tet_quality,
@@ -352,6 +354,61 @@ def test_interior_faces_are_cached_until_the_tets_change():
     h = m.interior_faces()
     assert h is not g and all(np.array_equal(a, b) for a, b in zip(h, interior_faces(m.tets)))
     assert not np.array_equal(h[2], g[2])
+
+
+def _random_split(rng, T, n, nodes=12):
+    """Tets T with random nodes copied: each picked node's copy takes its place in a random
+    subset of its tets (any subset: faces may part anywhere). (new tets, copy_of)."""
+    T = T.copy()
+    copy_of = list(range(n))
+    for v in rng.choice(n, nodes, replace=False):
+        at = np.flatnonzero(np.any(T == v, axis=1))
+        at = at[rng.random(len(at)) < 0.5]
+        if len(at):
+            T[at] = np.where(T[at] == v, len(copy_of), T[at])
+            copy_of.append(int(v))
+    return T, np.array(copy_of)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_interior_faces_derived_after_a_split_or_a_removal_equal_the_recomputed_ones(brain, seed):
+    """The tables derived from the old mesh's after a node split and after an element removal
+    (with node compaction) are exactly :func:`interior_faces` of the new tets; a relabelling
+    that is no split is refused (None)."""
+    rng = np.random.default_rng(seed)
+    T0 = brain.tets.astype(np.int64)
+    faces = interior_faces(T0)
+    T1, copy_of = _random_split(rng, T0, brain.n_nodes)
+    got = interior_faces_after_split(faces, T0, T1, copy_of)
+    expect = interior_faces(T1)
+    assert len(expect[0]) < len(faces[0])  # faces did part
+    for a, b in zip(got, expect):
+        np.testing.assert_array_equal(a, b)
+        assert a.dtype == b.dtype
+    wrong = copy_of.copy()
+    wrong[-1] = (wrong[-1] + 1) % brain.n_nodes
+    assert interior_faces_after_split(faces, T0, T1, wrong) is None
+    faces1 = expect
+    kept = rng.random(len(T1)) < 0.9
+    used = np.zeros(len(copy_of), bool)
+    used[T1[kept].ravel()] = True
+    keep = np.flatnonzero(used)
+    remap = np.cumsum(used) - 1
+    got = interior_faces_after_removal(faces1, kept, keep, len(copy_of))
+    for a, b in zip(got, interior_faces(remap[T1[kept]])):
+        np.testing.assert_array_equal(a, b)
+        assert a.dtype == b.dtype
+
+
+def test_an_installed_interior_face_table_is_the_cache_until_the_tets_change():
+    m = beam_mesh(4, n_cross=3)
+    assert m.cached_interior_faces() is None
+    table = interior_faces(m.tets)
+    m.set_interior_faces(table)
+    f = m.cached_interior_faces()
+    assert f is m.interior_faces() and all(np.array_equal(a, b) for a, b in zip(f, table))
+    m.tets[:2] = m.tets[1::-1].copy()
+    assert m.cached_interior_faces() is None
 
 
 def test_tetmesh_checks_shapes():

@@ -13,7 +13,7 @@ from functools import partial
 import numpy as np
 
 from ..material import ParameterError
-from ..mesh import TetMesh, tet_quality
+from ..mesh import TetMesh, interior_faces_after_removal, interior_faces_after_split, tet_quality
 from ..sherman_morrison import Modification
 from ..stats import CutStats
 from .geometry import _path_planes, faces_cut_by_triangles, sweep_triangles
@@ -41,6 +41,26 @@ def _vec3(v, what):
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise ParameterError(f"{what} must be 3 finite numbers, got {v!r}")
     return a
+
+
+def _carry_interior_faces(mesh: TetMesh, new_mesh: TetMesh, kept=None, copies=None) -> None:
+    """Give ``new_mesh`` its interior-face table derived from ``mesh``'s, where that one is
+    at hand (the split scheme reads it) and the change is one the derivation covers: an
+    element removal (``kept``: the kept tets' mask and the kept nodes) or a node split
+    (``copies``: the old node each appended node copies). Otherwise the new mesh computes
+    its table when first asked."""
+    faces = mesh.cached_interior_faces()
+    if faces is None:
+        return
+    if kept is not None:
+        derived = interior_faces_after_removal(faces, kept[0], kept[1], mesh.n_nodes)
+    elif copies is not None:
+        derived = interior_faces_after_split(faces, mesh.tets, new_mesh.tets,
+                                             np.concatenate([np.arange(mesh.n_nodes), copies]))
+    else:
+        derived = None
+    if derived is not None:
+        new_mesh.set_interior_faces(derived)
 
 
 class Cutter:
@@ -469,7 +489,12 @@ class Cutter:
             return CutPlan(CutResult(False, f"refused: the change would create a tet of quality {q.min():.3g} < "
                                      f"{self.min_quality} or a node without a tet; mesh unchanged",
                                      ms=1000.0 * (time.perf_counter() - t0)))
-        change = TopologyChange(TetMesh(pts_new, tets_new, mats), x_new, v_new, uids_new, free_new, removed_ids,
+        new_mesh = TetMesh(pts_new, tets_new, mats)
+        if new_tets is None:
+            _carry_interior_faces(mesh, new_mesh, kept=(kept_tets, keep))
+        else:
+            _carry_interior_faces(mesh, new_mesh, copies=a if np.array_equal(a, b) else None)
+        change = TopologyChange(new_mesh, x_new, v_new, uids_new, free_new, removed_ids,
                                 added_ids, created, removed, source, old_uids, free_old, tet_source)
         return CutPlan(CutResult(True, what, tets_changed=int(len(removed_ids)), nodes_added=int(len(created)),
                                  nodes_removed=int(len(removed))), change, note, t0)

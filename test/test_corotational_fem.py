@@ -172,6 +172,17 @@ def _rest_arrays(f):
     return [f.Dm_inv.numpy(), f.volume.numpy(), f.lumped_mass.numpy(), f.free.numpy(), f.tets.numpy()]
 
 
+def _split_node(mesh, node):
+    """``mesh`` with ``node`` split: a copy at the same rest position takes its place in every
+    other tet around it (a cut's node split)."""
+    from soft_tissue_sim.mesh import TetMesh
+
+    T = mesh.tets.copy()
+    at = np.flatnonzero(np.any(T == node, axis=1))[::2]
+    T[at] = np.where(T[at] == node, mesh.n_nodes, T[at])
+    return TetMesh(np.concatenate([mesh.points, mesh.points[node:node + 1]]), T)
+
+
 def test_rest_data_taken_over_from_the_source_tets_equal_a_fresh_build():
     """set_mesh with tet_source (a node split, then a removal; also a wrong hint) gives the
     very numbers of a FEM built afresh on the new mesh; a malformed hint is refused and the
@@ -183,11 +194,7 @@ def test_rest_data_taken_over_from_the_source_tets_equal_a_fresh_build():
     mesh = TetMesh(mesh.points + 0.002 * rng.uniform(-0.5, 0.5, mesh.points.shape), mesh.tets)  # all shapes differ
     mat = MaterialTable({0: Material(1e5, 0.3, 1000.0)})
     f = CorotationalFEM(mesh, mat, "cpu", fixed_nodes=np.arange(9))
-    # node 30 split: a copy at the same rest position takes its place in some of its tets
-    T = mesh.tets.copy()
-    at = np.flatnonzero(np.any(T == 30, axis=1))[::2]
-    T[at] = np.where(T[at] == 30, mesh.n_nodes, T[at])
-    split = TetMesh(np.concatenate([mesh.points, mesh.points[30:31]]), T)
+    split = _split_node(mesh, 30)
     removal = TetMesh(split.points, split.tets[5:])
     moved = TetMesh(removal.points.copy(), removal.tets)
     moved.points[40] += 0.001  # same numbering, one node moved: its tets computed, the others taken over
@@ -215,15 +222,12 @@ def test_a_split_keeps_the_device_arrays_of_unchanged_element_data():
     mesh = beam_mesh(6, n_cross=3, spacing=0.01)
     mat = MaterialTable({0: Material(1e5, 0.3, 1000.0)})
     f = CorotationalFEM(mesh, mat, "cpu", fixed_nodes=np.arange(9))
-    T = mesh.tets.copy()
-    at = np.flatnonzero(np.any(T == 30, axis=1))[::2]
-    T[at] = np.where(T[at] == 30, mesh.n_nodes, T[at])
-    split = TetMesh(np.concatenate([mesh.points, mesh.points[30:31]]), T)
+    split = _split_node(mesh, 30)
     names = ("Dm_inv", "volume", "mu", "lam", "rho", "_all_tets")
     before = {k: getattr(f, k) for k in names}
     f.set_mesh(split, np.arange(9), tet_source=np.arange(mesh.n_tets))
     assert all(getattr(f, k) is before[k] for k in names)
-    assert f.tets is not None and np.array_equal(f.tets.numpy(), T)
+    assert f.tets is not None and np.array_equal(f.tets.numpy(), split.tets)
     f.set_mesh(TetMesh(split.points, split.tets[5:]), np.arange(9), tet_source=np.arange(5, mesh.n_tets))
     assert not any(getattr(f, k) is before[k] for k in names)
     fresh = CorotationalFEM(f.mesh, mat, "cpu", fixed_nodes=np.arange(9))

@@ -112,12 +112,19 @@ def _tets_cut(points, tets, tris, nrm, tol):
     tets it cuts: near it (:func:`_near_blade`), with vertices on both sides of its plane
     (+tol), and a section that overlaps it (:func:`_sections_meet_triangles`). The exact
     tests of all triangles run as one batch."""
-    cand = [_near_blade(points, tets, tri, tol) for tri in tris]
+    none = [np.zeros(0, np.int64) for _ in tris]
+    near = _near_blade(points, tets, tris.reshape(-1, 3), tol)  # the box of the whole path first
+    if not len(near):
+        return none
+    sub = tets[near]
+    cand = [near[_near_blade(points, sub, tri, tol)] for tri in tris]
     owner = np.repeat(np.arange(len(tris)), [len(c) for c in cand])
     cand = np.concatenate(cand)
     X = points[tets[cand]]  # (k, 4, 3)
     d = _dot(X - tris[owner, 0][:, None], nrm[owner][:, None])
     straddle = (d.min(axis=1) <= tol) & (d.max(axis=1) >= -tol)
+    if not straddle.any():  # no tet has nodes on both sides of a blade triangle's plane
+        return none
     cand, owner, X = cand[straddle], owner[straddle], X[straddle]
     hit = _sections_meet_triangles(X, tris[owner], nrm[owner], tol)
     return [cand[hit & (owner == k)] for k in range(len(tris))]

@@ -239,6 +239,7 @@ class BackwardEuler:
         # non-finite nodes) of the last step, None where it was not read so
         self.read_guard = False
         self.guard_reading = None
+        self.state_version = 0  # counts set_state calls: with step_index, names the state (x, v)
         self._allocate()
         self.x = wp.clone(fem.rest)
         self.v = wp.zeros_like(fem.rest)
@@ -276,6 +277,7 @@ class BackwardEuler:
             self.cg.resize(x.shape[0])
         self.x = wp.array(x, dtype=wp.vec3d, device=self.device)
         self.v = wp.array(v, dtype=wp.vec3d, device=self.device)
+        self.state_version += 1
 
     def matvec(self, p: wp.array, out: wp.array) -> None:
         self.fem.system_product(p, p, out, 1.0, 0.0, self.m_coef, self.k_coef)
@@ -342,19 +344,16 @@ class BackwardEuler:
         self.preconditioner.begin_step(self)
         t1 = time.perf_counter()
         self.guard_reading = None
+        # a device solve is only launched here: its result and the guard's values are read in one wait
         launch = getattr(self.cg, "launch", None) if self.read_guard and not newton else None
-        if launch is not None:  # a device solve: its result and the guard's values read in one wait
-            res = launch(self.matvec, self.b, self.dv, self.preconditioner)
-            wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
-                      device=self.device)
-            if res is None:
-                s, guard = to_host(self.cg.scalars, self.launch_guard())
-                res = self.cg.result(s)
-                self.guard_reading = (float(guard[0]), float(guard[1]))
-        else:
-            res = self.cg.solve(self.matvec, self.b, self.dv, self.preconditioner)
-            wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
-                      device=self.device)
+        solve = launch if launch is not None else self.cg.solve
+        res = solve(self.matvec, self.b, self.dv, self.preconditioner)
+        wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
+                  device=self.device)
+        if res is None:
+            s, guard = to_host(self.cg.scalars, self.launch_guard())
+            res = self.cg.result(s)
+            self.guard_reading = (float(guard[0]), float(guard[1]))
         t2 = time.perf_counter()
         solve_s = t2 - t1
         iterations, precond_ms, converged = res.iterations, res.precond_ms, res.converged

@@ -289,10 +289,7 @@ class Simulation:
         g = float(np.linalg.norm(self.integrator.gravity))
         self._energy_floor = self.fem.total_mass * (g * size + 0.5)  # weight over the body size + 1 m/s
         self._closed = False
-        self._ke_checked = None  # kinetic energy after the free motion's guard (None: not checked)
-        # the kinetic energy of the state a guard last read, and which arrays held that state
-        # (their addresses: the integrator's set_state makes new ones); None: changed since
-        self._ke_state = None
+        self._ke_state = None  # (kinetic energy, state key): the last guard's reading, of that state
         self._copies: dict = {}  # device copies of the state a step may go back to, by purpose
         self._finalizer = weakref.finalize(self, self.preconditioner.close)
 
@@ -343,7 +340,6 @@ class Simulation:
         makes (the blocks of the removed and added elements, with the rotations of one state)
         goes to the cutter's correction, or the preconditioner starts afresh without one."""
         change, fem, integ = plan.change, self.fem, self.integrator
-        self._ke_state = None
         m_coef, k_coef = integ.m_coef, integ.k_coef
         fem.update_rotations(integ.x)
         R_nodes = fem.node_rotations()
@@ -375,8 +371,15 @@ class Simulation:
         return self.integrator.step_index
 
     def _state_key(self) -> tuple:
-        integ = self.integrator
-        return (integ.x.ptr, integ.v.ptr, integ.step_index)
+        """Names the current state: a step or the integrator's set_state (a cut, set_state,
+        reset) makes another."""
+        return (self.integrator.state_version, self.integrator.step_index)
+
+    def _known_kinetic_energy(self) -> float:
+        """The kinetic energy of the current state: the last guard's reading where it was of this
+        state, else measured."""
+        known = self._ke_state
+        return known[0] if known is not None and known[1] == self._state_key() else self._kinetic_energy()
 
     def _copy_state(self, purpose: str) -> tuple:
         """(x, v) copied on the device into buffers kept for ``purpose`` (reused while the node
@@ -405,7 +408,7 @@ class Simulation:
         if reading is None:
             reading = to_host(self.integrator.launch_guard())[0]
         ke, nonfinite = (float(g) for g in reading)
-        self._ke_checked = ke  # the kinetic energy of the state now (the contact guard's "before")
+        self._ke_state = (ke, self._state_key())  # the contact guard's, or the next step's, "before"
         if not np.isfinite(stats.residual) or nonfinite != 0.0:
             return "non-finite state"
         if not np.isfinite(ke):
@@ -425,12 +428,7 @@ class Simulation:
         integ = self.integrator
         prev = self._copy_state("last good")
         k0, t0 = integ.step_index, integ.time
-        self._ke_checked = None
-        ke_before = 0.0
-        if self.guard_ratio > 0:  # the last guard's reading where the state has not changed since
-            known = self._ke_state
-            ke_before = known[0] if known is not None and known[1] == self._state_key() else self._kinetic_energy()
-        self._ke_state = None
+        ke_before = self._known_kinetic_energy() if self.guard_ratio > 0 else 0.0
         stats = integ.step()
         reason = self._diverged(stats, ke_before) if self.guard_ratio > 0 else (
             None if np.isfinite(stats.residual) and np.isfinite(to_host(integ.x)[0]).all() else "non-finite state")
@@ -485,7 +483,7 @@ class Simulation:
         free = self._copy_state("free motion")
         ke_free = 0.0
         if self.guard_ratio > 0:
-            ke_free = self._ke_checked if self._ke_checked is not None else self._kinetic_energy()
+            ke_free = self._known_kinetic_energy()
         try:
             response = self.contact.step(self.view())
             reason = None
@@ -506,7 +504,7 @@ class Simulation:
             elif self.guard_ratio > 0 and not ke <= self.guard_ratio * (ke_free + self._energy_floor):
                 reason = f"runaway energy after the contact correction: kinetic {ke:.3g} J after {ke_free:.3g} J"
         if reason is None:
-            self._ke_state = (ke, self._state_key()) if self.guard_ratio > 0 else None
+            self._ke_state = (ke, self._state_key())
         else:
             self._restore_state(free)
             self._ke_state = (ke_free, self._state_key()) if self.guard_ratio > 0 else None
@@ -529,9 +527,6 @@ class Simulation:
             return stats
         if self.contact is not None:
             self._contact_response(stats)  # LCP correction of x and v, eq. (3)-(4)
-        else:
-            # the guard read the state the step ends with
-            self._ke_state = None if self._ke_checked is None else (self._ke_checked, self._state_key())
         if self.cutting is not None:  # blade motion -> mesh change + SMF, eq. (5)-(12)
             ops = self.cutting.step(self.step_count, self._instruments())
             stats.cutting = self.cutting.step_stats([self._modify(op(self.tissue())) for op in ops])
@@ -551,7 +546,6 @@ class Simulation:
             self.fem.set_mesh(self.mesh, self._initial_fixed)
         self.node_uids = np.arange(self.mesh.n_nodes, dtype=np.int64)
         self.mesh_version = 0
-        self._ke_state = None
         self.integrator.set_state(self._initial_mesh.points.copy(), np.zeros_like(self._initial_mesh.points))
         self.integrator.step_index = 0
         self.integrator.time = 0.0
@@ -595,7 +589,6 @@ class Simulation:
             arrays.append(a)
         x, v = arrays
         v[self.fem.free.numpy() == 0.0] = 0.0
-        self._ke_state = None
         self.integrator.set_state(x, v)
 
     def surface_triangles(self) -> np.ndarray:

@@ -31,6 +31,7 @@ import numpy as np
 import warp as wp
 
 from .cg import block_sum
+from .transfer import to_host
 
 BLOCK = 256  # threads per node in the matrix-vector product on CUDA
 
@@ -200,7 +201,7 @@ class DenseInverse:
         self._workspace = None
         self._blas = None  # cuBLAS
         self._one = np.ones(1)  # the host scalar of the cuBLAS calls
-        self._W = self._W_host = self._W_np = None  # delassus: W on the device, its host mirror, a view
+        self._W = None  # delassus: W on the device (grown to the largest m x m seen)
 
     # ----------------------------------------------------------- making one
     @property
@@ -307,20 +308,14 @@ class DenseInverse:
 
     def delassus(self, nodes: wp.array, coef: wp.array, dR: wp.array, m: int | None = None) -> np.ndarray:
         """W = H dR A^-1 dR^T H^T (m x m, host) for the first ``m`` (default: all) constraint rows
-        in node form (arrays (>= m, 4)). W is gathered into a buffer kept between calls and only
-        its m x m entries are read back (through a pinned mirror on a GPU); the result is a view
-        of that buffer, valid until the next call."""
+        in node form (arrays (>= m, 4)). W is gathered into a buffer kept between calls and read
+        with :func:`~soft_tissue_sim.transfer.to_host`; the result is a view, valid until the
+        next call."""
         m = nodes.shape[0] if m is None else int(m)
         if self._W is None or self._W.shape[0] < m * m:
             self._W = wp.empty(m * m, dtype=wp.float64, device=self.device)
-            self._W_host = self._W if self.device.is_cpu else wp.empty(m * m, dtype=wp.float64, device="cpu",
-                                                                        pinned=True)
-            self._W_np = self._W_host.numpy()
         wp.launch(delassus_kernel, (m, m), [self.inv, nodes, coef, dR, m, self._W], device=self.device)
-        if self._W_host is not self._W:
-            wp.copy(self._W_host, self._W, count=m * m)
-            wp.synchronize_stream(wp.get_stream(self.device))
-        return self._W_np[: m * m].reshape(m, m)
+        return to_host(self._W)[0][: m * m].reshape(m, m)
 
     # ----------------------------------------------------------- changing it
     def fold(self, rows: np.ndarray, Q_fn) -> None:

@@ -41,6 +41,7 @@ import warp as wp
 from . import graphs
 from .sherman_morrison import Modification, perturbation, woodbury_q
 from .sm_partition import partitioned_stream
+from .transfer import Staged
 
 
 @wp.kernel
@@ -168,8 +169,8 @@ class AsyncDevicePreconditioner:
             self._side = self.partition.stream
         else:
             self._side = wp.Stream(self.device) if self.device.is_cuda else None
-        self._vec = None  # (r, z, pinned staging of r and its numpy view, event of its last upload) of apply_vector
-        self._rows = None  # delassus_rows: constraint rows on the device (nodes, coef), their host staging and its numpy views
+        self._vec = None  # apply_vector: (r staged from the host, z)
+        self._rows = None  # delassus_rows: the constraint rows (nodes, coef), staged from the host
         self.correction: FoldedCorrection | None = None
         self.mods: list[Modification] = []
         self._busy = None  # the last factorization enqueued (its work buffer is in use until it ends)
@@ -437,21 +438,13 @@ class AsyncDevicePreconditioner:
 
     def apply_vector(self, b: np.ndarray) -> wp.array:
         """P^-1 b for one host vector b (3n,), left on the device: a (n,) vec3d array that the
-        next call overwrites (no wait for the device). b goes up through a pinned buffer (on a
-        GPU) that the next call refills only once this copy has left it."""
+        next call overwrites (no wait for the device: b goes up as :class:`Staged`)."""
         b = np.asarray(b, dtype=np.float64).reshape(-1, 3)
-        if self._vec is None or self._vec[0].shape[0] != len(b):
-            r = wp.empty(len(b), dtype=wp.vec3d, device=self.device)
-            staged = r if self.device.is_cpu else wp.empty(len(b), dtype=wp.vec3d, device="cpu", pinned=True)
-            self._vec = (r, wp.empty(len(b), dtype=wp.vec3d, device=self.device), staged, staged.numpy(), [None])
-        r, z, staged, staged_np, sent = self._vec
-        if staged is not r and sent[0] is not None:
-            wp.synchronize_event(sent[0])
-        staged_np[:] = b
-        if staged is not r:
-            wp.copy(r, staged)
-            sent[0] = wp.get_stream(self.device).record_event(sent[0])
-        self.apply(r, z)
+        if self._vec is None or self._vec[0].array.shape[0] != len(b):
+            self._vec = (Staged(len(b), wp.vec3d, self.device), wp.empty(len(b), dtype=wp.vec3d, device=self.device))
+        r, z = self._vec
+        r.view()[:] = b
+        self.apply(r.send(), z)
         return z
 
     def delassus(self, B) -> np.ndarray | None:
@@ -463,27 +456,19 @@ class AsyncDevicePreconditioner:
 
     def delassus_rows(self, nodes: np.ndarray, coef: np.ndarray) -> np.ndarray | None:
         """:meth:`delassus` for columns given in node form (see :func:`constraint_rows`). The rows
-        go up into device buffers kept between calls (grown to the largest m seen; through
-        pinned host buffers on a GPU), so that a call allocates nothing in the steady state."""
+        go up into buffers kept between calls (grown to the largest m seen, :class:`Staged`), so
+        that a call allocates nothing in the steady state."""
         if not hasattr(self.backend, "delassus"):
             return None
         m = len(nodes)
         if m == 0:
             return np.zeros((0, 0))
-        bufs = self._rows
-        if bufs is None or bufs[0].shape[0] < m:
-            dev = [wp.empty((m, 4), dtype=wp.int32, device=self.device),
-                   wp.empty((m, 4), dtype=wp.vec3d, device=self.device)]
-            host = dev if self.device.is_cpu else [wp.empty((m, 4), dtype=a.dtype, device="cpu", pinned=True)
-                                                   for a in dev]
-            bufs = self._rows = (*dev, *host, host[0].numpy(), host[1].numpy())
-        d_nodes, d_coef, h_nodes, h_coef, nodes_np, coef_np = bufs
-        nodes_np[:m] = nodes
-        coef_np[:m] = coef
-        if h_nodes is not d_nodes:  # the previous call's copies ended with its read of W
-            wp.copy(d_nodes, h_nodes, count=4 * m)
-            wp.copy(d_coef, h_coef, count=4 * m)
-        W = self.backend.delassus(d_nodes, d_coef, self.dR, m)
+        if self._rows is None or self._rows[0].array.shape[0] < m:
+            self._rows = (Staged((m, 4), wp.int32, self.device), Staged((m, 4), wp.vec3d, self.device))
+        s_nodes, s_coef = self._rows
+        s_nodes.view()[:m] = nodes
+        s_coef.view()[:m] = coef
+        W = self.backend.delassus(s_nodes.send(4 * m), s_coef.send(4 * m), self.dR, m)
         return 0.5 * (W + W.T)
 
     # -------------------------------------------------------------- lifecycle

@@ -42,3 +42,30 @@ def to_host(*arrays: wp.array) -> list[np.ndarray]:
         mirrors.append(m)
     wp.synchronize_stream(wp.get_stream(arrays[0].device))
     return [m.numpy() for m in mirrors]
+
+
+class Staged:
+    """A device array filled from the host without a wait: write :meth:`view` (NumPy), then
+    :meth:`send`. On the CPU device the view is the array itself and nothing is sent; on a GPU it
+    is a pinned mirror copied asynchronously on the current stream, and :meth:`view` first waits
+    for the last copy out of it to have left (so a refill never races a copy in flight)."""
+
+    def __init__(self, shape, dtype, device):
+        self.array = wp.zeros(shape, dtype=dtype, device=device)
+        self._host = self.array if self.array.device.is_cpu else wp.zeros(shape, dtype=dtype, device="cpu",
+                                                                         pinned=True)
+        self._np = self._host.numpy()
+        self._sent = None  # the event after the last copy
+
+    def view(self) -> np.ndarray:
+        """The host side to fill (the whole buffer)."""
+        if self._sent is not None:
+            wp.synchronize_event(self._sent)
+        return self._np
+
+    def send(self, count: int = 0) -> wp.array:
+        """Copy the first ``count`` elements (0: all) to the device; returns :attr:`array`."""
+        if self._host is not self.array:
+            wp.copy(self.array, self._host, count=count)
+            self._sent = wp.get_stream(self.array.device).record_event(self._sent)
+        return self.array

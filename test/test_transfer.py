@@ -1,13 +1,14 @@
-"""Device-to-host reads of several arrays with one wait (soft_tissue_sim.transfer).
+"""Device-to-host reads of several arrays with one wait, and host-to-device uploads without one
+(soft_tissue_sim.transfer).
 
-Warp's CPU backend by default; ``STS_TEST_DEVICE=cuda:0`` reads through pinned mirrors."""
+Warp's CPU backend by default; ``STS_TEST_DEVICE=cuda:0`` goes through pinned mirrors."""
 
 import os
 
 import numpy as np
 import warp as wp
 
-from soft_tissue_sim.transfer import to_host
+from soft_tissue_sim.transfer import Staged, to_host
 
 DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 
@@ -24,3 +25,18 @@ def test_to_host_reads_every_array_and_follows_later_writes():
     (ha2,) = to_host(a)
     np.testing.assert_array_equal(ha2, 2.0 * a_np)
     assert ha2.shape == (7, 3) and hb.dtype == np.int32
+
+
+def test_staged_uploads_what_the_host_wrote_and_a_refill_never_changes_a_sent_copy():
+    s = Staged((5, 4), wp.int32, DEVICE)
+    first = np.arange(20, dtype=np.int32).reshape(5, 4)
+    s.view()[:] = first
+    sent = s.send()
+    assert sent is s.array
+    copy1 = wp.clone(sent)  # ordered after the upload on the stream
+    s.view()[:2] = -1  # refilled after the send: waits for the copy to have left
+    s.send(count=8)  # the first two rows only
+    np.testing.assert_array_equal(copy1.numpy(), first)
+    expect = first.copy()
+    expect[:2] = -1
+    np.testing.assert_array_equal(s.array.numpy(), expect)

@@ -29,6 +29,7 @@ import warp as wp
 from scipy.sparse.csgraph import connected_components
 
 from ..instrument import Instrument, MeshObstacle, PlaneObstacle
+from ..transfer import Staged
 from .detection_kernels import (
     Slots,
     capsule_contacts_kernel,
@@ -207,13 +208,9 @@ class SurfaceTopology:
         self.inside = wp.zeros(max(len(objects), 1), dtype=wp.int32, device=dev)
         self.min_gap = wp.zeros(1, dtype=wp.float64, device=dev)
         # the objects' geometry of the step, on the device (see upload_objects)
-        self.geom = wp.zeros(4 * max(len(objects), 1), dtype=wp.vec3d, device=dev)
-        self.params = wp.zeros(3 * max(len(objects), 1), dtype=wp.float64, device=dev)
-        # their host side: the arrays themselves on the CPU, pinned mirrors on a GPU
-        on_cpu = wp.get_device(dev).is_cpu
-        self.geom_host = self.geom if on_cpu else wp.zeros_like(self.geom, device="cpu", pinned=True)
-        self.params_host = self.params if on_cpu else wp.zeros_like(self.params, device="cpu", pinned=True)
-        self.geom_np, self.params_np = self.geom_host.numpy(), self.params_host.numpy()
+        self.geom_in = Staged(4 * max(len(objects), 1), wp.vec3d, dev)
+        self.params_in = Staged(3 * max(len(objects), 1), wp.float64, dev)
+        self.geom, self.params = self.geom_in.array, self.params_in.array
         self.graphs: dict = {}  # captured detections (CUDA), by their arguments
 
     def matches(self, fem) -> bool:
@@ -226,9 +223,8 @@ def upload_objects(topo: SurfaceTopology, objects: list) -> None:
     kernels read it (so that a captured detection replays with new poses): per object ``oi``,
     geom[4 oi ...] = an instrument's axis (a, b) at the step's pose and at the previous step's
     pose, or a plane's (point, normal); params[3 oi ...] = (radius, blade_lo, blade_hi).
-    Written in place on the CPU; on a GPU into pinned mirrors, then copied (the previous step's
-    copies ended with its read of the detection)."""
-    geom, params = topo.geom_np, topo.params_np
+    Filled on the host and sent without a wait (:class:`~soft_tissue_sim.transfer.Staged`)."""
+    geom, params = topo.geom_in.view(), topo.params_in.view()
     geom[:] = 0.0
     params[:] = 0.0
     for oi, obj in enumerate(objects):
@@ -238,9 +234,8 @@ def upload_objects(topo: SurfaceTopology, objects: list) -> None:
             params[3 * oi: 3 * oi + 3] = (obj.radius, *blade_span(obj))
         elif isinstance(obj, PlaneObstacle):
             geom[4 * oi], geom[4 * oi + 1] = obj.point, obj.normal
-    if topo.geom_host is not topo.geom:
-        wp.copy(topo.geom, topo.geom_host)
-        wp.copy(topo.params, topo.params_host)
+    topo.geom_in.send()
+    topo.params_in.send()
 
 
 def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_features: wp.array, distance: float,

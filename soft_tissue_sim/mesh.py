@@ -68,6 +68,13 @@ def unique_rows(rows: np.ndarray, **kw):
     return (uniq, *rest) if rest else uniq
 
 
+def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of (..., 3) arrays: the products of ``np.cross`` without its
+    per-call overhead, which dominates on the few rows of a contact step or a blade's tets."""
+    return np.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1], u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
+                     u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1)
+
+
 def interior_faces(tets: np.ndarray):
     """The interior faces of tets (m, 4): (f, 2) the two tets sharing each (lower index first),
     (f, 3) its nodes (ascending), and (m, 4) the face of each tet opposite its node k
@@ -200,13 +207,11 @@ class TetMesh:
     def interior_faces(self):
         """:func:`interior_faces` of this mesh, computed once per connectivity (the cache holds a
         copy of the tets it was made from, so a changed ``tets`` is recomputed). Read-only arrays."""
-        cached = self.__dict__.get("_interior_faces")
-        if cached is None or not np.array_equal(cached[0], self.tets):
-            faces = interior_faces(self.tets)
-            for a in faces:
-                a.flags.writeable = False
-            cached = self._interior_faces = (self.tets.copy(), faces)
-        return cached[1]
+        faces = self.cached_interior_faces()
+        if faces is None:
+            self.set_interior_faces(interior_faces(self.tets))
+            faces = self._interior_faces[1]
+        return faces
 
     def cached_interior_faces(self):
         """:meth:`interior_faces` where already computed for the current tets, else None."""

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..mesh import unique_rows
+from ..mesh import cross, unique_rows
 
 F64 = wp.float64
 
@@ -174,15 +174,6 @@ def segment_triangle_closest(a: wp.vec3d, b: wp.vec3d, va: wp.vec3d, vb: wp.vec3
         s = st[0]
         w = wp.vec3d(st[1], zero, one - st[1])
     return s, w, best, 0
-
-
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross products of (k, 3) arrays, the same products as ``np.cross`` without its
-    per-call overhead (which dominates on the few rows of a step's contacts)."""
-    return a[:, _NEXT] * b[:, _PREV] - a[:, _PREV] * b[:, _NEXT]
-
-
-_NEXT, _PREV = [1, 2, 0], [2, 0, 1]
 
 
 def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..mesh import cross
 from ..mesh import interior_faces as _interior_faces
 
 TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
@@ -60,12 +61,6 @@ def _in_triangles(p, a, b, c, tol):
     return (v >= -rel) & (w >= -rel) & (v + w <= 1.0 + rel)
 
 
-def _cross(u, v):
-    """Row-wise cross products of (..., 3) arrays."""
-    return np.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1], u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
-                     u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1)
-
-
 _OTHERS = np.array([[j for j in range(4) if j != i] for i in range(4)])  # face i: the vertices but i
 
 
@@ -73,7 +68,7 @@ def _segments_meet_tets(segments, X, tol):
     """Mask (k,): does one of the segments (p0[i], p1[i]) (pairs of (k, 3) arrays) meet the tet
     X[i] (k, 4, 3)? (Clipping by the 4 faces, each moved out by ``tol``.)"""
     o = X[:, _OTHERS]  # (k, 4, 3, 3): face i's vertices
-    nrm = _cross(o[:, :, 1] - o[:, :, 0], o[:, :, 2] - o[:, :, 0])
+    nrm = cross(o[:, :, 1] - o[:, :, 0], o[:, :, 2] - o[:, :, 0])
     nrm *= np.sign(_dot(nrm, X - o[:, :, 0]))[..., None]  # inwards
     widen = tol * np.sqrt(_dot(nrm, nrm))
     meet = np.zeros(len(X), bool)

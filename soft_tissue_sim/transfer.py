@@ -5,14 +5,65 @@ and waits, every time. :func:`to_host` copies several arrays into pinned host mi
 source array, waits once, and returns NumPy views of the mirrors. A view is overwritten by the
 next read of the same source: index or copy it before that. On the CPU device the views are
 the arrays' own memory, as ``numpy()`` gives them.
+
+Page-locked host memory comes from :class:`PinnedPool` and goes back to it, never to the driver:
+``cudaFreeHost`` waits for the whole device (a background factorization included), and a mesh
+change replaces many of the arrays these mirrors and stagings are kept for.
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
+import threading
+from collections import OrderedDict, defaultdict
 
 import numpy as np
 import warp as wp
+
+
+class PinnedPool:
+    """Page-locked host blocks of power-of-two sizes, handed out as Warp arrays and taken back
+    when such an array is deleted (its deleter), to be handed out again; none is ever freed.
+    What it holds is at most twice the largest set of page-locked arrays alive at once.
+    ``pinned=False`` pools ordinary host memory the same way (a machine without CUDA)."""
+
+    MIN_BYTES = 256
+
+    def __init__(self, pinned: bool = True):
+        self.pinned = bool(pinned)
+        self._lock = threading.Lock()
+        self._free: dict[int, list] = defaultdict(list)  # block size -> idle blocks
+        self._lent: dict[int, wp.array] = {}  # ptr -> its block
+        self.allocated = 0  # blocks asked of the driver
+
+    def empty(self, shape, dtype) -> wp.array:
+        """An uninitialised page-locked CPU array of ``shape`` and ``dtype``."""
+        shape = (shape,) if isinstance(shape, int) else tuple(shape)
+        nbytes = int(np.prod(shape)) * wp.types.type_size_in_bytes(dtype)
+        size = 1 << max(self.MIN_BYTES.bit_length() - 1, (max(nbytes, 1) - 1).bit_length())
+        with self._lock:
+            idle = self._free[size]
+            block = idle.pop() if idle else None
+        if block is None:
+            block = wp.empty(size, dtype=wp.uint8, device="cpu", pinned=self.pinned)
+            self.allocated += 1
+        with self._lock:
+            self._lent[block.ptr] = block
+        return wp.array(ptr=block.ptr, dtype=dtype, shape=shape, capacity=size, device="cpu", pinned=self.pinned,
+                        deleter=self._take_back)
+
+    def zeros(self, shape, dtype) -> wp.array:
+        a = self.empty(shape, dtype)
+        a.numpy().view(np.uint8)[...] = 0
+        return a
+
+    def _take_back(self, ptr: int, _size: int) -> None:
+        with self._lock:
+            block = self._lent.pop(ptr, None)
+            if block is not None:
+                self._free[block.shape[0]].append(block)
+
+
+PINNED = PinnedPool()
 
 _MIRRORS: OrderedDict = OrderedDict()  # (device, ptr, shape, dtype) -> pinned host array
 _MAX_MIRRORS = 256
@@ -22,7 +73,7 @@ def _mirror(a: wp.array) -> wp.array:
     key = (str(a.device), a.ptr, a.shape, a.dtype)
     m = _MIRRORS.get(key)
     if m is None:
-        m = wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True)
+        m = PINNED.empty(a.shape, a.dtype)
         _MIRRORS[key] = m
         while len(_MIRRORS) > _MAX_MIRRORS:  # arrays of earlier meshes
             _MIRRORS.popitem(last=False)
@@ -52,8 +103,7 @@ class Staged:
 
     def __init__(self, shape, dtype, device):
         self.array = wp.zeros(shape, dtype=dtype, device=device)
-        self._host = self.array if self.array.device.is_cpu else wp.zeros(shape, dtype=dtype, device="cpu",
-                                                                         pinned=True)
+        self._host = self.array if self.array.device.is_cpu else PINNED.zeros(shape, dtype)
         self._np = self._host.numpy()
         self._sent = None  # the event after the last copy
 

@@ -40,3 +40,27 @@ def test_staged_uploads_what_the_host_wrote_and_a_refill_never_changes_a_sent_co
     expect = first.copy()
     expect[:2] = -1
     np.testing.assert_array_equal(s.array.numpy(), expect)
+
+
+def test_pinned_pool_recycles_blocks_by_size_and_keeps_a_lent_one_apart():
+    from soft_tissue_sim.transfer import PinnedPool
+
+    pool = PinnedPool(pinned=DEVICE != "cpu")
+    a = pool.zeros(7, wp.vec3d)  # 168 bytes: a 256-byte block
+    assert a.shape == (7,) and a.device.is_cpu and a.pinned == pool.pinned
+    np.testing.assert_array_equal(a.numpy(), 0.0)
+    a.numpy()[:] = 5.0
+    b = pool.empty(30, wp.float64)  # 240 bytes: another 256-byte block, a is still lent
+    assert b.ptr != a.ptr and pool.allocated == 2
+    ptr = a.ptr
+    del a  # its block goes back to the pool ...
+    c = pool.zeros((5, 4), wp.int32)  # ... and is the one handed out next, zeroed
+    assert c.ptr == ptr and pool.allocated == 2
+    np.testing.assert_array_equal(c.numpy(), 0)
+    d = pool.empty(1000, wp.float64)  # 8000 bytes: a new 8 KiB block
+    assert d.ptr not in (ptr, b.ptr) and pool.allocated == 3
+    if DEVICE != "cpu":  # a device read through a pooled mirror
+        src = wp.array(np.arange(30.0), dtype=wp.float64, device=DEVICE)
+        wp.copy(b, src)
+        wp.synchronize_device(DEVICE)
+        np.testing.assert_array_equal(b.numpy(), np.arange(30.0))

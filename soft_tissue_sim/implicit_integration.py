@@ -239,6 +239,11 @@ class BackwardEuler:
         # non-finite nodes) of the last step, None where it was not read so
         self.read_guard = False
         self.guard_reading = None
+        # after_solve: where the solve is only launched (that path), a callable launched after
+        # the free motion whose device arrays are read in the same wait; after_solve_reading =
+        # (the state's name (state_version, step_index), their host views) of the last step, or None
+        self.after_solve = None
+        self.after_solve_reading = None
         self.state_version = 0  # counts set_state calls: with step_index, names the state (x, v)
         self._allocate()
         self.x = wp.clone(fem.rest)
@@ -344,6 +349,8 @@ class BackwardEuler:
         self.preconditioner.begin_step(self)
         t1 = time.perf_counter()
         self.guard_reading = None
+        self.after_solve_reading = None
+        after = None
         # a device solve is only launched here: its result and the guard's values are read in one wait
         launch = getattr(self.cg, "launch", None) if self.read_guard and not newton else None
         solve = launch if launch is not None else self.cg.solve
@@ -351,7 +358,8 @@ class BackwardEuler:
         wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
                   device=self.device)
         if res is None:
-            s, guard = to_host(self.cg.scalars, self.launch_guard())
+            extra = list(self.after_solve()) if self.after_solve is not None else []
+            s, guard, *after = to_host(self.cg.scalars, self.launch_guard(), *extra)
             res = self.cg.result(s)
             self.guard_reading = (float(guard[0]), float(guard[1]))
         t2 = time.perf_counter()
@@ -386,6 +394,8 @@ class BackwardEuler:
         t3 = time.perf_counter()
         self.step_index += 1
         self.time += self.dt
+        if after:
+            self.after_solve_reading = ((self.state_version, self.step_index), after)
         ps = self.preconditioner.stats()
         stats = StepStats(
             step=self.step_index,

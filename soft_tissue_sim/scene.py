@@ -285,6 +285,9 @@ class Simulation:
         if not (self.guard_ratio == 0.0 or self.guard_ratio > 1.0):
             raise ParameterError(f"guard energy_ratio must be 0 (off) or > 1, got {self.guard_ratio}")
         self.integrator.read_guard = self.guard_ratio > 0
+        self._contact_begun = False  # this step's instruments took their poses (ContactSolver.launch)
+        if self.contact is not None:  # the detection launched after the free motion, read with its result
+            self.integrator.after_solve = self._launch_contact
         size = float(np.ptp(self.mesh.points, axis=0).max())
         g = float(np.linalg.norm(self.integrator.gravity))
         self._energy_floor = self.fem.total_mass * (g * size + 0.5)  # weight over the body size + 1 m/s
@@ -474,6 +477,14 @@ class Simulation:
                                  "none: last good state kept (tried " + ", ".join(attempts) + ")")
         return stats, False
 
+    def _launch_contact(self) -> list:
+        """The contact detection of the free motion just launched (the integrator reads its
+        arrays with the solve's result); the instruments take their poses at the first launch
+        of a step."""
+        arrays = self.contact.launch(self.view(), begin=not self._contact_begun)
+        self._contact_begun = True
+        return arrays
+
     def _contact_response(self, stats: StepStats) -> None:
         """The contact step under the divergence guard: a correction that leaves NaN or a runaway
         kinetic energy is dropped (the free motion stands for this step; the next step detects
@@ -485,7 +496,9 @@ class Simulation:
         if self.guard_ratio > 0:
             ke_free = self._known_kinetic_energy()
         try:
-            response = self.contact.step(self.view())
+            read = integ.after_solve_reading  # the detection read with the free motion, if of this state
+            host = read[1] if read is not None and read[0] == self._state_key() else None
+            response = self.contact.step(self.view(), host, begin=not self._contact_begun)
             reason = None
         except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
             reason = f"contact solve failed: {type(exc).__name__}: {exc}"
@@ -521,6 +534,7 @@ class Simulation:
             return self._step()
 
     def _step(self) -> StepStats:
+        self._contact_begun = False
         stats, ok = self._free_motion()
         if not ok:
             self.last_stats = stats

@@ -157,8 +157,8 @@ def test_a_contact_correction_that_diverges_is_dropped_and_the_free_motion_stand
     with load_scene(scene(obstacles=[floor])) as sim:
         real = sim.contact.step
 
-        def broken(s):
-            out = real(s)
+        def broken(s, *args, **kwargs):
+            out = real(s, *args, **kwargs)
             x = s.integrator.x.numpy()
             x[0] = np.nan
             s.integrator.x.assign(x)

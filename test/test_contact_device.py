@@ -86,3 +86,33 @@ def test_the_step_reports_the_penetration_left_and_the_device_matches_the_cpu():
         np.testing.assert_allclose(x, xc, atol=1e-9)
         np.testing.assert_allclose(forces, fc, rtol=1e-6, atol=1e-9)
         np.testing.assert_allclose(pens, pc, atol=1e-9)
+
+
+def test_the_detection_read_with_the_free_motion_gives_the_same_steps(monkeypatch):
+    """With a device factor (the dense backend; NumPy on the CPU) the solve is only launched, and
+    the contact detection is launched after it and read in the same wait (the integrator's
+    ``after_solve``): one detection a step, the contact step reads none, and the steps, forces
+    and wrenches equal those of a simulation that detects in its contact step."""
+    runs = {}
+    for early in (True, False):
+        cfg = _scene(DEVICE)
+        cfg["solver"]["ldlt"] = {"backend": "dense", "deterministic": True}
+        with load_scene(cfg) as sim:
+            if not early:
+                sim.integrator.after_solve = None
+            launches = []
+            real = sim.contact.launch
+            monkeypatch.setattr(sim.contact, "launch", lambda *a, **k: launches.append(1) or real(*a, **k))
+            forces, counts = [], []
+            for k in range(6):
+                _press(sim, 0.0005 * k)
+                st = sim.step()
+                counts.append(st.contact.contacts)
+                forces.append(np.concatenate(sim.instrument_wrench("probe")))
+                assert (sim.integrator.after_solve_reading is not None) == early
+            assert len(launches) == 6  # one detection a step, wherever it is launched
+            runs[early] = (sim.positions(), np.array(forces), counts)
+    (x1, f1, c1), (x0, f0, c0) = runs[True], runs[False]
+    assert c1 == c0 and c1[-1] > 0
+    np.testing.assert_array_equal(x1, x0)
+    np.testing.assert_array_equal(f1, f0)

@@ -196,31 +196,43 @@ class ContactSolver:
         return launch_min_gap(topo, self.device)
 
     # ------------------------------------------------------------------ step
-    def step(self, body: BodyView) -> ContactResponse:
-        """Detect the contacts of the free motion (``body.integrator``'s x and v), solve the LCP
-        and update the wrenches and :attr:`contacts`. Returns the correction of x and v (the
-        caller applies it, then may measure the penetration left with
-        :meth:`launch_penetration`) and the statistics; ``body`` is only read.
-
-        On a GPU the detection's kernels are launched together and read back with the state in
-        one wait."""
-        t0 = time.perf_counter()
-        o = self.options
-        for inst in self.instruments.values():
-            inst.begin_step()
+    def launch(self, body: BodyView, begin: bool = True) -> list[wp.array]:
+        """Begin the step (``begin``: the instruments take their current poses for it, once a
+        step) and launch the detection of the free motion (``body.integrator``'s x and v);
+        returns the device arrays :meth:`step` reads, unread (read them with whatever else the
+        caller reads in that wait)."""
+        if begin:
+            for inst in self.instruments.values():
+                inst.begin_step()
         integ = body.integrator
-        dt = integ.dt
         topo = self._topology(body.fem)
         # Planes and instruments (exact half-spaces / the tool's new pose) are tested at the
         # free-motion positions, at any depth. Triangle features are found at the step's start
         # and their gap is linearised to the free motion; the search reaches `distance` plus
         # how far surface nodes moved in the free motion (twice: node and triangle may close
         # in on each other), so that nothing tunnels through a triangle in one step.
-        launch_start(topo, integ.x, integ.v, dt, self.device)
+        launch_start(topo, integ.x, integ.v, integ.dt, self.device)
         upload_objects(topo, self.objects)
         self._launch(topo, integ.x, topo.x_start, topo.x_start)
-        # views, valid until the next read of these arrays (none in this step)
-        x, x_start, free, *outputs = to_host(integ.x, topo.x_start, body.fem.free, *topo.out.arrays)
+        return [integ.x, topo.x_start, body.fem.free, *topo.out.arrays]
+
+    def step(self, body: BodyView, host: list | None = None, begin: bool = True) -> ContactResponse:
+        """Detect the contacts of the free motion (``body.integrator``'s x and v), solve the LCP
+        and update the wrenches and :attr:`contacts`. Returns the correction of x and v (the
+        caller applies it, then may measure the penetration left with
+        :meth:`launch_penetration`) and the statistics; ``body`` is only read.
+
+        ``host``: the arrays of :meth:`launch` for this state already read to the host (their
+        views, valid until the next read of those arrays); else launched here (``begin`` as
+        there) and read in one wait."""
+        t0 = time.perf_counter()
+        o = self.options
+        integ = body.integrator
+        dt = integ.dt
+        topo = self._topology(body.fem)
+        if host is None:
+            host = to_host(*self.launch(body, begin))
+        x, x_start, free, *outputs = host
         c = collect(topo, outputs) if len(topo.surface) else Contacts.empty()
         tri_feature = c.obj < 0
         for oi, obj in enumerate(self.objects):

@@ -114,5 +114,9 @@ def test_the_detection_read_with_the_free_motion_gives_the_same_steps(monkeypatc
             runs[early] = (sim.positions(), np.array(forces), counts)
     (x1, f1, c1), (x0, f0, c0) = runs[True], runs[False]
     assert c1 == c0 and c1[-1] > 0
-    np.testing.assert_array_equal(x1, x0)
-    np.testing.assert_array_equal(f1, f0)
+    if DEVICE == "cpu":  # the same arithmetic in the same order
+        np.testing.assert_array_equal(x1, x0)
+        np.testing.assert_array_equal(f1, f0)
+    else:  # a GPU's atomic sums are added in any order
+        np.testing.assert_allclose(x1, x0, rtol=0.0, atol=1e-12)
+        np.testing.assert_allclose(f1, f0, rtol=1e-8, atol=1e-12)

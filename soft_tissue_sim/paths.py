@@ -27,13 +27,22 @@ def share_dirs() -> list[Path]:
 
 
 def resolve_path(name: str | os.PathLike, base: Path | None = None) -> Path:
-    """Find a scene or mesh file: as given, relative to ``base``, then in the package's dirs."""
+    """Find a scene or mesh file: as given, relative to ``base``, then in the package's dirs.
+
+    A name without a suffix (``"default"``, the node's ``scene:=default``) is also tried as
+    ``<name>.yaml`` in the scenes directories.
+    """
     p = Path(name)
     candidates = [p] if p.is_absolute() else [Path.cwd() / p]
     if base is not None and not p.is_absolute():
         candidates.append(base / p)
+    bare = not p.is_absolute() and bool(p.name) and not p.suffix  # a scene's name: "default"
     for d in share_dirs():
-        candidates += [d / p, d / "config" / "scenes" / p, d / "meshes" / p.name]
+        scenes = d / "config" / "scenes"
+        candidates += [d / p, scenes / p]
+        if bare:
+            candidates.append(scenes / p.with_suffix(".yaml"))
+        candidates.append(d / "meshes" / p.name)
     for c in candidates:
         if c.is_file():
             return c.resolve()

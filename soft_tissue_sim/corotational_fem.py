@@ -406,6 +406,7 @@ class CorotationalFEM:
         self.fixed_nodes = np.flatnonzero(free == 0.0)
         self.rotations = wp.full(m, wp.mat33d(*np.eye(3).ravel()), dtype=wp.mat33d, device=d)
         self._Kp = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self.node_rotations_current = False  # update_node_rotations ran after the last update_rotations
         self._rot_acc = wp.zeros(n, dtype=wp.mat33d, device=d)
         self._node_rot = wp.zeros(n, dtype=wp.mat33d, device=d)
         # COO triplets of A: 16 blocks per element + one diagonal block per node.
@@ -438,6 +439,7 @@ class CorotationalFEM:
 
     # -------------------------------------------------------------- per step
     def update_rotations(self, x: wp.array) -> None:
+        self.node_rotations_current = False
         wp.launch(element_rotations_kernel, self.n_tets, [x, self.tets, self.Dm_inv, self.rotations], device=self.device)
 
     def add_elastic_forces(self, x: wp.array, f: wp.array) -> None:
@@ -573,7 +575,14 @@ class CorotationalFEM:
         wp.launch(node_rotation_accumulate_kernel, self.n_tets, [self.tets, self.volume, self.rotations, self._rot_acc],
                   device=self.device)
         wp.launch(orthonormalize_kernel, self.n_nodes, [self._rot_acc, self._node_rot], device=self.device)
+        self.node_rotations_current = True
         return self._node_rot
+
+    def current_node_rotations(self) -> wp.array:
+        """The node rotations of the current element rotations: those the last
+        :meth:`update_node_rotations` launched if no :meth:`update_rotations` came after it,
+        else launched now."""
+        return self._node_rot if self.node_rotations_current else self.update_node_rotations()
 
     def node_rotations(self) -> np.ndarray:
         """:meth:`update_node_rotations` read back to the host, (n, 3, 3)."""

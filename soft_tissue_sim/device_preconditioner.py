@@ -144,6 +144,8 @@ class AsyncDevicePreconditioner:
     of modifications; ``backend`` a factor backend on ``device``.
     """
 
+    uses_build_rotations = True  # begin_step takes the node rotations the integrator's build launched
+
     def __init__(self, backend, meta_fn, device, *, rotate=True, refresh_every=1, deterministic=False, lag=0,
                  reserve_sms=0, name="async_ldlt"):
         if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
@@ -233,7 +235,7 @@ class AsyncDevicePreconditioner:
             self._main.wait_event(self._busy.events()[1])  # the work buffer is free once the last one ended
         triplets = fem.assemble_triplets(system.m_coef, system.k_coef)
         self.backend.assemble(triplets, 3 * fem.n_nodes, stream=self._main, topology=meta.get("version"))
-        R = wp.clone(fem.update_node_rotations())  # R(t_u) of this factor
+        R = wp.clone(fem.current_node_rotations())  # R(t_u) of this factor
         if self._side is None:
             t0 = time.perf_counter()
             self.backend.factorize()
@@ -321,7 +323,7 @@ class AsyncDevicePreconditioner:
 
     def begin_step(self, system) -> None:
         fem = system.fem
-        R = fem.update_node_rotations()
+        R = fem.current_node_rotations()  # launched by the integrator's build (node_rotations_in_build)
         self.step = int(system.step_index)
         if self.backend.n3 == 0 or self.uids is None:
             self._refresh_now(system)  # the only wait

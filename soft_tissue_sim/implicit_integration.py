@@ -28,11 +28,13 @@ keep zero velocity in every iteration.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 import warp as wp
 
+from . import graphs
 from .cg import PCG
 from .corotational_fem import CorotationalFEM
 from .material import Damping, ParameterError
@@ -244,6 +246,13 @@ class BackwardEuler:
         # (the state's name (state_version, step_index), their host views) of the last step, or None
         self.after_solve = None
         self.after_solve_reading = None
+        # the node rotations of eq. (2) launched by build() where the preconditioner takes them
+        # from there (its begin_step reads fem's node rotations as build left them)
+        self.node_rotations_in_build = bool(getattr(preconditioner, "uses_build_rotations", False))
+        # graph_build: build()'s launches captured as a CUDA graph at the second build with the
+        # same arguments and replayed while they hold (build_key); off by default
+        self.graph_build = False
+        self._build_graph = self._build_graph_key = self._build_seen = None
         self.state_version = 0  # counts set_state calls: with step_index, names the state (x, v)
         self._allocate()
         self.x = wp.clone(fem.rest)
@@ -300,8 +309,44 @@ class BackwardEuler:
         return (f.n_nodes, f.n_tets, bool(f.consistent_mass), float(self.m_coef), float(self.k_coef),
                 tuple(a.ptr for a in arrays))
 
+    def build_key(self) -> tuple:
+        """What build()'s launches depend on: the operator's graph_key (FEM arrays, sizes,
+        coefficients), the integrator's arrays, gravity, dt and the damping."""
+        f = self.fem
+        arrays = (self.x, self.v, self.f, self.f_ext, self._zero, self._Mv, self._Kv, self.b, f._ones(),
+                  f._rot_acc, f._node_rot)
+        return (self.graph_key(), tuple(a.ptr for a in arrays), tuple(float(g) for g in self.gravity),
+                float(self.dt), float(self.damping.mass), float(self.damping.stiffness), self.node_rotations_in_build)
+
     def build(self) -> None:
-        """Rotations at u_t and the right-hand side b of eq. (1)."""
+        """Rotations at u_t and the right-hand side b of eq. (1) (and the node rotations where
+        :attr:`node_rotations_in_build`). Launches only; with :attr:`graph_build` they are
+        captured (a CUDA graph; Warp's API capture on the CPU) once per :meth:`build_key`, at its
+        second build, and replayed; a replaced
+        graph goes to :mod:`soft_tissue_sim.graphs`. A failed capture turns the graph off."""
+        key = self.build_key() if self.graph_build else None
+        if key is None or (key != self._build_graph_key and key != self._build_seen):
+            self._launch_build()
+            self._build_seen = key
+            return
+        if key != self._build_graph_key:
+            graphs.retire(self._build_graph)
+            self._build_graph = self._build_graph_key = None
+            try:
+                with wp.ScopedCapture(device=self.device) as cap:
+                    self._launch_build()
+            except Exception as exc:  # noqa: BLE001 - plain launches from now on
+                self.graph_build = False
+                warnings.warn(f"BackwardEuler: build graph capture failed ({type(exc).__name__}: {exc}); "
+                              "launching directly", RuntimeWarning, stacklevel=2)
+                self._launch_build()
+                return
+            self._build_graph, self._build_graph_key = cap.graph, key
+        wp.capture_launch(self._build_graph)
+        self.fem.node_rotations_current = self.node_rotations_in_build  # as the launches would leave it
+
+    def _launch_build(self) -> None:
+        """The launches of :meth:`build`."""
         fem, dt = self.fem, self.dt
         fem.update_rotations(self.x)
         wp.launch(_gravity_kernel, fem.n_nodes, [fem.lumped_mass, wp.vec3d(*self.gravity), self.f_ext, self.f],
@@ -315,6 +360,8 @@ class BackwardEuler:
         wp.launch(_rhs_kernel, fem.n_nodes,
                   [self.f, self._zero, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass, self.k_coef, self.b],
                   device=self.device)
+        if self.node_rotations_in_build:
+            fem.update_node_rotations()
 
     def _norm(self, a: wp.array) -> float:
         return float(np.sqrt(self.cg._inner(a, a)))

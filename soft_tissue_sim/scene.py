@@ -262,6 +262,7 @@ class Simulation:
         use_graph = graph == "true" or (graph == "auto" and device_factor and wp.get_device(self.device).is_cuda)
         if device_factor or use_graph:  # PCG with its scalars on the device (captured as a graph if use_graph)
             self.integrator.cg = DevicePCG(self.fem.n_nodes, self.device, float(tol), int(max_it), graph=use_graph)
+        self.integrator.graph_build = use_graph  # the step's forces and right-hand side as one graph too
         # Optional components: built only when the scene names them.
         self.contact = None
         self.cutting = None

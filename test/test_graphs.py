@@ -104,3 +104,29 @@ def test_the_same_trajectory_with_graphs_replaced_by_resizes():
             b.step()
         # equal up to the order of the FEM kernels' atomic sums on a GPU (bit for bit on the CPU)
         np.testing.assert_allclose(a.positions(), b.positions(), rtol=0.0, atol=1e-12)
+
+
+def test_the_captured_build_replays_the_plain_launches_and_is_recaptured_for_new_arguments():
+    """build()'s launches captured once per build_key (at its second build) and replayed give the
+    steps of plain launches; a new key (here dt) is captured anew, the old graph parked."""
+    ov = {"solver": {"graph": "true", "preconditioner": "async_ldlt",
+                     "ldlt": {"backend": "dense", "deterministic": True}}}
+    with load_scene("test_small.yaml", device=DEVICE, overrides=ov) as a, \
+            load_scene("test_small.yaml", device=DEVICE, overrides=ov) as b:
+        assert a.integrator.graph_build and a.integrator.node_rotations_in_build
+        b.integrator.graph_build = False
+        for _ in range(4):
+            a.step()
+            b.step()
+        first = a.integrator._build_graph
+        assert first is not None and b.integrator._build_graph is None
+        np.testing.assert_allclose(a.positions(), b.positions(), rtol=0.0, atol=1e-12)
+        for sim in (a, b):
+            sim.integrator.dt *= 0.5
+        for _ in range(3):
+            a.step()
+            b.step()
+        assert a.integrator._build_graph is not first and a.integrator._build_graph_key[0][3] != 0.0
+        assert graphs.parked() >= 1 or graphs.release() == 0  # parked, or already released between steps
+        np.testing.assert_allclose(a.positions(), b.positions(), rtol=0.0, atol=1e-12)
+        np.testing.assert_allclose(a.velocities(), b.velocities(), rtol=0.0, atol=1e-10)

@@ -346,3 +346,30 @@ def test_a_device_solve_reads_the_guard_with_its_result(monkeypatch):
         v, mass = sim.velocities(), integ.fem.lumped_mass.numpy()
         assert ke == pytest.approx(0.5 * np.sum(mass * np.sum(v * v, axis=1)), rel=1e-12)
         assert nonfinite == 0.0
+
+
+def test_the_preconditioner_takes_the_node_rotations_build_launched_and_recomputes_stale_ones(monkeypatch):
+    """With a device factor the integrator's build launches the node rotations of eq. (2) and the
+    preconditioner's begin_step uses them without launching them again; after element rotations
+    changed outside a build (update_rotations) they are launched anew."""
+    ov = {"solver": {"preconditioner": "async_ldlt", "ldlt": {"backend": "dense", "deterministic": True}}}
+    with load_scene("test_small.yaml", overrides=ov) as sim:
+        integ, fem = sim.integrator, sim.fem
+        assert integ.node_rotations_in_build
+        sim.step()
+        calls = []
+        real = fem.update_node_rotations
+        monkeypatch.setattr(fem, "update_node_rotations", lambda: calls.append(1) or real())
+        integ.build()
+        assert len(calls) == 1 and fem.node_rotations_current
+        sim.preconditioner.begin_step(integ)
+        assert len(calls) == 1  # taken from the build
+        R_built = fem.current_node_rotations().numpy().copy()
+        x = integ.x.numpy()
+        x[:, 0] += 0.3 * x[:, 2]  # a shear: other element rotations
+        integ.x.assign(x)
+        fem.update_rotations(integ.x)
+        assert not fem.node_rotations_current
+        sim.preconditioner.begin_step(integ)
+        assert len(calls) == 2  # stale: launched again
+        assert np.abs(fem.current_node_rotations().numpy() - R_built).max() > 1e-3

@@ -10,9 +10,15 @@ hands the old one to :func:`retire` instead of dropping it, and the graphs are r
 between installing a factor and requesting the next one, and the simulation at the end of a
 step where no factorization is running. Invariants: a retired graph is never launched again;
 at most :data:`MAX_PARKED` wait (beyond that they are released at once, whatever is running).
+
+:class:`Replayer` is the capture-and-replay a component uses for launches whose arguments hold
+for many steps (it retires the graphs it replaces here).
 """
 
 from __future__ import annotations
+
+import warnings
+from collections import OrderedDict
 
 import warp as wp
 
@@ -46,3 +52,71 @@ def release() -> int:
     n = len(_parked)
     _parked.clear()
     return n
+
+
+class Replayer:
+    """A component's launches captured as a graph per key and replayed.
+
+    :meth:`run` runs ``launches`` (a callable that only launches: no host reads, no host logic
+    that could differ between calls) plainly the first time ``key`` is seen (its kernels load
+    then), captures them at the second time and replays the graph from then on while the key
+    holds. The key names everything the launches depend on (array addresses, sizes, scalar
+    arguments). Up to ``slots`` keys keep a graph (for a component that alternates between
+    argument sets); beyond that the least recently used is retired (:func:`retire`), as are all
+    on :meth:`clear`. A capture that fails turns capturing off for this replayer, with a warning:
+    plain launches from then on. ``None`` as a key, or ``enabled`` False: plain launches."""
+
+    def __init__(self, device, name: str, slots: int = 1):
+        self.device = wp.get_device(device)
+        self.name = name
+        self.slots = int(slots)
+        self.enabled = True
+        self.error: str | None = None
+        self.captures = 0
+        self.replays = 0
+        self._graphs: OrderedDict = OrderedDict()
+        self._seen: OrderedDict = OrderedDict()
+
+    def graph(self, key):
+        """The graph kept for ``key``, or None."""
+        return self._graphs.get(key)
+
+    def run(self, key, launches) -> bool:
+        """Run ``launches`` for ``key`` (see the class); True where a graph was launched."""
+        if key is None or not self.enabled:
+            launches()
+            return False
+        graph = self._graphs.get(key)
+        if graph is None:
+            if key not in self._seen:
+                self._seen[key] = True
+                while len(self._seen) > 2 * self.slots:
+                    self._seen.popitem(last=False)
+                launches()
+                return False
+            try:
+                with wp.ScopedCapture(device=self.device) as cap:
+                    launches()
+            except Exception as exc:  # noqa: BLE001 - this replayer launches plainly from now on
+                self.enabled = False
+                self.error = f"{type(exc).__name__}: {exc}"
+                warnings.warn(f"{self.name}: graph capture failed ({self.error}); launching directly",
+                              RuntimeWarning, stacklevel=3)
+                launches()
+                return False
+            graph = cap.graph
+            self._graphs[key] = graph
+            self.captures += 1
+            while len(self._graphs) > self.slots:
+                retire(self._graphs.popitem(last=False)[1])
+        else:
+            self._graphs.move_to_end(key)
+        wp.capture_launch(graph)
+        self.replays += 1
+        return True
+
+    def clear(self) -> None:
+        """Retire every kept graph and forget the keys seen."""
+        retire_all(self._graphs.values())
+        self._graphs.clear()
+        self._seen.clear()

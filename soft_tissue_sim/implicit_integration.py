@@ -28,7 +28,6 @@ keep zero velocity in every iteration.
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
@@ -249,10 +248,9 @@ class BackwardEuler:
         # the node rotations of eq. (2) launched by build() where the preconditioner takes them
         # from there (its begin_step reads fem's node rotations as build left them)
         self.node_rotations_in_build = bool(getattr(preconditioner, "uses_build_rotations", False))
-        # graph_build: build()'s launches captured as a CUDA graph at the second build with the
-        # same arguments and replayed while they hold (build_key); off by default
+        # graph_build: build()'s launches captured as a graph and replayed while build_key holds
         self.graph_build = False
-        self._build_graph = self._build_graph_key = self._build_seen = None
+        self._build_replay = graphs.Replayer(self.device, "BackwardEuler.build")
         self.state_version = 0  # counts set_state calls: with step_index, names the state (x, v)
         self._allocate()
         self.x = wp.clone(fem.rest)
@@ -321,29 +319,10 @@ class BackwardEuler:
     def build(self) -> None:
         """Rotations at u_t and the right-hand side b of eq. (1) (and the node rotations where
         :attr:`node_rotations_in_build`). Launches only; with :attr:`graph_build` they are
-        captured (a CUDA graph; Warp's API capture on the CPU) once per :meth:`build_key`, at its
-        second build, and replayed; a replaced
-        graph goes to :mod:`soft_tissue_sim.graphs`. A failed capture turns the graph off."""
-        key = self.build_key() if self.graph_build else None
-        if key is None or (key != self._build_graph_key and key != self._build_seen):
-            self._launch_build()
-            self._build_seen = key
-            return
-        if key != self._build_graph_key:
-            graphs.retire(self._build_graph)
-            self._build_graph = self._build_graph_key = None
-            try:
-                with wp.ScopedCapture(device=self.device) as cap:
-                    self._launch_build()
-            except Exception as exc:  # noqa: BLE001 - plain launches from now on
-                self.graph_build = False
-                warnings.warn(f"BackwardEuler: build graph capture failed ({type(exc).__name__}: {exc}); "
-                              "launching directly", RuntimeWarning, stacklevel=2)
-                self._launch_build()
-                return
-            self._build_graph, self._build_graph_key = cap.graph, key
-        wp.capture_launch(self._build_graph)
-        self.fem.node_rotations_current = self.node_rotations_in_build  # as the launches would leave it
+        captured (a CUDA graph; Warp's API capture on the CPU) once per :meth:`build_key` and
+        replayed (:class:`soft_tissue_sim.graphs.Replayer`)."""
+        self._build_replay.run(self.build_key() if self.graph_build else None, self._launch_build)
+        self.fem.node_rotations_current = self.node_rotations_in_build  # as the launches leave it
 
     def _launch_build(self) -> None:
         """The launches of :meth:`build`."""

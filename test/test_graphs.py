@@ -87,11 +87,11 @@ def test_a_new_surface_retires_the_captured_detections():
         sim.step()
         topo = sim.contact._topo
         assert topo is not None
-        topo.graphs[("key",)] = _graph()
-        topo.graphs[("other",)] = "seen"
+        topo.replay._graphs[("key",)] = _graph()
+        topo.replay._seen[("other",)] = True
         sim.preconditioner.factorizing = lambda: True  # keep them parked to look at them
         sim.contact.reset()
-        assert sim.contact._topo is None and graphs.parked() == 1
+        assert sim.contact._topo is None and graphs.parked() == 1 and not topo.replay._seen
 
 
 def test_the_same_trajectory_with_graphs_replaced_by_resizes():
@@ -118,15 +118,56 @@ def test_the_captured_build_replays_the_plain_launches_and_is_recaptured_for_new
         for _ in range(4):
             a.step()
             b.step()
-        first = a.integrator._build_graph
-        assert first is not None and b.integrator._build_graph is None
+        key = a.integrator.build_key()
+        first = a.integrator._build_replay.graph(key)
+        assert first is not None and b.integrator._build_replay.graph(b.integrator.build_key()) is None
         np.testing.assert_allclose(a.positions(), b.positions(), rtol=0.0, atol=1e-12)
         for sim in (a, b):
             sim.integrator.dt *= 0.5
         for _ in range(3):
             a.step()
             b.step()
-        assert a.integrator._build_graph is not first and a.integrator._build_graph_key[0][3] != 0.0
-        assert graphs.parked() >= 1 or graphs.release() == 0  # parked, or already released between steps
+        replay = a.integrator._build_replay
+        assert replay.graph(key) is None and replay.graph(a.integrator.build_key()) is not None
+        assert replay.captures == 2 and replay.replays >= 4
         np.testing.assert_allclose(a.positions(), b.positions(), rtol=0.0, atol=1e-12)
         np.testing.assert_allclose(a.velocities(), b.velocities(), rtol=0.0, atol=1e-10)
+
+
+def test_a_replayer_launches_plainly_then_captures_then_replays_and_retires_beyond_its_slots():
+    """Replayer: a key's first run is plain, its second captured and launched, later ones replay
+    the graph (same results); the least recently used graph beyond the slots is retired; a capture
+    that fails turns capturing off with a warning, launches still done."""
+    a = wp.zeros(4, dtype=wp.float64, device=DEVICE)
+    runs = []
+
+    def launches(value):
+        runs.append(value)
+        a.fill_(value)
+
+    rep = graphs.Replayer(DEVICE, "test", slots=1)
+    for k in range(3):
+        rep.run(("one",), lambda: launches(1.0))
+        np.testing.assert_array_equal(a.numpy(), 1.0)
+        a.zero_()
+    assert runs == [1.0, 1.0] and rep.captures == 1 and rep.replays == 2  # plain, captured, replayed
+    first = rep.graph(("one",))
+    for _ in range(2):
+        rep.run(("two",), lambda: launches(2.0))
+    assert rep.graph(("two",)) is not None and rep.graph(("one",)) is None and graphs.parked() == 1
+    assert first is not None
+    rep.run(None, lambda: launches(3.0))  # no key: plain
+    np.testing.assert_array_equal(a.numpy(), 3.0)
+
+    def failing():
+        if wp.get_device(DEVICE).is_capturing:
+            raise RuntimeError("not capturable")
+        launches(4.0)
+
+    bad = graphs.Replayer(DEVICE, "test", slots=1)
+    bad.run(("k",), failing)
+    with pytest.warns(RuntimeWarning, match="graph capture failed"):
+        bad.run(("k",), failing)
+    assert not bad.enabled and runs[-1] == 4.0 and bad.captures == 0
+    rep.clear()
+    assert rep.graph(("two",)) is None and graphs.parked() == 2

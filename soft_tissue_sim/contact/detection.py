@@ -20,7 +20,6 @@ the mesh (:meth:`SurfaceTopology.matches`), never reused across a change.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +27,7 @@ import scipy.sparse as sps
 import warp as wp
 from scipy.sparse.csgraph import connected_components
 
+from .. import graphs
 from ..instrument import Instrument, MeshObstacle, PlaneObstacle
 from ..transfer import Staged
 from .detection_kernels import (
@@ -211,7 +211,7 @@ class SurfaceTopology:
         self.geom_in = Staged(4 * max(len(objects), 1), wp.vec3d, dev)
         self.params_in = Staged(3 * max(len(objects), 1), wp.float64, dev)
         self.geom, self.params = self.geom_in.array, self.params_in.array
-        self.graphs: dict = {}  # captured detections (CUDA), by their arguments
+        self.replay = graphs.Replayer(dev, "contact detection", slots=4)  # captured detections, by arguments
 
     def matches(self, fem) -> bool:
         k = self.keys
@@ -252,8 +252,7 @@ def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_featur
     instruments against the triangles (their slots stay empty).
 
     On CUDA the launches are captured once per set of arguments as a graph and replayed
-    (nothing in them depends on the host but the arrays' addresses); where capture fails they
-    run as plain launches."""
+    (nothing in them depends on the host but the arrays' addresses: ``topo.replay``)."""
     if not len(topo.surface):
         return
     args = (x, x_features, reach, x_start, float(distance), float(facing), float(depth), bool(faces))
@@ -262,22 +261,7 @@ def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_featur
         _launch_all(topo, objects, *args, dev)
         return
     key = (x.ptr, x_features.ptr, reach.ptr, None if x_start is None else x_start.ptr) + args[4:]
-    graph = topo.graphs.get(key)
-    if graph is None:  # first time: plain launches (modules load); captured the next time
-        topo.graphs[key] = "seen"
-    elif graph == "seen":
-        try:
-            with wp.ScopedCapture(device=dev) as cap:
-                _launch_all(topo, objects, *args, dev)
-            graph = cap.graph
-        except Exception as exc:  # noqa: BLE001 - no graph for these arguments: plain launches
-            warnings.warn(f"contact detection: graph capture failed ({exc}); launching directly", stacklevel=2)
-            graph = False
-        topo.graphs[key] = graph
-    if graph:
-        wp.capture_launch(graph)
-    else:
-        _launch_all(topo, objects, *args, dev)
+    topo.replay.run(key, lambda: _launch_all(topo, objects, *args, dev))
 
 
 def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, reach, x_start, dist, facing, depth, faces,

@@ -18,7 +18,6 @@ import time
 import numpy as np
 import warp as wp
 
-from .. import graphs
 from ..body import BodyView
 from ..instrument import Instrument, MeshObstacle, obstacle_from_config
 from ..material import ParameterError
@@ -150,8 +149,7 @@ class ContactSolver:
         """Hand the captured detections of the surface being replaced to :mod:`..graphs`
         (released where no factorization runs)."""
         if self._topo is not None:
-            graphs.retire_all(self._topo.graphs.values())
-            self._topo.graphs.clear()
+            self._topo.replay.clear()
 
     def _topology(self, fem) -> SurfaceTopology:
         if self._topo is None or not self._topo.matches(fem):

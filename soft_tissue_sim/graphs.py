@@ -64,7 +64,8 @@ class Replayer:
     arguments). Up to ``slots`` keys keep a graph (for a component that alternates between
     argument sets); beyond that the least recently used is retired (:func:`retire`), as are all
     on :meth:`clear`. A capture that fails turns capturing off for this replayer, with a warning:
-    plain launches from then on. ``None`` as a key, or ``enabled`` False: plain launches."""
+    plain launches from then on. ``None`` as a key, ``enabled`` False, or a capture already
+    under way (a replayer's launches inside another's): plain launches."""
 
     def __init__(self, device, name: str, slots: int = 1):
         self.device = wp.get_device(device)
@@ -83,7 +84,7 @@ class Replayer:
 
     def run(self, key, launches) -> bool:
         """Run ``launches`` for ``key`` (see the class); True where a graph was launched."""
-        if key is None or not self.enabled:
+        if key is None or not self.enabled or self.device.is_capturing:  # capturing: part of the outer graph
             launches()
             return False
         graph = self._graphs.get(key)

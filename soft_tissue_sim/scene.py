@@ -72,7 +72,7 @@ from .material import Damping, MaterialTable, ParameterError
 from .paths import resolve_path
 from .preconditioner import make_preconditioner
 from .stats import GuardStats
-from .transfer import to_host
+from .transfer import Readback, to_host
 
 if TYPE_CHECKING:  # built only in scenes that name cutting
     from .cutting import CutPlan, CutResult, Tissue
@@ -289,6 +289,8 @@ class Simulation:
         self._contact_begun = False  # this step's instruments took their poses (ContactSolver.launch)
         if self.contact is not None:  # the detection launched after the free motion, read with its result
             self.integrator.after_solve = self._launch_contact
+            self._readback = Readback()  # the guard and the gap after the correction
+            self._correction_replay = graphs.Replayer(self.device, "contact correction", slots=2)
         size = float(np.ptp(self.mesh.points, axis=0).max())
         g = float(np.linalg.norm(self.integrator.gravity))
         self._energy_floor = self.fem.total_mass * (g * size + 0.5)  # weight over the body size + 1 m/s
@@ -486,6 +488,26 @@ class Simulation:
         self._contact_begun = True
         return arrays
 
+    def _correct(self, dx) -> list:
+        """x += dx, v += dx / dt (``dx`` None: no correction), then the guard's values and the
+        smallest gap of a detection at the corrected positions, read in one wait: [guard, gap]
+        (no gap where the tissue has no surface). Where the build is graphed these launches are
+        too (a device dx), as one graph per arguments."""
+        integ, view = self.integrator, self.view()
+
+        def launches():
+            if dx is not None:
+                integ.correct(dx)
+            gap = self.contact.launch_penetration(view)
+            self._readback.copy(integ.launch_guard(), *([gap] if gap is not None else []))
+
+        key = None
+        if integ.graph_build and (dx is None or isinstance(dx, wp.array)):
+            key = (None if dx is None else dx.ptr, integ.graph_key(), integ.v.ptr, integ._guard.ptr, float(integ.dt),
+                   self.contact.penetration_key(view), self._readback.key())
+        self._correction_replay.run(key, launches)
+        return self._readback.read(self.device)
+
     def _contact_response(self, stats: StepStats) -> None:
         """The contact step under the divergence guard: a correction that leaves NaN or a runaway
         kinetic energy is dropped (the free motion stands for this step; the next step detects
@@ -505,11 +527,7 @@ class Simulation:
             reason = f"contact solve failed: {type(exc).__name__}: {exc}"
         if reason is None:
             stats.contact = response.stats
-            if response.dx is not None:  # x += dx, v += dx / dt
-                integ.correct(response.dx)
-            # the guard's values and the penetration left, launched together and read in one wait
-            gap = self.contact.launch_penetration(self.view())
-            guard, *rest = to_host(integ.launch_guard(), *([gap] if gap is not None else []))
+            guard, *rest = self._correct(response.dx)
             ke, nonfinite = float(guard[0]), float(guard[1])
             if rest and np.isfinite(rest[0][0]):
                 stats.contact.max_penetration = float(max(0.0, -rest[0][0]))

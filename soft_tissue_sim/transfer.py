@@ -119,3 +119,35 @@ class Staged:
             wp.copy(self.array, self._host, count=count)
             self._sent = wp.get_stream(self.array.device).record_event(self._sent)
         return self.array
+
+
+class Readback:
+    """Host buffers kept for a fixed list of device arrays: :meth:`copy` enqueues their copies
+    (plain launches, which a graph may capture: the buffers stay where they are while the
+    arrays keep their shapes), :meth:`read` waits for the stream once and returns NumPy views
+    (overwritten by the next copy). Page-locked on a GPU."""
+
+    def __init__(self):
+        self._bufs: list[wp.array] = []
+
+    def copy(self, *arrays: wp.array) -> None:
+        for i, a in enumerate(arrays):
+            if i == len(self._bufs):
+                self._bufs.append(None)
+            b = self._bufs[i]
+            if b is None or b.shape != a.shape or b.dtype != a.dtype:
+                b = PINNED.empty(a.shape, a.dtype) if a.device.is_cuda else wp.empty(a.shape, dtype=a.dtype, device="cpu")
+                self._bufs[i] = b
+            wp.copy(b, a)
+        del self._bufs[len(arrays):]
+
+    def key(self) -> tuple:
+        """The buffers' addresses (a graph that captured :meth:`copy` writes there)."""
+        return tuple(b.ptr for b in self._bufs)
+
+    def read(self, device) -> list[np.ndarray]:
+        """Views of the buffers after one wait for ``device``'s current stream."""
+        dev = wp.get_device(device)
+        if dev.is_cuda:
+            wp.synchronize_stream(wp.get_stream(dev))
+        return [b.numpy() for b in self._bufs]

@@ -20,6 +20,7 @@ the mesh (:meth:`SurfaceTopology.matches`), never reused across a change.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -148,6 +149,9 @@ def collect(topo: "SurfaceTopology", host: list) -> Contacts:
     return Contacts(slots.node[idx], slots.obj[idx], gap[idx], normal[idx], point[idx], tris, w)
 
 
+_SERIALS = itertools.count()
+
+
 class SurfaceTopology:
     """Surface data of one mesh; rebuilt when cutting changes the mesh (never reused across
     a change of node count or tets)."""
@@ -212,6 +216,7 @@ class SurfaceTopology:
         self.params_in = Staged(3 * max(len(objects), 1), wp.float64, dev)
         self.geom, self.params = self.geom_in.array, self.params_in.array
         self.replay = graphs.Replayer(dev, "contact detection", slots=4)  # captured detections, by arguments
+        self.serial = next(_SERIALS)  # names this surface in the keys of graphs that launch on it
 
     def matches(self, fem) -> bool:
         k = self.keys

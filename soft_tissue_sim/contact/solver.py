@@ -180,6 +180,15 @@ class ContactSolver:
         self._launch(topo, x, x if x_features is None else x_features, x_start)
         return collect(topo, to_host(*topo.out.arrays))
 
+    def penetration_key(self, body) -> tuple:
+        """What :meth:`launch_penetration`'s launches depend on, for a caller that captures them
+        (the surface, by its serial, the positions' and the detection's arrays, the options);
+        the surface is brought up to date here, outside any capture."""
+        topo = self._topology(body.fem)
+        o = self.options
+        return (topo.serial, len(topo.surface), body.integrator.x.ptr, topo.x_start.ptr, topo.reach.ptr,
+                topo.min_gap.ptr, o["distance"], o["facing"], o["self_depth"], self.faces)
+
     def launch_penetration(self, body) -> wp.array | None:
         """Launch a detection at the tissue's current positions (after the correction), with the
         objects where this step's detection had them, and the reduction of its smallest gap; returns the device array of that gap (+inf: no contact)

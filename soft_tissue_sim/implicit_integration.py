@@ -38,7 +38,7 @@ from .cg import PCG
 from .corotational_fem import CorotationalFEM
 from .material import Damping, ParameterError
 from .stats import ContactStats, CutStats, GuardStats
-from .transfer import to_host
+from .transfer import Readback, to_host
 
 
 @wp.kernel
@@ -240,11 +240,15 @@ class BackwardEuler:
         # non-finite nodes) of the last step, None where it was not read so
         self.read_guard = False
         self.guard_reading = None
-        # after_solve: where the solve is only launched (that path), a callable launched after
-        # the free motion whose device arrays are read in the same wait; after_solve_reading =
-        # (the state's name (state_version, step_index), their host views) of the last step, or None
+        # after_solve: where the solve is only launched (that path), a callable that prepares on
+        # the host what is launched after the free motion and returns (key, launch): launch()
+        # launches it and returns device arrays, read in the step's one wait; key names what
+        # the launches depend on (None: not to be captured). after_solve_reading = (the state's
+        # name (state_version, step_index), their host views) of the last step, or None
         self.after_solve = None
         self.after_solve_reading = None
+        self._readback = Readback()
+        self._after_replay = graphs.Replayer(self.device, "BackwardEuler after the solve", slots=2)
         # the node rotations of eq. (2) launched by build() where the preconditioner takes them
         # from there (its begin_step reads fem's node rotations as build left them)
         self.node_rotations_in_build = bool(getattr(preconditioner, "uses_build_rotations", False))
@@ -381,13 +385,12 @@ class BackwardEuler:
         launch = getattr(self.cg, "launch", None) if self.read_guard and not newton else None
         solve = launch if launch is not None else self.cg.solve
         res = solve(self.matvec, self.b, self.dv, self.preconditioner)
-        wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
-                  device=self.device)
         if res is None:
-            extra = list(self.after_solve()) if self.after_solve is not None else []
-            s, guard, *after = to_host(self.cg.scalars, self.launch_guard(), *extra)
+            s, guard, *after = self._finish_launched()
             res = self.cg.result(s)
             self.guard_reading = (float(guard[0]), float(guard[1]))
+        else:
+            self._launch_update()
         t2 = time.perf_counter()
         solve_s = t2 - t1
         iterations, precond_ms, converged = res.iterations, res.precond_ms, res.converged
@@ -446,6 +449,30 @@ class BackwardEuler:
         if newton:
             stats.nonlinear_residual = nonlinear
         return stats
+
+    def _launch_update(self) -> None:
+        wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
+                  device=self.device)
+
+    def _finish_launched(self) -> list:
+        """After a launched solve: the update of x and v, the guard's reduction and the
+        ``after_solve`` hook's launches, their arrays copied to the host with the solve's
+        scalars and read in one wait: [scalars, guard, *the hook's arrays]. Where the build is
+        graphed these launches are too, one graph per arguments (the hook's key included; a
+        hook without a key: plain launches)."""
+        hook_key, hook_launch = self.after_solve() if self.after_solve is not None else ((), None)
+
+        def launches():
+            self._launch_update()
+            extra = hook_launch() if hook_launch is not None else []
+            self._readback.copy(self.cg.scalars, self.launch_guard(), *extra)
+
+        key = None
+        if self.graph_build and hook_key is not None:
+            key = (self.graph_key(), self.x.ptr, self.v.ptr, self.dv.ptr, self._guard.ptr, self.cg.scalars.ptr,
+                   float(self.dt), hook_key, self._readback.key())
+        self._after_replay.run(key, launches)
+        return self._readback.read(self.device)
 
     def energy(self) -> tuple[float, float, float]:
         """(kinetic, gravitational potential, elastic) energy at the current state."""

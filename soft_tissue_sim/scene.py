@@ -480,13 +480,14 @@ class Simulation:
                                  "none: last good state kept (tried " + ", ".join(attempts) + ")")
         return stats, False
 
-    def _launch_contact(self) -> list:
-        """The contact detection of the free motion just launched (the integrator reads its
-        arrays with the solve's result); the instruments take their poses at the first launch
-        of a step."""
-        arrays = self.contact.launch(self.view(), begin=not self._contact_begun)
+    def _launch_contact(self) -> tuple:
+        """The integrator's after_solve hook: the contact detection of the free motion, prepared
+        here and launched by the integrator (which reads its arrays with the solve's result);
+        the instruments take their poses at the first preparation of a step."""
+        view = self.view()
+        key = self.contact.prepare(view, begin=not self._contact_begun)
         self._contact_begun = True
-        return arrays
+        return key, lambda: self.contact.launch_detection_of(view)
 
     def _correct(self, dx) -> list:
         """x += dx, v += dx / dt (``dx`` None: no correction), then the guard's values and the

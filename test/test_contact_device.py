@@ -101,8 +101,8 @@ def test_the_detection_read_with_the_free_motion_gives_the_same_steps(monkeypatc
             if not early:
                 sim.integrator.after_solve = None
             launches = []
-            real = sim.contact.launch
-            monkeypatch.setattr(sim.contact, "launch", lambda *a, **k: launches.append(1) or real(*a, **k))
+            real = sim.contact.launch_detection_of
+            monkeypatch.setattr(sim.contact, "launch_detection_of", lambda *a, **k: launches.append(1) or real(*a, **k))
             forces, counts = [], []
             for k in range(6):
                 _press(sim, 0.0005 * k)

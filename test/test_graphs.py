@@ -185,9 +185,11 @@ def _pressed_block(graph: bool):
     return load_scene(cfg)
 
 
-def test_the_captured_contact_correction_gives_the_steps_of_plain_launches():
-    """The correction, the detection after it and the guard, captured (a device dx) and replayed,
-    give the same positions, penetrations and guard readings as plain launches."""
+def test_the_captured_contact_launches_give_the_steps_of_plain_launches():
+    """After the solve (the update, the detection of the free motion, the guard, the copies
+    read) and after the contact response (the correction, the detection after it, the guard),
+    captured and replayed: the same positions, penetrations and guard readings as plain
+    launches."""
     out = {}
     for graph in (True, False):
         with _pressed_block(graph) as sim:
@@ -198,9 +200,10 @@ def test_the_captured_contact_correction_gives_the_steps_of_plain_launches():
                 st = sim.step()
                 pens.append(st.contact.max_penetration)
                 contacts.append(st.contact.contacts)
-            rep = sim._correction_replay
+            rep, after = sim._correction_replay, sim.integrator._after_replay
             out[graph] = (sim.positions(), np.array(pens), rep.captures, rep.replays, sim._ke_state[0])
             assert contacts[-1] > 0  # the probe is in contact: the correction moves the tissue
+            assert (after.captures >= 1 and after.replays >= 2) == graph
     (x1, p1, c1, r1, ke1), (x0, p0, c0, r0, ke0) = out[True], out[False]
     assert c1 >= 1 and r1 >= 2 and c0 == 0 and r0 == 0
     np.testing.assert_allclose(x1, x0, rtol=0.0, atol=1e-12)

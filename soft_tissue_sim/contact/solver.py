@@ -203,14 +203,24 @@ class ContactSolver:
         return launch_min_gap(topo, self.device)
 
     # ------------------------------------------------------------------ step
-    def launch(self, body: BodyView, begin: bool = True) -> list[wp.array]:
-        """Begin the step (``begin``: the instruments take their current poses for it, once a
-        step) and launch the detection of the free motion (``body.integrator``'s x and v);
-        returns the device arrays :meth:`step` reads, unread (read them with whatever else the
-        caller reads in that wait)."""
+    def prepare(self, body: BodyView, begin: bool = True) -> tuple:
+        """The host side of this step's detection: the instruments take their current poses
+        (``begin``: once a step), the surface is brought up to date, the objects' geometry
+        is staged for the device. Returns the key of :meth:`launch_detection_of`'s launches
+        (what they depend on besides the staged geometry, whose buffers are the surface's)."""
         if begin:
             for inst in self.instruments.values():
                 inst.begin_step()
+        integ = body.integrator
+        topo = self._topology(body.fem)
+        upload_objects(topo, self.objects)
+        o = self.options
+        return (topo.serial, integ.x.ptr, integ.v.ptr, float(integ.dt), body.fem.free.ptr, o["distance"],
+                o["facing"], o["self_depth"], self.faces)
+
+    def launch_detection_of(self, body: BodyView) -> list[wp.array]:
+        """Launch the detection of the free motion (``body.integrator``'s x and v) prepared by
+        :meth:`prepare`; returns the device arrays :meth:`step` reads, unread. Launches only."""
         integ = body.integrator
         topo = self._topology(body.fem)
         # Planes and instruments (exact half-spaces / the tool's new pose) are tested at the
@@ -219,9 +229,14 @@ class ContactSolver:
         # how far surface nodes moved in the free motion (twice: node and triangle may close
         # in on each other), so that nothing tunnels through a triangle in one step.
         launch_start(topo, integ.x, integ.v, integ.dt, self.device)
-        upload_objects(topo, self.objects)
         self._launch(topo, integ.x, topo.x_start, topo.x_start)
         return [integ.x, topo.x_start, body.fem.free, *topo.out.arrays]
+
+    def launch(self, body: BodyView, begin: bool = True) -> list[wp.array]:
+        """:meth:`prepare` and :meth:`launch_detection_of`: the arrays :meth:`step` reads,
+        unread (read them with whatever else the caller reads in that wait)."""
+        self.prepare(body, begin)
+        return self.launch_detection_of(body)
 
     def step(self, body: BodyView, host: list | None = None, begin: bool = True) -> ContactResponse:
         """Detect the contacts of the free motion (``body.integrator``'s x and v), solve the LCP

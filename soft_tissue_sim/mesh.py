@@ -20,6 +20,7 @@ __all__ = [
     "MeshError",
     "TetMesh",
     "tet_quality",
+    "centroids",
     "interior_faces",
     "interior_faces_after_split",
     "interior_faces_after_removal",
@@ -367,7 +368,7 @@ class TetMesh:
 
     def centroids(self) -> np.ndarray:
         """(m, 3) tet centroids."""
-        return self.points[self.tets].mean(axis=1)
+        return centroids(self.points, self.tets)
 
     def node_components(self) -> np.ndarray:
         """(n,) label of each node's connected part (nodes joined through shared tets; a node
@@ -388,13 +389,21 @@ class TetMesh:
     def boundary_faces(self) -> np.ndarray:
         """(k, 3) int32 faces used by exactly one tet, right-hand normal pointing out of it."""
         tet_face = self.interior_faces()[2]  # cached per connectivity (cutting reads it too)
-        faces = self.tets[:, _FACES].reshape(-1, 3)
-        return np.ascontiguousarray(faces[tet_face.ravel() < 0], dtype=np.int32)
+        k = np.flatnonzero(tet_face.ravel() < 0)  # 4 t + j: face j of tet t, in that order
+        return np.ascontiguousarray(self.tets[k // 4, _FACES[k % 4].T].T, dtype=np.int32)
 
     def edges(self) -> np.ndarray:
         """(e, 2) unique edges, each as (i, j) with i < j, rows sorted (int32; from
         :meth:`edge_table`)."""
         return self.edge_table()[0].astype(np.int32)
+
+
+def centroids(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(m, 3) centroids of the tets (m, 4) of ``points`` (n, 3): the numbers of
+    ``points[tets].mean(axis=1)`` (the same sums in the same order, then / 4) without
+    gathering the (m, 4, 3) block."""
+    T = np.asarray(tets).T
+    return (((points[T[0]] + points[T[1]]) + points[T[2]]) + points[T[3]]) / 4.0
 
 
 def _signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:

@@ -568,3 +568,23 @@ def test_connectivity_tables_are_cached_until_the_tets_or_node_count_change():
     assert all(np.array_equal(a, b) for a, b in zip(m.cached_edge_table(), table))
     m.tets = m.tets[::-1].copy()
     assert m.cached_edge_table() is None
+
+
+def test_boundary_faces_are_the_tets_faces_without_a_neighbour_in_tet_order(brain):
+    from soft_tissue_sim.mesh import _FACES
+
+    for m in (brain, TetMesh(brain.points, brain.tets[np.random.default_rng(0).random(brain.n_tets) < 0.5])):
+        f = m.boundary_faces()
+        expect = m.tets[:, _FACES].reshape(-1, 3)[interior_faces(m.tets)[2].ravel() < 0]
+        np.testing.assert_array_equal(f, expect)
+        assert f.dtype == np.int32 and f.flags.c_contiguous
+
+
+def test_centroids_are_the_mean_of_the_gathered_nodes_bit_for_bit(brain):
+    from soft_tissue_sim.mesh import centroids
+
+    rng = np.random.default_rng(3)
+    for scale in (1.0, 1e-3, 1e7):
+        pts = brain.points + scale * rng.standard_normal(brain.points.shape)
+        got = centroids(pts, brain.tets)
+        assert np.array_equal(got.view(np.uint64), pts[brain.tets].mean(axis=1).view(np.uint64))

@@ -13,7 +13,7 @@ from functools import partial
 import numpy as np
 
 from ..material import ParameterError
-from ..mesh import (TetMesh, edge_table_after_change, interior_faces_after_removal, interior_faces_after_split,
+from ..mesh import (TetMesh, centroids, edge_table_after_change, interior_faces_after_removal, interior_faces_after_split,
                     tet_quality)
 from ..sherman_morrison import Modification
 from ..stats import CutStats
@@ -379,7 +379,7 @@ class Cutter:
                                      f"{radius!r}"))
         mesh = tissue.mesh
         pts = tissue.x if frame == "world" else mesh.points
-        cen = pts[mesh.tets].mean(axis=1)
+        cen = centroids(pts, mesh.tets)
         gone = np.linalg.norm(cen - c, axis=1) <= float(radius)
         if not gone.any():
             return CutPlan(CutResult(False, "no element within the removal sphere: nothing changed"))

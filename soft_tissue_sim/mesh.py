@@ -20,9 +20,13 @@ __all__ = [
     "MeshError",
     "TetMesh",
     "tet_quality",
+    "centroids",
     "interior_faces",
     "interior_faces_after_split",
     "interior_faces_after_removal",
+    "edge_table",
+    "edge_table_after_change",
+    "node_ring",
     "validate_mesh",
     "load_mesh",
     "save_mesh",
@@ -167,6 +171,96 @@ def interior_faces_after_removal(faces, kept_tets: np.ndarray, kept_nodes: np.nd
             np.take(new_id, np.compress(kept_tets, tet_face, axis=0)))
 
 
+def _edge_keys(tets: np.ndarray, base: int) -> np.ndarray:
+    """(6 m,) the packed keys lo * base + hi of the 6 edges of each tet (m, 4), tet-major."""
+    T = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+    a, b = T[:, _EDGES[:, 0]].ravel(), T[:, _EDGES[:, 1]].ravel()
+    return np.minimum(a, b) * base + np.maximum(a, b)
+
+
+def edge_table(tets: np.ndarray):
+    """The edges of tets (m, 4): (e, 2) int64 unique edges, each as (i, j) with i < j, rows
+    sorted, and (e,) int64 how many tets have each (what lets a change of a few tets update the
+    table: :func:`edge_table_after_change`)."""
+    T = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+    base = int(T.max()) + 1 if len(T) else 1
+    if base * base >= 2**62:
+        e, counts = unique_rows(np.sort(T[:, _EDGES].reshape(-1, 2), axis=1), return_counts=True)
+        return e.astype(np.int64), counts.astype(np.int64)
+    key = _edge_keys(T, base)  # one packed key per edge: sorted as the rows are
+    key.sort()
+    first = np.flatnonzero(np.concatenate(([True], key[1:] != key[:-1]))) if len(key) else np.zeros(0, np.int64)
+    counts = np.diff(np.append(first, len(key)))
+    key = key[first]
+    return np.stack([key // base, key % base], axis=1), counts
+
+
+def edge_table_after_change(table, removed_tets: np.ndarray, added_tets: np.ndarray, node_id: np.ndarray,
+                            n_nodes: int):
+    """:func:`edge_table` of a mesh made from one whose table is ``table`` by taking out the tets
+    ``removed_tets`` (k, 4) (old numbering), renumbering the nodes by ``node_id`` (old -> new,
+    -1: dropped) and putting in the tets ``added_tets`` (j, 4) (new numbering, ``n_nodes``
+    nodes): a removal, a node split, a subdivision. An edge's count drops by the removed tets
+    that have it (gone at 0) and rises by the added ones (new where it was not there); a
+    renumbering that keeps the nodes' order keeps the rows sorted, so only the new edges are
+    merged in. None where the change does not fit the table (a removed edge it lacks, a kept
+    edge at a dropped node, a renumbering that reorders the kept nodes) or packed keys could
+    overflow: then compute the table afresh."""
+    edges, counts = table
+    node_id = np.asarray(node_id, np.int64)
+    base = max(len(node_id), int(n_nodes), 1)
+    kept_ids = node_id[node_id >= 0]
+    if (base * base >= 2**62 or len(edges) and int(edges[:, 1].max()) >= len(node_id)
+            or np.any(kept_ids[1:] <= kept_ids[:-1])):
+        return None
+    key = edges[:, 0] * base + edges[:, 1]
+    rk = _edge_keys(removed_tets, base)
+    pos = np.searchsorted(key, rk)
+    if len(rk) and (pos.max() >= len(key) or np.any(key[pos] != rk)):
+        return None
+    counts = counts - np.bincount(pos, minlength=len(key))
+    keep = counts > 0
+    e = np.take(node_id, np.compress(keep, edges, axis=0))  # rows stay sorted: the order of the nodes is kept
+    c = counts[keep]
+    if np.any(counts < 0) or len(e) and e.min() < 0:
+        return None
+    if len(added_tets):
+        key = e[:, 0] * base + e[:, 1]
+        ak, acount = np.unique(_edge_keys(added_tets, base), return_counts=True)
+        pos = np.searchsorted(key, ak)
+        found = pos < len(key)
+        found[found] = key[pos[found]] == ak[found]
+        c[pos[found]] += acount[found]
+        new = ~found
+        if new.any():
+            ak = ak[new]
+            e = np.insert(e, pos[new], np.stack([ak // base, ak % base], axis=1), axis=0)
+            c = np.insert(c, pos[new], acount[new])
+    return e, c
+
+
+def node_ring(edges: np.ndarray, n_nodes: int):
+    """The neighbours of each node through the edges (e, 2) (unique, i < j, rows sorted, as
+    :func:`edge_table` gives them) in compressed rows: (n + 1,) offsets and the neighbours of
+    node i, ascending, at [offsets[i], offsets[i + 1]) (int32; the sorted CSR of the symmetric
+    adjacency). A node's lower neighbours are the edges ending at it and its higher ones the
+    edges starting at it, each already in order, so no sort of the whole adjacency is needed:
+    only a stable sort of the edges by their upper node (a radix sort where node ids fit 16 bits)."""
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    lo, hi = edges[:, 0], edges[:, 1]
+    n_low, n_high = np.bincount(hi, minlength=n_nodes), np.bincount(lo, minlength=n_nodes)
+    offsets = np.zeros(n_nodes + 1, np.int64)
+    np.cumsum(n_low + n_high, out=offsets[1:])
+    ring = np.empty(2 * len(edges), np.int32)
+    i = np.arange(len(edges))
+    # higher neighbours: the rows are sorted by lo, then hi; a run of one lo goes after the lower ones
+    ring[np.take(offsets[:-1] + n_low - (np.cumsum(n_high) - n_high), lo) + i] = hi
+    # lower neighbours: the edges sorted by hi (stable: lo stays ascending), each run first in its row
+    o = np.argsort(hi.astype(np.uint16) if n_nodes <= 1 << 16 else hi, kind="stable")
+    ring[np.take(offsets[:-1] - (np.cumsum(n_low) - n_low), hi[o]) + i] = lo[o]
+    return offsets.astype(np.int32), ring
+
+
 def _list(idx, limit: int = 10) -> str:
     """'[3, 7, 9]' or '[0, 1, ..., 9] and 25 more (35 in all)'."""
     idx = [int(i) for i in np.asarray(idx).ravel()]
@@ -204,27 +298,66 @@ class TetMesh:
     def n_tets(self) -> int:
         return int(self.tets.shape[0])
 
+    def _tables(self) -> dict:
+        """The tables of this mesh's connectivity computed so far (interior faces, edges, node
+        ring, components), by name; a new, empty one once ``tets`` or the node count changed
+        (it holds a copy of the tets it was made from)."""
+        c = self.__dict__.get("_connectivity")
+        if c is None or c[1] != self.n_nodes or not np.array_equal(c[0], self.tets):
+            c = (self.tets.copy(), self.n_nodes, {})
+            self._connectivity = c
+        return c[2]
+
+    @staticmethod
+    def _frozen(arrays, dtype=np.int64) -> tuple:
+        out = tuple(np.asarray(a, dtype) for a in arrays)
+        for a in out:
+            a.flags.writeable = False
+        return out
+
     def interior_faces(self):
         """:func:`interior_faces` of this mesh, computed once per connectivity (the cache holds a
         copy of the tets it was made from, so a changed ``tets`` is recomputed). Read-only arrays."""
         faces = self.cached_interior_faces()
         if faces is None:
             self.set_interior_faces(interior_faces(self.tets))
-            faces = self._interior_faces[1]
+            faces = self.cached_interior_faces()
         return faces
 
     def cached_interior_faces(self):
         """:meth:`interior_faces` where already computed for the current tets, else None."""
-        cached = self.__dict__.get("_interior_faces")
-        return cached[1] if cached is not None and np.array_equal(cached[0], self.tets) else None
+        return self._tables().get("interior_faces")
 
     def set_interior_faces(self, faces) -> None:
         """Install ``faces``, this mesh's :func:`interior_faces` known otherwise (derived from
         the mesh it was made from), as the cache of :meth:`interior_faces`."""
-        faces = tuple(np.asarray(a, np.int64) for a in faces)
-        for a in faces:
-            a.flags.writeable = False
-        self._interior_faces = (self.tets.copy(), faces)
+        self._tables()["interior_faces"] = self._frozen(faces)
+
+    def edge_table(self):
+        """:func:`edge_table` of this mesh (edges and their tet counts), computed once per
+        connectivity like :meth:`interior_faces`. Read-only arrays."""
+        table = self.cached_edge_table()
+        if table is None:
+            self.set_edge_table(edge_table(self.tets))
+            table = self.cached_edge_table()
+        return table
+
+    def cached_edge_table(self):
+        """:meth:`edge_table` where already computed (or installed) for the current tets, else None."""
+        return self._tables().get("edge_table")
+
+    def set_edge_table(self, table) -> None:
+        """Install ``table``, this mesh's :func:`edge_table` known otherwise (derived from the
+        mesh it was made from, :func:`edge_table_after_change`), as the cache of :meth:`edge_table`."""
+        self._tables()["edge_table"] = self._frozen(table)
+
+    def node_ring(self):
+        """:func:`node_ring` of this mesh's edges: (n + 1,) offsets and the sorted neighbours of
+        each node (int32, read-only), once per connectivity."""
+        tables = self._tables()
+        if "node_ring" not in tables:
+            tables["node_ring"] = self._frozen(node_ring(self.edge_table()[0], self.n_nodes), np.int32)
+        return tables["node_ring"]
 
     def copy(self) -> "TetMesh":
         return TetMesh(self.points.copy(), self.tets.copy(), self.material_ids.copy())
@@ -235,37 +368,42 @@ class TetMesh:
 
     def centroids(self) -> np.ndarray:
         """(m, 3) tet centroids."""
-        return self.points[self.tets].mean(axis=1)
+        return centroids(self.points, self.tets)
 
     def node_components(self) -> np.ndarray:
         """(n,) label of each node's connected part (nodes joined through shared tets; a node
-        in no tet is a part of its own). A tet's part is the label of any of its nodes."""
-        import scipy.sparse as sps
-        from scipy.sparse.csgraph import connected_components
+        in no tet is a part of its own). A tet's part is the label of any of its nodes. The
+        parts are numbered in the order of their lowest node (scipy's numbering), once per
+        connectivity, from the node ring (the same parts as the tets make). Read-only."""
+        tables = self._tables()
+        if "node_components" not in tables:
+            import scipy.sparse as sps
+            from scipy.sparse.csgraph import connected_components
 
-        T = self.tets.astype(np.int64)
-        rows, cols = np.repeat(T[:, 0], 3), T[:, 1:].ravel()  # a tet's nodes are connected through node 0
-        g = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(self.n_nodes, self.n_nodes))
-        return connected_components(g, directed=False)[1]
+            offsets, ring = self.node_ring()
+            n = self.n_nodes
+            g = sps.csr_matrix((np.ones(len(ring)), ring, offsets), shape=(n, n))
+            tables["node_components"] = self._frozen([connected_components(g, directed=False)[1]], np.int32)[0]
+        return tables["node_components"]
 
     def boundary_faces(self) -> np.ndarray:
         """(k, 3) int32 faces used by exactly one tet, right-hand normal pointing out of it."""
         tet_face = self.interior_faces()[2]  # cached per connectivity (cutting reads it too)
-        faces = self.tets[:, _FACES].reshape(-1, 3)
-        return np.ascontiguousarray(faces[tet_face.ravel() < 0], dtype=np.int32)
+        k = np.flatnonzero(tet_face.ravel() < 0)  # 4 t + j: face j of tet t, in that order
+        return np.ascontiguousarray(self.tets[k // 4, _FACES[k % 4].T].T, dtype=np.int32)
 
     def edges(self) -> np.ndarray:
-        """(e, 2) unique edges, each as (i, j) with i < j, rows sorted."""
-        T = np.asarray(self.tets, dtype=np.int64)
-        a, b = T[:, _EDGES[:, 0]].ravel(), T[:, _EDGES[:, 1]].ravel()
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        base = int(hi.max()) + 1 if len(hi) else 1
-        if base * base >= 2**62:
-            return unique_rows(np.stack([lo, hi], axis=1)).astype(np.int32)
-        key = lo * base + hi  # one packed key per edge: sorted as the rows are
-        key.sort()
-        key = key[np.concatenate(([True], key[1:] != key[:-1]))] if len(key) else key
-        return np.stack([key // base, key % base], axis=1).astype(np.int32)
+        """(e, 2) unique edges, each as (i, j) with i < j, rows sorted (int32; from
+        :meth:`edge_table`)."""
+        return self.edge_table()[0].astype(np.int32)
+
+
+def centroids(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(m, 3) centroids of the tets (m, 4) of ``points`` (n, 3): the numbers of
+    ``points[tets].mean(axis=1)`` (the same sums in the same order, then / 4) without
+    gathering the (m, 4, 3) block."""
+    T = np.asarray(tets).T
+    return (((points[T[0]] + points[T[1]]) + points[T[2]]) + points[T[3]]) / 4.0
 
 
 def _signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:

@@ -823,3 +823,23 @@ def test_warm_start_finds_the_forces_of_the_same_contacts_by_name():
     np.testing.assert_array_equal(found, [True, True, True, False, True, False, False])
     np.testing.assert_array_equal(f[0], forces[6])  # (0, node 13) was stored twice: the last row
     assert WarmStart().lookup(q)[0].sum() == 0
+
+
+@pytest.mark.parametrize("scale", [1, 2**31])  # packed edge keys, and the general path
+def test_edge_ownership_gives_each_surface_edge_to_its_lowest_face(scale):
+    from soft_tissue_sim.contact.geometry import edge_ownership
+    from soft_tissue_sim.mesh import brain_mesh
+
+    faces = brain_mesh().boundary_faces().astype(np.int64)
+    faces = faces[np.random.default_rng(0).permutation(len(faces))] * scale  # owners not in node order
+    own = edge_ownership(faces)
+    seen = set()
+    expect = np.zeros(faces.shape, np.int32)
+    for f, tri in enumerate(faces.tolist()):
+        for k in range(3):
+            e = tuple(sorted((tri[k], tri[(k + 1) % 3])))
+            if e not in seen:
+                seen.add(e)
+                expect[f, k] = 1
+    np.testing.assert_array_equal(own, expect)
+    assert own.dtype == np.int32

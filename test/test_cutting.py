@@ -703,3 +703,42 @@ def test_the_face_table_a_cut_or_a_removal_hands_on_equals_the_recomputed_one(sc
                     np.testing.assert_array_equal(a, b)
         tissue = Tissue(c.mesh, c.x, c.v, c.node_uids, c.free)
     assert carried >= (20 if scheme == "split" else 3)  # split: the cuts' and removals' tables; subdivide: removals
+
+
+@pytest.mark.parametrize("scheme", ["split", "subdivide"])
+def test_the_edge_table_a_cut_or_a_removal_hands_on_equals_the_recomputed_one(scheme):
+    """Every change (a cut of either scheme, a removal with node compaction) gives the new mesh
+    the edge table derived from the old one's: exactly the table computed afresh, and the node
+    ring and parts that follow from it are those of the new tets."""
+    import scipy.sparse as sps
+    from scipy.sparse.csgraph import connected_components
+
+    from soft_tissue_sim.cutting import Cutter, Tissue
+    from soft_tissue_sim.mesh import beam_mesh, edge_table
+
+    rng = np.random.default_rng(12)
+    mesh = beam_mesh(8, n_cross=4, spacing=0.01)
+    n = mesh.n_nodes
+    tissue = Tissue(mesh, mesh.points.copy(), np.zeros((n, 3)), np.arange(n, dtype=np.int64), np.ones(n))
+    cutter = Cutter({"scheme": scheme, "min_fragment": 0})
+    carried = 0
+    for _ in range(25):
+        tissue.mesh.edge_table()
+        plan = cutter.cut_triangles(tissue, _random_blades(rng, tissue.mesh.points, 2), frame="rest")
+        if plan.change is None:
+            continue
+        c = plan.change
+        gone = np.zeros(c.mesh.n_tets, bool)
+        gone[rng.integers(c.mesh.n_tets, size=3)] = True
+        r = cutter.remove_tets(Tissue(c.mesh, c.x, c.v, c.node_uids, c.free), gone)
+        for m in (c.mesh, r.change.mesh):
+            got = m.cached_edge_table()
+            assert got is not None
+            carried += 1
+            for a, b in zip(got, edge_table(m.tets)):
+                np.testing.assert_array_equal(a, b)
+            T = m.tets.astype(np.int64)
+            g = sps.coo_matrix((np.ones(3 * len(T)), (np.repeat(T[:, 0], 3), T[:, 1:].ravel())), shape=(m.n_nodes,) * 2)
+            np.testing.assert_array_equal(m.node_components(), connected_components(g, directed=False)[1])
+        tissue = Tissue(c.mesh, c.x, c.v, c.node_uids, c.free)
+    assert carried >= (20 if scheme == "split" else 10)

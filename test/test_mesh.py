@@ -13,7 +13,10 @@ from soft_tissue_sim.mesh import (
     beam_mesh,
     brain_mesh,
     cli,
+    edge_table,
+    edge_table_after_change,
     interior_faces,
+    node_ring,
     interior_faces_after_removal,
     interior_faces_after_split,
     load_mesh,
@@ -461,3 +464,127 @@ def test_committed_meshes_match_generators(name, make):
     assert np.array_equal(got.points, ref.points)
     assert np.array_equal(got.tets, ref.tets)
     assert np.array_equal(got.material_ids, ref.material_ids)
+
+
+def _edge_table_from_scratch(T):
+    every = np.sort(np.asarray(T, np.int64)[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]].reshape(-1, 2), axis=1)
+    return np.unique(every, axis=0, return_counts=True)
+
+
+def test_edge_table_counts_the_tets_of_each_edge(brain):
+    for T in (brain.tets, beam_mesh(5, n_cross=3).tets, brain.tets.astype(np.int64) * 2**31):  # last: no packed keys
+        e, c = edge_table(T)
+        ref_e, ref_c = _edge_table_from_scratch(T)
+        np.testing.assert_array_equal(e, ref_e)
+        np.testing.assert_array_equal(c, ref_c)
+        assert e.dtype == c.dtype == np.int64
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_edge_table_derived_after_a_split_a_removal_or_new_tets_equals_the_recomputed_one(brain, seed):
+    """The edge table (edges and their tet counts) derived from the old mesh's after a node
+    split, a removal with node compaction and a change that puts in tets on new nodes, is
+    exactly :func:`edge_table` of the new tets; a change the table does not fit is refused."""
+    rng = np.random.default_rng(seed)
+    T0 = brain.tets.astype(np.int64)
+    table = edge_table(T0)
+    T1, copy_of = _random_split(rng, T0, brain.n_nodes)  # a split: the changed tets out, their new selves in
+    changed = np.flatnonzero(np.any(T1 != T0, axis=1))
+    got = edge_table_after_change(table, T0[changed], T1[changed], np.arange(brain.n_nodes), len(copy_of))
+    expect = edge_table(T1)
+    assert len(expect[0]) > len(table[0])  # edges were added
+    for a, b in zip(got, expect):
+        np.testing.assert_array_equal(a, b)
+        assert a.dtype == b.dtype
+    kept = rng.random(len(T1)) < 0.9  # a removal with node compaction
+    used = np.zeros(len(copy_of), bool)
+    used[T1[kept].ravel()] = True
+    remap = np.where(used, np.cumsum(used) - 1, -1)
+    got = edge_table_after_change(expect, T1[~kept], np.zeros((0, 4), np.int64), remap, int(used.sum()))
+    for a, b in zip(got, edge_table(remap[T1[kept]])):
+        np.testing.assert_array_equal(a, b)
+    n = len(copy_of)  # a subdivision-like change: tets out, tets on new nodes and old ones in
+    out = rng.choice(len(T1), 20, replace=False)
+    new = np.concatenate([T1[out][:, [0, 1, 2]], n + np.arange(20)[:, None]], axis=1)
+    T2 = np.concatenate([np.delete(T1, out, axis=0), new])
+    got = edge_table_after_change(expect, T1[out], new, np.arange(n), n + 20)
+    for a, b in zip(got, edge_table(T2)):
+        np.testing.assert_array_equal(a, b)
+    assert edge_table_after_change(expect, T1[out] + 1, new, np.arange(n), n + 20) is None  # not its tets
+    assert edge_table_after_change(expect, T1[out], new, np.arange(n)[::-1].copy(), n + 20) is None  # reorders
+    assert edge_table_after_change(expect, T1[:0], new, np.where(np.arange(n) == 5, -1, np.arange(n)), n + 20) is None
+
+
+def test_node_ring_is_the_sorted_adjacency_of_the_edges(brain):
+    import scipy.sparse as sps
+
+    for m in (brain, beam_mesh(5, n_cross=3), TetMesh(np.zeros((70_000, 3)), np.array([[0, 1, 69_999, 3]]))):
+        e = m.edges()
+        n = m.n_nodes
+        adj = sps.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+        adj = (adj + adj.T).tocsr()
+        adj.sort_indices()
+        offsets, ring = node_ring(m.edge_table()[0], n)
+        np.testing.assert_array_equal(offsets, adj.indptr)
+        np.testing.assert_array_equal(ring, adj.indices)
+        assert offsets.dtype == ring.dtype == np.int32
+
+
+def test_node_components_equal_scipys_numbering_of_the_tet_graph(brain):
+    """The parts from the node ring are labelled as scipy labels the graph of the tets (the
+    order of their lowest node); a node in no tet is a part of its own."""
+    import scipy.sparse as sps
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(1)
+    for k in range(3):
+        T = brain.tets[rng.random(brain.n_tets) < 0.05 + 0.05 * k]  # many parts, some lone nodes
+        perm = rng.permutation(brain.n_nodes)  # parts' lowest nodes in another order
+        m = TetMesh(brain.points, perm[T])
+        rows, cols = np.repeat(m.tets[:, 0], 3), m.tets[:, 1:].ravel()
+        g = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(m.n_nodes, m.n_nodes))
+        ref = connected_components(g, directed=False)[1]
+        assert ref.max() > 3
+        lab = m.node_components()
+        np.testing.assert_array_equal(lab, ref)
+        assert lab.dtype == ref.dtype
+
+
+def test_connectivity_tables_are_cached_until_the_tets_or_node_count_change():
+    m = beam_mesh(4, n_cross=3)
+    t, r, c = m.edge_table(), m.node_ring(), m.node_components()
+    assert m.edge_table() is t and m.node_ring() is r and m.node_components() is c
+    with pytest.raises(ValueError):
+        c[0] = 3  # read-only: shared by every caller
+    m.tets[:1] = m.tets[1:2].copy()  # changed in place
+    assert m.edge_table() is not t
+    np.testing.assert_array_equal(m.edge_table()[0], _edge_table_from_scratch(m.tets)[0])
+    c = m.node_components()
+    m.points = np.concatenate([m.points, np.zeros((1, 3))])  # a node in no tet
+    assert m.node_components() is not c and m.node_components().max() == c.max() + 1
+    assert m.cached_edge_table() is not None  # installed tables come back until the tets change
+    table = edge_table(m.tets)
+    m.set_edge_table(table)
+    assert all(np.array_equal(a, b) for a, b in zip(m.cached_edge_table(), table))
+    m.tets = m.tets[::-1].copy()
+    assert m.cached_edge_table() is None
+
+
+def test_boundary_faces_are_the_tets_faces_without_a_neighbour_in_tet_order(brain):
+    from soft_tissue_sim.mesh import _FACES
+
+    for m in (brain, TetMesh(brain.points, brain.tets[np.random.default_rng(0).random(brain.n_tets) < 0.5])):
+        f = m.boundary_faces()
+        expect = m.tets[:, _FACES].reshape(-1, 3)[interior_faces(m.tets)[2].ravel() < 0]
+        np.testing.assert_array_equal(f, expect)
+        assert f.dtype == np.int32 and f.flags.c_contiguous
+
+
+def test_centroids_are_the_mean_of_the_gathered_nodes_bit_for_bit(brain):
+    from soft_tissue_sim.mesh import centroids
+
+    rng = np.random.default_rng(3)
+    for scale in (1.0, 1e-3, 1e7):
+        pts = brain.points + scale * rng.standard_normal(brain.points.shape)
+        got = centroids(pts, brain.tets)
+        assert np.array_equal(got.view(np.uint64), pts[brain.tets].mean(axis=1).view(np.uint64))

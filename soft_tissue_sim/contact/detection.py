@@ -24,9 +24,7 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sps
 import warp as wp
-from scipy.sparse.csgraph import connected_components
 
 from .. import graphs
 from ..instrument import Instrument, MeshObstacle, PlaneObstacle
@@ -163,7 +161,9 @@ class SurfaceTopology:
         self.keys = (fem.mesh, fem.mesh.tets, fem.tets, fem.n_nodes)
         self.n_nodes = fem.n_nodes
         self.faces = mesh.boundary_faces()
-        self.surface = np.unique(self.faces).astype(np.int32)
+        on = np.zeros(fem.n_nodes, bool)
+        on[self.faces.ravel()] = True
+        self.surface = np.flatnonzero(on).astype(np.int32)  # the surface nodes, ascending
         ns = max(len(self.surface), 1)
         self.nodes = wp.array(self.surface, dtype=wp.int32, device=dev)
         self.scale = float(np.ptp(mesh.points, axis=0).max()) or 1.0
@@ -178,16 +178,13 @@ class SurfaceTopology:
         self.wmesh = None
         if self_collision and len(self.faces):
             n = fem.n_nodes
-            e = mesh.edges()
-            adj = sps.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-            adj = (adj + adj.T).tocsr()
-            adj.sort_indices()
-            _, comp = connected_components(adj, directed=False)
+            offsets, ring = mesh.node_ring()  # the neighbours through the edges (per connectivity)
+            comp = mesh.node_components()  # the same parts as the edges make
             self.n_components = int(comp.max()) + 1
             self.node_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev)
             self.face_comp = wp.array(comp[self.faces[:, 0]].astype(np.int32), dtype=wp.int32, device=dev)
-            self.ring_offsets = wp.array(adj.indptr.astype(np.int32), dtype=wp.int32, device=dev)
-            self.ring_nodes = wp.array(adj.indices.astype(np.int32), dtype=wp.int32, device=dev)
+            self.ring_offsets = wp.array(offsets, dtype=wp.int32, device=dev)
+            self.ring_nodes = wp.array(ring, dtype=wp.int32, device=dev)
             self.points32 = wp.array(mesh.points.astype(np.float32), dtype=wp.vec3, device=dev)
             self.node_normal = wp.zeros(n, dtype=wp.vec3d, device=dev)
             self.wmesh = wp.Mesh(points=self.points32, indices=wp.array(self.faces.reshape(-1), dtype=wp.int32,

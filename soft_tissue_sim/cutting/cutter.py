@@ -13,7 +13,8 @@ from functools import partial
 import numpy as np
 
 from ..material import ParameterError
-from ..mesh import TetMesh, interior_faces_after_removal, interior_faces_after_split, tet_quality
+from ..mesh import (TetMesh, centroids, edge_table_after_change, interior_faces_after_removal, interior_faces_after_split,
+                    tet_quality)
 from ..sherman_morrison import Modification
 from ..stats import CutStats
 from .geometry import _path_planes, faces_cut_by_triangles, sweep_triangles
@@ -43,24 +44,29 @@ def _vec3(v, what):
     return a
 
 
-def _carry_interior_faces(mesh: TetMesh, new_mesh: TetMesh, kept=None, copies=None) -> None:
-    """Give ``new_mesh`` its interior-face table derived from ``mesh``'s, where that one is
-    at hand (the split scheme reads it) and the change is one the derivation covers: an
-    element removal (``kept``: the kept tets' mask and the kept nodes) or a node split
-    (``copies``: the old node each appended node copies). Otherwise the new mesh computes
-    its table when first asked."""
+def _carry_tables(mesh: TetMesh, new_mesh: TetMesh, removed_tets, added_tets, node_id, kept=None,
+                  copies=None) -> None:
+    """Give ``new_mesh`` the connectivity tables derived from ``mesh``'s, where those are at
+    hand: its interior faces (the split scheme reads them) where the change is one their
+    derivation covers, an element removal (``kept``: the kept tets' mask and the kept nodes)
+    or a node split (``copies``: the old node each appended node copies); its edge table (the
+    contact surface and the fragment check read it) for any change, from the tets taken out
+    (``removed_tets``, old numbering), the node renumbering ``node_id`` and the tets put in
+    (``added_tets``). Otherwise the new mesh computes a table when first asked."""
     faces = mesh.cached_interior_faces()
-    if faces is None:
-        return
-    if kept is not None:
+    derived = None
+    if faces is not None and kept is not None:
         derived = interior_faces_after_removal(faces, kept[0], kept[1], mesh.n_nodes)
-    elif copies is not None:
+    elif faces is not None and copies is not None:
         derived = interior_faces_after_split(faces, mesh.tets, new_mesh.tets,
                                              np.concatenate([np.arange(mesh.n_nodes), copies]))
-    else:
-        derived = None
     if derived is not None:
         new_mesh.set_interior_faces(derived)
+    table = mesh.cached_edge_table()
+    if table is not None:
+        table = edge_table_after_change(table, removed_tets, added_tets, node_id, new_mesh.n_nodes)
+    if table is not None:
+        new_mesh.set_edge_table(table)
 
 
 class Cutter:
@@ -373,7 +379,7 @@ class Cutter:
                                      f"{radius!r}"))
         mesh = tissue.mesh
         pts = tissue.x if frame == "world" else mesh.points
-        cen = pts[mesh.tets].mean(axis=1)
+        cen = centroids(pts, mesh.tets)
         gone = np.linalg.norm(cen - c, axis=1) <= float(radius)
         if not gone.any():
             return CutPlan(CutResult(False, "no element within the removal sphere: nothing changed"))
@@ -490,10 +496,12 @@ class Cutter:
                                      f"{self.min_quality} or a node without a tet; mesh unchanged",
                                      ms=1000.0 * (time.perf_counter() - t0)))
         new_mesh = TetMesh(pts_new, tets_new, mats)
+        removed_tets = np.take(mesh.tets, removed_ids, axis=0)
         if new_tets is None:
-            _carry_interior_faces(mesh, new_mesh, kept=(kept_tets, keep))
+            _carry_tables(mesh, new_mesh, removed_tets, np.zeros((0, 4), np.int64), remap, kept=(kept_tets, keep))
         else:
-            _carry_interior_faces(mesh, new_mesh, copies=a if np.array_equal(a, b) else None)
+            _carry_tables(mesh, new_mesh, removed_tets, np.take(tets_new, added_ids, axis=0), np.arange(mesh.n_nodes),
+                          copies=a if np.array_equal(a, b) else None)
         change = TopologyChange(new_mesh, x_new, v_new, uids_new, free_new, removed_ids,
                                 added_ids, created, removed, source, old_uids, free_old, tet_source)
         return CutPlan(CutResult(True, what, tets_changed=int(len(removed_ids)), nodes_added=int(len(created)),

@@ -289,8 +289,8 @@ class Simulation:
         self._contact_begun = False  # this step's instruments took their poses (ContactSolver.launch)
         if self.contact is not None:  # the detection launched after the free motion, read with its result
             self.integrator.after_solve = self._launch_contact
-            self._readback = Readback()  # the guard and the gap after the correction
-            self._correction_replay = graphs.Replayer(self.device, "contact correction", slots=2)
+        self._readback = Readback()  # the guard and the gap after a contact correction
+        self._correction_replay = graphs.Replayer(self.device, "contact correction", slots=2)
         size = float(np.ptp(self.mesh.points, axis=0).max())
         g = float(np.linalg.norm(self.integrator.gravity))
         self._energy_floor = self.fem.total_mass * (g * size + 0.5)  # weight over the body size + 1 m/s

@@ -100,9 +100,9 @@ def test_the_detection_read_with_the_free_motion_gives_the_same_steps(monkeypatc
         with load_scene(cfg) as sim:
             if not early:
                 sim.integrator.after_solve = None
-            launches = []
-            real = sim.contact.launch_detection_of
-            monkeypatch.setattr(sim.contact, "launch_detection_of", lambda *a, **k: launches.append(1) or real(*a, **k))
+            launches = []  # the host side of a detection (its launches may be a replayed graph)
+            real = sim.contact.prepare
+            monkeypatch.setattr(sim.contact, "prepare", lambda *a, **k: launches.append(1) or real(*a, **k))
             forces, counts = [], []
             for k in range(6):
                 _press(sim, 0.0005 * k)

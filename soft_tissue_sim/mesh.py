@@ -315,14 +315,17 @@ class TetMesh:
             a.flags.writeable = False
         return out
 
+    def _table(self, name: str, compute):
+        """The table ``name`` of this mesh's connectivity: cached, else ``compute(tets)`` cached."""
+        tables = self._tables()
+        if name not in tables:
+            tables[name] = self._frozen(compute(self.tets))
+        return tables[name]
+
     def interior_faces(self):
         """:func:`interior_faces` of this mesh, computed once per connectivity (the cache holds a
         copy of the tets it was made from, so a changed ``tets`` is recomputed). Read-only arrays."""
-        faces = self.cached_interior_faces()
-        if faces is None:
-            self.set_interior_faces(interior_faces(self.tets))
-            faces = self.cached_interior_faces()
-        return faces
+        return self._table("interior_faces", interior_faces)
 
     def cached_interior_faces(self):
         """:meth:`interior_faces` where already computed for the current tets, else None."""
@@ -336,11 +339,7 @@ class TetMesh:
     def edge_table(self):
         """:func:`edge_table` of this mesh (edges and their tet counts), computed once per
         connectivity like :meth:`interior_faces`. Read-only arrays."""
-        table = self.cached_edge_table()
-        if table is None:
-            self.set_edge_table(edge_table(self.tets))
-            table = self.cached_edge_table()
-        return table
+        return self._table("edge_table", edge_table)
 
     def cached_edge_table(self):
         """:meth:`edge_table` where already computed (or installed) for the current tets, else None."""

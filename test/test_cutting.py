@@ -667,19 +667,27 @@ def test_culled_cut_faces_equal_the_brute_force_ones(jitter):
     assert n_cut > 100 and n_hit > 100  # the blades did cut
 
 
+def _beam_at_rest(scheme):
+    """A small beam at rest as a cutter's Tissue, and a cutter of ``scheme`` keeping every fragment."""
+    from soft_tissue_sim.cutting import Cutter, Tissue
+    from soft_tissue_sim.mesh import beam_mesh
+
+    mesh = beam_mesh(8, n_cross=4, spacing=0.01)
+    n = mesh.n_nodes
+    tissue = Tissue(mesh, mesh.points.copy(), np.zeros((n, 3)), np.arange(n, dtype=np.int64), np.ones(n))
+    return tissue, Cutter({"scheme": scheme, "min_fragment": 0})
+
+
 @pytest.mark.parametrize("scheme", ["split", "subdivide"])
 def test_the_face_table_a_cut_or_a_removal_hands_on_equals_the_recomputed_one(scheme):
     """The new mesh of a cut (random blades through a beam, one after the other) and of a
     removal carries its interior-face table where the change derives it: exactly the table
     computed afresh from its tets."""
-    from soft_tissue_sim.cutting import Cutter, Tissue
-    from soft_tissue_sim.mesh import beam_mesh, interior_faces
+    from soft_tissue_sim.cutting import Tissue
+    from soft_tissue_sim.mesh import interior_faces
 
     rng = np.random.default_rng(11)
-    mesh = beam_mesh(8, n_cross=4, spacing=0.01)
-    n = mesh.n_nodes
-    tissue = Tissue(mesh, mesh.points.copy(), np.zeros((n, 3)), np.arange(n, dtype=np.int64), np.ones(n))
-    cutter = Cutter({"scheme": scheme, "min_fragment": 0})
+    tissue, cutter = _beam_at_rest(scheme)
     carried = 0
     for _ in range(25):
         P = tissue.mesh.points
@@ -713,14 +721,11 @@ def test_the_edge_table_a_cut_or_a_removal_hands_on_equals_the_recomputed_one(sc
     import scipy.sparse as sps
     from scipy.sparse.csgraph import connected_components
 
-    from soft_tissue_sim.cutting import Cutter, Tissue
-    from soft_tissue_sim.mesh import beam_mesh, edge_table
+    from soft_tissue_sim.cutting import Tissue
+    from soft_tissue_sim.mesh import edge_table
 
     rng = np.random.default_rng(12)
-    mesh = beam_mesh(8, n_cross=4, spacing=0.01)
-    n = mesh.n_nodes
-    tissue = Tissue(mesh, mesh.points.copy(), np.zeros((n, 3)), np.arange(n, dtype=np.int64), np.ones(n))
-    cutter = Cutter({"scheme": scheme, "min_fragment": 0})
+    tissue, cutter = _beam_at_rest(scheme)
     carried = 0
     for _ in range(25):
         tissue.mesh.edge_table()

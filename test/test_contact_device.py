@@ -120,3 +120,40 @@ def test_the_detection_read_with_the_free_motion_gives_the_same_steps(monkeypatc
     else:  # a GPU's atomic sums are added in any order
         np.testing.assert_allclose(x1, x0, rtol=0.0, atol=1e-12)
         np.testing.assert_allclose(f1, f0, rtol=1e-8, atol=1e-12)
+
+
+def test_a_retried_free_motion_keeps_the_instruments_step_poses(monkeypatch):
+    """The detection launched with a free motion that the guard then rejects: the retried free
+    motion launches it again, and the instruments take their poses once a step (the pose before
+    the step stays the previous step's), so the steps equal those of a simulation whose guard
+    never fired."""
+    runs = {}
+    for fire in (True, False):
+        cfg = _scene(DEVICE)
+        cfg["solver"]["ldlt"] = {"backend": "dense", "deterministic": True}
+        with load_scene(cfg) as sim:
+            real = sim._diverged
+            fired = []
+
+            def diverged(stats, ke_before, real=real, fired=fired):
+                if fire and sim.integrator.step_index == 3 and not fired:
+                    fired.append(1)
+                    return "test: rejected once"
+                return real(stats, ke_before)
+
+            monkeypatch.setattr(sim, "_diverged", diverged)
+            poses = []
+            for k in range(5):
+                _press(sim, 0.0005 * k)
+                st = sim.step()
+                probe = sim.contact.instrument("probe")
+                poses.append((probe.previous_step_pose.position.copy(), probe.step_pose.position.copy()))
+            assert bool(fired) == fire
+            runs[fire] = (sim.positions(), poses, sim.rollbacks)
+    (x1, p1, r1), (x0, p0, r0) = runs[True], runs[False]
+    assert r1 == 1 and r0 == 0
+    for (a1, b1), (a0, b0) in zip(p1, p0):
+        np.testing.assert_array_equal(a1, a0)
+        np.testing.assert_array_equal(b1, b0)
+    # the retry refactorizes (a fresh factor), so the state differs only within the solver tolerance
+    np.testing.assert_allclose(x1, x0, rtol=0.0, atol=1e-8)

@@ -194,7 +194,8 @@ class AsyncDevicePreconditioner:
     def _reset_counters(self):
         self.uids = None  # node uids of the inverse's numbering
         self.factor_version = -1
-        self.R_ref_host = None
+        self._R_ref_np = None  # R(t_u) of the factor in use on the host, made when a fold needs it ...
+        self._R_ref_src = None  # ... from this device array (the factor's own R), where not changed since
         self.R_ref = None  # device copy
         self.dR = None
         self.factor_step = -1
@@ -283,7 +284,7 @@ class AsyncDevicePreconditioner:
             return False
         self.uids = t.uids
         self.factor_version = t.version
-        self.R_ref_host = t.R.numpy().astype(np.float64)
+        self._R_ref_src, self._R_ref_np = t.R, None  # read to the host only if a fold or compaction needs it
         self.factor_step = t.step
         self.factorization_ms = t.ms()
         self.factor_latency_steps = self.step - t.step
@@ -405,11 +406,29 @@ class AsyncDevicePreconditioner:
         self.uids = current.copy()
         self.R_ref_host = self.R_ref_host[idx]
 
+    @property
+    def R_ref_host(self) -> np.ndarray | None:
+        """R(t_u) of the factor in use, (n, 3, 3) on the host (read from the device at the first
+        use after an install); set by the folds and the compaction."""
+        if self._R_ref_np is None and self._R_ref_src is not None:
+            self._R_ref_np = self._R_ref_src.numpy().astype(np.float64)
+        return self._R_ref_np
+
+    @R_ref_host.setter
+    def R_ref_host(self, value: np.ndarray) -> None:
+        self._R_ref_np, self._R_ref_src = value, None
+
     def _upload_R_ref(self) -> None:
-        n = len(self.R_ref_host)
+        """R_ref (device, kept address) := R(t_u): copied on the device from the factor's own R
+        where no fold changed it, else uploaded from the host."""
+        src = self._R_ref_src if self._R_ref_np is None else None
+        n = src.shape[0] if src is not None else len(self._R_ref_np)
         if self.R_ref is None or self.R_ref.shape[0] != n:
             self.R_ref = wp.empty(n, dtype=wp.mat33d, device=self.device)
-        self.R_ref.assign(np.ascontiguousarray(self.R_ref_host))
+        if src is not None:
+            wp.copy(self.R_ref, src)
+        else:
+            self.R_ref.assign(np.ascontiguousarray(self._R_ref_np))
 
     # ----------------------------------------------------------------- apply
     def apply(self, r: wp.array, z: wp.array) -> None:

@@ -82,11 +82,17 @@ def test_corrected_preconditioner_equals_inverse_of_modified_matrix(backend, sch
         # make the factor current, so that the only difference is the cut
         sim.fem.update_rotations(sim.integrator.x)
         sim.preconditioner.refresh(sim.integrator)
+        inner = sim.preconditioner.inner
+        if backend == "dense":  # R(t_u) of eq. (2) copied on the device at the install: no host read
+            assert inner._R_ref_np is None and inner._R_ref_src is not None
+            np.testing.assert_array_equal(inner.R_ref.numpy(), inner._R_ref_src.numpy())
         assert corrected_vs_fresh(sim, rng) < 1e-10
         n0 = sim.mesh.n_nodes
         res = lengthwise(sim, 0.035, 0.08)
         assert res.changed and res.nodes_added > 0 and sim.mesh.n_nodes == n0 + res.nodes_added
-        inner = sim.preconditioner.inner
+        if backend == "dense":  # read to the host by the fold, the device copy following it
+            assert inner._R_ref_src is None and len(inner.R_ref_host) == sim.mesh.n_nodes
+            np.testing.assert_array_equal(inner.R_ref.numpy(), inner.R_ref_host)
         if backend == "cholmod":
             assert inner.correction.active
         assert corrected_vs_fresh(sim, rng) < 1e-8

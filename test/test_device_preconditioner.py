@@ -476,27 +476,3 @@ def test_dense_inverse_after_chained_cuts_equals_a_fresh_factorization():
         assert corrected_vs_fresh(sim, rng) < 1e-8
         assert sim.preconditioner.correction.folds >= 3
 
-
-def test_an_install_takes_the_factors_rotations_on_the_device_and_a_fold_reads_them_once():
-    """R(t_u) of eq. (2) at an install is copied on the device from the factor's own rotations
-    (no host read); a fold reads it to the host once, and the device copy then follows the
-    folds; the inverse stays the corrected one (to 1e-8 of a fresh factorization)."""
-    from test_cutting import beam_scene, corrected_vs_fresh, lengthwise
-
-    cfg = beam_scene(rotate=False, backend="dense")
-    cfg["device"] = DEVICE
-    rng = np.random.default_rng(1)
-    with load_scene(cfg) as sim:
-        for _ in range(3):
-            sim.step()
-        pre = sim.preconditioner
-        sim.fem.update_rotations(sim.integrator.x)
-        pre.refresh(sim.integrator)
-        assert pre._R_ref_np is None and pre._R_ref_src is not None  # nothing folded: never on the host
-        np.testing.assert_array_equal(pre.R_ref.numpy(), pre._R_ref_src.numpy())
-        n_before = sim.mesh.n_nodes
-        assert lengthwise(sim, 0.035, 0.08).changed  # a cut: folded with the rotations read to the host
-        assert pre._R_ref_src is None and pre._R_ref_np is not None
-        assert len(pre.R_ref_host) == sim.mesh.n_nodes > n_before
-        np.testing.assert_array_equal(pre.R_ref.numpy(), pre.R_ref_host)
-        assert corrected_vs_fresh(sim, rng) < 1e-8

@@ -31,7 +31,7 @@ import numpy as np
 import warp as wp
 
 from .cg import block_sum
-from .transfer import to_host
+from .transfer import PINNED, to_host
 
 BLOCK = 256  # threads per node in the matrix-vector product on CUDA
 
@@ -192,6 +192,9 @@ class DenseInverse:
         self.work: wp.array | None = None  # (n3, n3) the next one
         self._s: wp.array | None = None
         self._info = wp.zeros(2, dtype=wp.int32, device=self.device)
+        # GPU: the info copied to page-locked memory at the end of a factorization, on its stream,
+        # so that an install (after the factorization's last event) reads it without a wait
+        self._info_host = PINNED.zeros(2, wp.int32) if self.device.is_cuda else None
         self._handle = None  # cuSOLVER
         if self.device.is_cuda:  # loaded here, not first in the thread that enqueues factorizations
             wp.load_module(sys.modules[__name__], device=self.device)
@@ -276,11 +279,18 @@ class DenseInverse:
         # (side left, lower, op, non-unit diagonal): X = L^-1 I, then A^-1 = X^T X
         cublas.dtrsm(h, 0, lower, 0, 0, n, n, one, self.work.ptr, n, self._rhs.ptr, n)
         cublas.dtrmm(h, 0, lower, 1, 0, n, n, one, self._rhs.ptr, n, self._rhs.ptr, n, self.work.ptr, n)
+        rt = self.xp.cuda.runtime
+        if stream is not None:
+            rt.memcpyAsync(self._info_host.ptr, self._info.ptr, 8, rt.memcpyDeviceToHost, stream.cuda_stream)
+        else:  # the legacy stream: copied before returning
+            rt.memcpy(self._info_host.ptr, self._info.ptr, 8, rt.memcpyDeviceToHost)
         self._result = self.work
 
     def install(self, stream=None) -> str | None:
-        """The finished work buffer becomes the inverse in use; returns why not, or None."""
-        info = self._info.numpy()
+        """The finished work buffer becomes the inverse in use; returns why not, or None. Call
+        it once the factorization's stream has passed its end (on a GPU the info is then read
+        from page-locked memory without a wait)."""
+        info = self._info_host.numpy() if self._info_host is not None else self._info.numpy()
         if info[0] != 0 or info[1] != 0:
             return (f"dense factorization failed (potrf info {info[0]}, inverse info {info[1]}): "
                     "A is not positive definite")

@@ -29,7 +29,6 @@ only launches (``device_capable()``): none, jacobi, or a device factor
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -423,8 +422,8 @@ class DevicePCG(PCG):
     solve with the same key -- vector size, array addresses, the operator's ``graph_key()``
     (found on a bound method's owner) and the preconditioner's -- and replays it afterwards;
     once a capture has succeeded (its kernels are loaded), a new key (a cut, a new factor
-    pattern, a changed dt) is captured at its first solve. A replaced graph goes to
-    :mod:`soft_tissue_sim.graphs` (its release waits for the whole device). A capture that fails
+    pattern, a changed dt) is captured at its first solve (:class:`soft_tissue_sim.graphs.Replayer`,
+    ``eager``; a replaced graph is released where no factorization runs). A capture that fails
     (work another thread enqueues meanwhile can invalidate it) runs that solve uncaptured and
     is tried again with the next solves; graphs are given up after ``MAX_CAPTURE_FAILURES``
     failures in a row. Without a graph the
@@ -440,13 +439,17 @@ class DevicePCG(PCG):
         dev = wp.get_device(device)
         # a CUDA graph needs conditional nodes (CUDA 12.4+ driver and toolkit) for the while loop
         self.graph_unsupported = bool(graph and dev.is_cuda and not wp.is_conditional_graph_supported())
-        self.graph = bool(graph) and not self.graph_unsupported
-        self.graph_error = None
-        self.capture_failures = 0  # in a row; graphs are given up after MAX_CAPTURE_FAILURES
-        self.captures = 0
-        self.replays = 0
+        self.replay = graphs.Replayer(dev, "DevicePCG", eager=True, max_failures=MAX_CAPTURE_FAILURES)
+        self.replay.enabled = bool(graph) and not self.graph_unsupported
         self.host_solves = 0
         super().__init__(n, device, tolerance, max_iterations)
+
+    # the capture's state, as the replayer keeps it
+    graph = property(lambda self: self.replay.enabled, doc="Whether solves are captured (off after failures).")
+    graph_error = property(lambda self: self.replay.error, doc="The last capture failure, or None.")
+    capture_failures = property(lambda self: self.replay.failures, doc="Captures failed in a row.")
+    captures = property(lambda self: self.replay.captures)
+    replays = property(lambda self: self.replay.replays)
 
     def resize(self, n: int) -> None:
         super().resize(n)
@@ -458,10 +461,7 @@ class DevicePCG(PCG):
         self._block = _RED_BLOCK if d.is_cuda else 1
         nb = min(128, max(1, -(-n // (2 * _RED_BLOCK)))) if d.is_cuda else 1
         self._partials = wp.zeros(nb, dtype=wp.float64, device=d)
-        graphs.retire(getattr(self, "_graph", None))  # released where no factorization runs
-        self._graph = None
-        self._graph_key = None
-        self._seen_key = None
+        self.replay.clear()  # a graph of the old size is released where no factorization runs
 
     # ------------------------------------------------------------------ pieces
     def _ddot(self, a, b):
@@ -543,35 +543,7 @@ class DevicePCG(PCG):
             self.resize(b.shape[0])
         self._norm_a = self.operator_norm(matvec)  # cached; host reads, so before any capture
         key = self._key(matvec, b, x, preconditioner) if self.graph else None
-        if key is not None and self._graph is not None and key == self._graph_key:
-            wp.capture_launch(self._graph)
-            self.replays += 1
-        elif key is not None and (key == self._seen_key or self.captures > 0):
-            # a new key is captured at once where a capture already loaded the kernels (a cut
-            # changes the key every few steps), else the second time it is seen
-            graphs.retire(self._graph)
-            self._graph = None
-            try:
-                with wp.ScopedCapture(device=self.device) as cap:
-                    self._run(matvec, b, x, preconditioner)
-            except Exception as exc:  # noqa: BLE001 - this solve runs uncaptured; captured again later
-                self.capture_failures += 1
-                self.graph_error = f"{type(exc).__name__}: {exc}"
-                self._seen_key = None
-                if self.capture_failures >= MAX_CAPTURE_FAILURES:
-                    self.graph = False
-                    warnings.warn(f"DevicePCG: graph capture failed {self.capture_failures} times in a row "
-                                  f"({self.graph_error}); running without a graph", RuntimeWarning, stacklevel=2)
-                self._run(matvec, b, x, preconditioner)
-            else:
-                self._graph, self._graph_key = cap.graph, key
-                self.capture_failures = 0
-                self.captures += 1
-                wp.capture_launch(self._graph)
-                self.replays += 1
-        else:
-            self._run(matvec, b, x, preconditioner)
-            self._seen_key = key
+        self.replay.run(key, lambda: self._run(matvec, b, x, preconditioner))
         return None
 
     def result(self, s: np.ndarray) -> CGResult:

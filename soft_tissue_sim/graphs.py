@@ -63,16 +63,21 @@ class Replayer:
     holds. The key names everything the launches depend on (array addresses, sizes, scalar
     arguments). Up to ``slots`` keys keep a graph (for a component that alternates between
     argument sets); beyond that the least recently used is retired (:func:`retire`), as are all
-    on :meth:`clear`. A capture that fails turns capturing off for this replayer, with a warning:
-    plain launches from then on. ``None`` as a key, ``enabled`` False, or a capture already
-    under way (a replayer's launches inside another's): plain launches."""
+    on :meth:`clear`. ``eager``: once a capture has succeeded (the kernels are loaded), a new key
+    is captured at its first use (for launches whose key changes every few calls). A capture
+    that fails runs the launches plainly and forgets the key; ``max_failures`` failures in a row
+    turn capturing off for this replayer, with a warning. ``None`` as a key, ``enabled`` False,
+    or a capture already under way (a replayer's launches inside another's): plain launches."""
 
-    def __init__(self, device, name: str, slots: int = 1):
+    def __init__(self, device, name: str, slots: int = 1, eager: bool = False, max_failures: int = 1):
         self.device = wp.get_device(device)
         self.name = name
         self.slots = int(slots)
+        self.eager = bool(eager)
+        self.max_failures = int(max_failures)
         self.enabled = True
         self.error: str | None = None
+        self.failures = 0  # captures failed in a row
         self.captures = 0
         self.replays = 0
         self._graphs: OrderedDict = OrderedDict()
@@ -82,6 +87,10 @@ class Replayer:
         """The graph kept for ``key``, or None."""
         return self._graphs.get(key)
 
+    def latest(self):
+        """The graph launched last among those kept, or None."""
+        return next(reversed(self._graphs.values()), None)
+
     def run(self, key, launches) -> bool:
         """Run ``launches`` for ``key`` (see the class); True where a graph was launched."""
         if key is None or not self.enabled or self.device.is_capturing:  # capturing: part of the outer graph
@@ -89,7 +98,7 @@ class Replayer:
             return False
         graph = self._graphs.get(key)
         if graph is None:
-            if key not in self._seen:
+            if key not in self._seen and not (self.eager and self.captures > 0):
                 self._seen[key] = True
                 while len(self._seen) > 2 * self.slots:
                     self._seen.popitem(last=False)
@@ -98,15 +107,20 @@ class Replayer:
             try:
                 with wp.ScopedCapture(device=self.device) as cap:
                     launches()
-            except Exception as exc:  # noqa: BLE001 - this replayer launches plainly from now on
-                self.enabled = False
+            except Exception as exc:  # noqa: BLE001 - these launches run plainly; captured again later
+                self.failures += 1
                 self.error = f"{type(exc).__name__}: {exc}"
-                warnings.warn(f"{self.name}: graph capture failed ({self.error}); launching directly",
-                              RuntimeWarning, stacklevel=3)
+                self._seen.pop(key, None)
+                if self.failures >= self.max_failures:
+                    self.enabled = False
+                    times = f" {self.failures} times in a row" if self.max_failures > 1 else ""
+                    warnings.warn(f"{self.name}: graph capture failed{times} ({self.error}); launching directly",
+                                  RuntimeWarning, stacklevel=3)
                 launches()
                 return False
             graph = cap.graph
             self._graphs[key] = graph
+            self.failures = 0
             self.captures += 1
             while len(self._graphs) > self.slots:
                 retire(self._graphs.popitem(last=False)[1])

@@ -53,16 +53,16 @@ def _captured_sim():
                      overrides={"solver": {"graph": "true", "preconditioner": "jacobi"}})
     for _ in range(3):  # uncaptured, captured, replayed
         sim.step()
-    assert sim.integrator.cg.captures >= 1 and sim.integrator.cg._graph is not None
+    assert sim.integrator.cg.captures >= 1 and sim.integrator.cg.replay.latest() is not None
     return sim
 
 
 def test_a_resized_pcg_parks_its_graph_and_a_step_without_factorization_releases_it():
     with _captured_sim() as sim:
         cg = sim.integrator.cg
-        old = cg._graph
+        old = cg.replay.latest()
         cg.resize(cg.n)
-        assert cg._graph is None and graphs.parked() == 1
+        assert cg.replay.latest() is None and graphs.parked() == 1
         assert graphs._parked[0] is old
         captures = cg.captures
         sim.step()

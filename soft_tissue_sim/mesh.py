@@ -315,17 +315,18 @@ class TetMesh:
             a.flags.writeable = False
         return out
 
-    def _table(self, name: str, compute):
-        """The table ``name`` of this mesh's connectivity: cached, else ``compute(tets)`` cached."""
+    def _table(self, name: str, compute, dtype=np.int64) -> tuple:
+        """The table ``name`` of this mesh's connectivity (a tuple of read-only ``dtype`` arrays):
+        cached, else ``compute()`` cached."""
         tables = self._tables()
         if name not in tables:
-            tables[name] = self._frozen(compute(self.tets))
+            tables[name] = self._frozen(compute(), dtype)
         return tables[name]
 
     def interior_faces(self):
         """:func:`interior_faces` of this mesh, computed once per connectivity (the cache holds a
         copy of the tets it was made from, so a changed ``tets`` is recomputed). Read-only arrays."""
-        return self._table("interior_faces", interior_faces)
+        return self._table("interior_faces", lambda: interior_faces(self.tets))
 
     def cached_interior_faces(self):
         """:meth:`interior_faces` where already computed for the current tets, else None."""
@@ -339,7 +340,7 @@ class TetMesh:
     def edge_table(self):
         """:func:`edge_table` of this mesh (edges and their tet counts), computed once per
         connectivity like :meth:`interior_faces`. Read-only arrays."""
-        return self._table("edge_table", edge_table)
+        return self._table("edge_table", lambda: edge_table(self.tets))
 
     def cached_edge_table(self):
         """:meth:`edge_table` where already computed (or installed) for the current tets, else None."""
@@ -353,10 +354,7 @@ class TetMesh:
     def node_ring(self):
         """:func:`node_ring` of this mesh's edges: (n + 1,) offsets and the sorted neighbours of
         each node (int32, read-only), once per connectivity."""
-        tables = self._tables()
-        if "node_ring" not in tables:
-            tables["node_ring"] = self._frozen(node_ring(self.edge_table()[0], self.n_nodes), np.int32)
-        return tables["node_ring"]
+        return self._table("node_ring", lambda: node_ring(self.edge_table()[0], self.n_nodes), np.int32)
 
     def copy(self) -> "TetMesh":
         return TetMesh(self.points.copy(), self.tets.copy(), self.material_ids.copy())
@@ -374,16 +372,16 @@ class TetMesh:
         in no tet is a part of its own). A tet's part is the label of any of its nodes. The
         parts are numbered in the order of their lowest node (scipy's numbering), once per
         connectivity, from the node ring (the same parts as the tets make). Read-only."""
-        tables = self._tables()
-        if "node_components" not in tables:
+        def parts():
             import scipy.sparse as sps
             from scipy.sparse.csgraph import connected_components
 
             offsets, ring = self.node_ring()
             n = self.n_nodes
-            g = sps.csr_matrix((np.ones(len(ring)), ring, offsets), shape=(n, n))
-            tables["node_components"] = self._frozen([connected_components(g, directed=False)[1]], np.int32)[0]
-        return tables["node_components"]
+            return (connected_components(sps.csr_matrix((np.ones(len(ring)), ring, offsets), shape=(n, n)),
+                                         directed=False)[1],)
+
+        return self._table("node_components", parts, np.int32)[0]
 
     def boundary_faces(self) -> np.ndarray:
         """(k, 3) int32 faces used by exactly one tet, right-hand normal pointing out of it."""

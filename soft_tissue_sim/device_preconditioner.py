@@ -473,12 +473,14 @@ class AsyncDevicePreconditioner:
         cuts, rotated), or None when the backend cannot gather it (use apply_columns)."""
         if not hasattr(self.backend, "delassus"):
             return None
-        return self.delassus_rows(*constraint_rows(B, self.dR.shape[0]))
+        W = self.delassus_rows(*constraint_rows(B, self.dR.shape[0]))
+        return 0.5 * (W + W.T)
 
     def delassus_rows(self, nodes: np.ndarray, coef: np.ndarray) -> np.ndarray | None:
-        """:meth:`delassus` for columns given in node form (see :func:`constraint_rows`). The rows
-        go up into buffers kept between calls (grown to the largest m seen, :class:`Staged`), so
-        that a call allocates nothing in the steady state."""
+        """:meth:`delassus` for columns given in node form (see :func:`constraint_rows`), as
+        gathered: symmetric up to rounding (the caller symmetrizes), a view valid until the next
+        call. The rows go up into buffers kept between calls (grown to the largest m seen,
+        :class:`Staged`), so that a call allocates nothing in the steady state."""
         if not hasattr(self.backend, "delassus"):
             return None
         m = len(nodes)
@@ -489,8 +491,7 @@ class AsyncDevicePreconditioner:
         s_nodes, s_coef = self._rows
         s_nodes.view()[:m] = nodes
         s_coef.view()[:m] = coef
-        W = self.backend.delassus(s_nodes.send(4 * m), s_coef.send(4 * m), self.dR, m)
-        return 0.5 * (W + W.T)
+        return self.backend.delassus(s_nodes.send(4 * m), s_coef.send(4 * m), self.dR, m)
 
     # -------------------------------------------------------------- lifecycle
     def invalidate(self) -> None:

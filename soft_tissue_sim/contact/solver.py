@@ -185,9 +185,13 @@ class ContactSolver:
         (the surface, by its serial, the positions' and the detection's arrays, the options);
         the surface is brought up to date here, outside any capture."""
         topo = self._topology(body.fem)
-        o = self.options
         return (topo.serial, len(topo.surface), body.integrator.x.ptr, topo.x_start.ptr, topo.reach.ptr,
-                topo.min_gap.ptr, o["distance"], o["facing"], o["self_depth"], self.faces)
+                topo.min_gap.ptr, *self._detection_options())
+
+    def _detection_options(self) -> tuple:
+        """The options a detection's launches take by value (part of their graphs' keys)."""
+        o = self.options
+        return o["distance"], o["facing"], o["self_depth"], self.faces
 
     def launch_penetration(self, body) -> wp.array | None:
         """Launch a detection at the tissue's current positions (after the correction), with the
@@ -214,9 +218,7 @@ class ContactSolver:
         integ = body.integrator
         topo = self._topology(body.fem)
         upload_objects(topo, self.objects)
-        o = self.options
-        return (topo.serial, integ.x.ptr, integ.v.ptr, float(integ.dt), body.fem.free.ptr, o["distance"],
-                o["facing"], o["self_depth"], self.faces)
+        return (topo.serial, integ.x.ptr, integ.v.ptr, float(integ.dt), body.fem.free.ptr, *self._detection_options())
 
     def launch_detection_of(self, body: BodyView) -> list[wp.array]:
         """Launch the detection of the free motion (``body.integrator``'s x and v) prepared by
@@ -318,20 +320,21 @@ class ContactSolver:
         n = body.fem.n_nodes
         k = len(c.node)
         normal = c.normal
-        t1, t2 = tangent_basis(normal)
         obj_mu = np.array([o["friction"] if obj.friction is None else obj.friction for obj in self.objects] or [0.0])
         mu = np.where(c.obj >= 0, obj_mu[np.maximum(c.obj, 0)], o["friction"])
         rows = np.where(mu > 0.0, 3, 1).astype(np.int32)
         row_start = (np.cumsum(rows) - rows).astype(np.int32)
         m = int(rows.sum())
         fr = rows == 3
+        friction = bool(fr.any())
+        t1, t2 = tangent_basis(normal) if friction else (None, None)  # the tangent rows' directions
         # H (m x 3n) in node form and delta^0 (m): row r moves the nodes of its contact along its
         # direction (the normal, then the two tangents with friction) times their weights
         d0 = np.zeros(m)
         d0[row_start] = c.gap
         dirs = np.empty((m, 3))
         dirs[row_start] = normal
-        if fr.any():
+        if friction:
             # relative displacement during the step of the tissue point against the other surface
             f_rows = np.flatnonzero(fr)
             nf = np.maximum(nodes4[f_rows], 0)
@@ -367,9 +370,10 @@ class ContactSolver:
         found, f = self._warm.lookup(names)
         r = row_start[found]
         lam[r] = np.maximum(0.0, np.einsum("kj,kj->k", f, normal[found]))
-        ff = fr[found]
-        lam[r[ff] + 1] = np.einsum("kj,kj->k", f[ff], t1[found][ff])
-        lam[r[ff] + 2] = np.einsum("kj,kj->k", f[ff], t2[found][ff])
+        if friction:
+            ff = fr[found]
+            lam[r[ff] + 1] = np.einsum("kj,kj->k", f[ff], t1[found][ff])
+            lam[r[ff] + 2] = np.einsum("kj,kj->k", f[ff], t2[found][ff])
         lam, its, res = self._pgs.solve(W, d0, row_start, rows, mu, o["max_iterations"], o["tolerance"],
                                         o["friction_cone"] == "pyramid", lam)
         stats.gs_iterations, stats.lcp_residual, stats.compliance = its, res, kind
@@ -385,8 +389,9 @@ class ContactSolver:
         # forces on the tissue, wrenches on the objects, warm start
         ln = lam[row_start]
         force = ln[:, None] * normal
-        rs = row_start[fr]
-        force[fr] += lam[rs + 1][:, None] * t1[fr] + lam[rs + 2][:, None] * t2[fr]
+        if friction:
+            rs = row_start[fr]
+            force[fr] += lam[rs + 1][:, None] * t1[fr] + lam[rs + 2][:, None] * t2[fr]
         self._set_wrenches(c, force)
         pressed = ln > 0.0
         self._warm = WarmStart(names[pressed], force[pressed])

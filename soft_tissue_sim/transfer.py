@@ -125,7 +125,8 @@ class Readback:
     """Host buffers kept for a fixed list of device arrays: :meth:`copy` enqueues their copies
     (plain launches, which a graph may capture: the buffers stay where they are while the
     arrays keep their shapes), :meth:`read` waits for the stream once and returns NumPy views
-    (overwritten by the next copy). Page-locked on a GPU."""
+    (overwritten by the next copy). Page-locked on a GPU; on the CPU device the views are the
+    arrays' own memory, as :func:`to_host` gives them (nothing is copied)."""
 
     def __init__(self):
         self._bufs: list[wp.array] = []
@@ -134,10 +135,12 @@ class Readback:
         for i, a in enumerate(arrays):
             if i == len(self._bufs):
                 self._bufs.append(None)
+            if a.device.is_cpu:
+                self._bufs[i] = a
+                continue
             b = self._bufs[i]
             if b is None or b.shape != a.shape or b.dtype != a.dtype:
-                b = PINNED.empty(a.shape, a.dtype) if a.device.is_cuda else wp.empty(a.shape, dtype=a.dtype, device="cpu")
-                self._bufs[i] = b
+                b = self._bufs[i] = PINNED.empty(a.shape, a.dtype)
             wp.copy(b, a)
         del self._bufs[len(arrays):]
 

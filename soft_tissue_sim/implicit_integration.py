@@ -252,8 +252,9 @@ class BackwardEuler:
         # the node rotations of eq. (2) launched by build() where the preconditioner takes them
         # from there (its begin_step reads fem's node rotations as build left them)
         self.node_rotations_in_build = bool(getattr(preconditioner, "uses_build_rotations", False))
-        # graph_build: build()'s launches captured as a graph and replayed while build_key holds
-        self.graph_build = False
+        # graph_steps: the step's launches between its reads (build, after the solve, and the
+        # caller's, e.g. the contact correction) captured as graphs and replayed while their keys hold
+        self.graph_steps = False
         self._build_replay = graphs.Replayer(self.device, "BackwardEuler.build")
         self.state_version = 0  # counts set_state calls: with step_index, names the state (x, v)
         self._allocate()
@@ -322,10 +323,10 @@ class BackwardEuler:
 
     def build(self) -> None:
         """Rotations at u_t and the right-hand side b of eq. (1) (and the node rotations where
-        :attr:`node_rotations_in_build`). Launches only; with :attr:`graph_build` they are
+        :attr:`node_rotations_in_build`). Launches only; with :attr:`graph_steps` they are
         captured (a CUDA graph; Warp's API capture on the CPU) once per :meth:`build_key` and
         replayed (:class:`soft_tissue_sim.graphs.Replayer`)."""
-        self._build_replay.run(self.build_key() if self.graph_build else None, self._launch_build)
+        self._build_replay.run(self.build_key() if self.graph_steps else None, self._launch_build)
         self.fem.node_rotations_current = self.node_rotations_in_build  # as the launches leave it
 
     def _launch_build(self) -> None:
@@ -468,7 +469,7 @@ class BackwardEuler:
             self._readback.copy(self.cg.scalars, self.launch_guard(), *extra)
 
         key = None
-        if self.graph_build and hook_key is not None:
+        if self.graph_steps and hook_key is not None:
             key = (self.graph_key(), self.x.ptr, self.v.ptr, self.dv.ptr, self._guard.ptr, self.cg.scalars.ptr,
                    float(self.dt), hook_key, self._readback.key())
         self._after_replay.run(key, launches)

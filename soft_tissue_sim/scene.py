@@ -262,7 +262,7 @@ class Simulation:
         use_graph = graph == "true" or (graph == "auto" and device_factor and wp.get_device(self.device).is_cuda)
         if device_factor or use_graph:  # PCG with its scalars on the device (captured as a graph if use_graph)
             self.integrator.cg = DevicePCG(self.fem.n_nodes, self.device, float(tol), int(max_it), graph=use_graph)
-        self.integrator.graph_build = use_graph  # the step's forces and right-hand side as one graph too
+        self.integrator.graph_steps = use_graph  # the step's other launches as graphs too
         # Optional components: built only when the scene names them.
         self.contact = None
         self.cutting = None
@@ -492,8 +492,8 @@ class Simulation:
     def _correct(self, dx) -> list:
         """x += dx, v += dx / dt (``dx`` None: no correction), then the guard's values and the
         smallest gap of a detection at the corrected positions, read in one wait: [guard, gap]
-        (no gap where the tissue has no surface). Where the build is graphed these launches are
-        too (a device dx), as one graph per arguments."""
+        (no gap where the tissue has no surface). Where the step is graphed (``graph_steps``)
+        these launches are too (a device dx), as one graph per arguments."""
         integ, view = self.integrator, self.view()
 
         def launches():
@@ -503,7 +503,7 @@ class Simulation:
             self._readback.copy(integ.launch_guard(), *([gap] if gap is not None else []))
 
         key = None
-        if integ.graph_build and (dx is None or isinstance(dx, wp.array)):
+        if integ.graph_steps and (dx is None or isinstance(dx, wp.array)):
             key = (None if dx is None else dx.ptr, integ.graph_key(), integ.v.ptr, integ._guard.ptr, float(integ.dt),
                    self.contact.penetration_key(view), self._readback.key())
         self._correction_replay.run(key, launches)

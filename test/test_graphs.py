@@ -113,8 +113,8 @@ def test_the_captured_build_replays_the_plain_launches_and_is_recaptured_for_new
                      "ldlt": {"backend": "dense", "deterministic": True}}}
     with load_scene("test_small.yaml", device=DEVICE, overrides=ov) as a, \
             load_scene("test_small.yaml", device=DEVICE, overrides=ov) as b:
-        assert a.integrator.graph_build and a.integrator.node_rotations_in_build
-        b.integrator.graph_build = False
+        assert a.integrator.graph_steps and a.integrator.node_rotations_in_build
+        b.integrator.graph_steps = False
         for _ in range(4):
             a.step()
             b.step()

@@ -375,7 +375,8 @@ class CorotationalFEM:
             reuse[k] = _same_rest_shape(X, np.take(T, k, axis=0), prev[0], np.take(prev[1], src[k], axis=0))
         if reuse.any():  # every tet's from its source, then the computed ones overwritten
             take = np.where(reuse, src, 0)
-            Dm_inv, vol = np.take(prev[2], take, axis=0), np.take(prev[3], take)
+            host = self._element_host  # the previous mesh's Dm^-1 and volumes (their bytes)
+            Dm_inv, vol = np.take(host["Dm_inv"], take, axis=0), np.take(host["volume"], take)
         else:
             Dm_inv, vol = np.empty((m, 3, 3)), np.empty(m)
         new = np.flatnonzero(~reuse)
@@ -416,7 +417,7 @@ class CorotationalFEM:
         self._cols = wp.empty(nt, dtype=wp.int32, device=d)
         self._vals = wp.empty(nt, dtype=wp.mat33d, device=d)
         self.total_mass = float(lumped.sum())
-        self._rest_tets = (X, T, Dm_inv, vol)  # what the next set_mesh may take over (tet_source)
+        self._rest_tets = (X, T)  # with _element_host: what the next set_mesh may take over (tet_source)
 
     def _element_array(self, name: str, host: np.ndarray, dtype) -> wp.array:
         """The device array of the per-element data ``host``: the one ``name`` already holds

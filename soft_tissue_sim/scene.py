@@ -286,7 +286,7 @@ class Simulation:
         if not (self.guard_ratio == 0.0 or self.guard_ratio > 1.0):
             raise ParameterError(f"guard energy_ratio must be 0 (off) or > 1, got {self.guard_ratio}")
         self.integrator.read_guard = self.guard_ratio > 0
-        self._contact_begun = False  # this step's instruments took their poses (ContactSolver.launch)
+        self._contact_begun = False  # this step's instruments took their poses (ContactSolver.prepare)
         if self.contact is not None:  # the detection launched after the free motion, read with its result
             self.integrator.after_solve = self._launch_contact
         self._readback = Readback()  # the guard and the gap after a contact correction

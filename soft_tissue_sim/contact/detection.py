@@ -259,10 +259,8 @@ def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_featur
         return
     args = (x, x_features, reach, x_start, float(distance), float(facing), float(depth), bool(faces))
     dev = wp.get_device(device)
-    if not dev.is_cuda:
-        _launch_all(topo, objects, *args, dev)
-        return
-    key = (x.ptr, x_features.ptr, reach.ptr, None if x_start is None else x_start.ptr) + args[4:]
+    key = (x.ptr, x_features.ptr, reach.ptr, None if x_start is None else x_start.ptr) + args[4:] if dev.is_cuda \
+        else None  # on the CPU: plain launches
     topo.replay.run(key, lambda: _launch_all(topo, objects, *args, dev))
 
 

@@ -234,28 +234,23 @@ class ContactSolver:
         self._launch(topo, integ.x, topo.x_start, topo.x_start)
         return [integ.x, topo.x_start, body.fem.free, *topo.out.arrays]
 
-    def launch(self, body: BodyView, begin: bool = True) -> list[wp.array]:
-        """:meth:`prepare` and :meth:`launch_detection_of`: the arrays :meth:`step` reads,
-        unread (read them with whatever else the caller reads in that wait)."""
-        self.prepare(body, begin)
-        return self.launch_detection_of(body)
-
     def step(self, body: BodyView, host: list | None = None, begin: bool = True) -> ContactResponse:
         """Detect the contacts of the free motion (``body.integrator``'s x and v), solve the LCP
         and update the wrenches and :attr:`contacts`. Returns the correction of x and v (the
         caller applies it, then may measure the penetration left with
         :meth:`launch_penetration`) and the statistics; ``body`` is only read.
 
-        ``host``: the arrays of :meth:`launch` for this state already read to the host (their
-        views, valid until the next read of those arrays); else launched here (``begin`` as
-        there) and read in one wait."""
+        ``host``: the arrays of :meth:`launch_detection_of` for this state already read to the
+        host (their views, valid until the next read of those arrays); else prepared
+        (``begin`` as in :meth:`prepare`), launched and read here in one wait."""
         t0 = time.perf_counter()
         o = self.options
         integ = body.integrator
         dt = integ.dt
         topo = self._topology(body.fem)
         if host is None:
-            host = to_host(*self.launch(body, begin))
+            self.prepare(body, begin)
+            host = to_host(*self.launch_detection_of(body))
         x, x_start, free, *outputs = host
         c = collect(topo, outputs) if len(topo.surface) else Contacts.empty()
         tri_feature = c.obj < 0

@@ -6,7 +6,7 @@ import itertools
 import numpy as np
 import pytest
 
-from soft_tissue_sim.contact.pgs import PGS, solve_pgs
+from soft_tissue_sim.contact.pgs import PGS
 
 
 def _spd(rng, m):
@@ -39,7 +39,7 @@ def test_frictionless_pgs_equals_the_exact_lcp_solution(seed):
     ref = _lcp_by_enumeration(W, d0)
     rows = np.ones(m, np.int32)
     lam0 = np.abs(rng.standard_normal(m)) * (seed % 2)  # cold and warm starts
-    lam, its, res = solve_pgs(W, d0, np.arange(m, dtype=np.int32), rows, np.zeros(m), 5000, 1e-13, False, lam0)
+    lam, its, res = PGS().solve(W, d0, np.arange(m, dtype=np.int32), rows, np.zeros(m), 5000, 1e-13, False, lam0)
     assert res <= 1e-13 and its < 5000
     np.testing.assert_allclose(lam, ref, atol=1e-10 * np.abs(ref).max())
     assert 0 < (ref > 0).sum() < m  # both kinds of rows present
@@ -54,8 +54,8 @@ def test_friction_stays_in_its_cone_and_the_normal_rows_are_complementary(pyrami
     d0 = rng.standard_normal(m)
     d0[::3] = -np.abs(d0[::3])  # every contact pressed
     mu = np.full(k, 0.4)
-    lam, its, res = solve_pgs(W, d0, np.arange(0, m, 3, dtype=np.int32), np.full(k, 3, np.int32), mu, 20000,
-                              1e-12, pyramid, np.zeros(m))
+    lam, its, res = PGS().solve(W, d0, np.arange(0, m, 3, dtype=np.int32), np.full(k, 3, np.int32), mu, 20000,
+                                1e-12, pyramid, np.zeros(m))
     assert res <= 1e-12
     ln, t = lam[::3], np.stack([lam[1::3], lam[2::3]], axis=1)
     d = W @ lam + d0
@@ -83,7 +83,7 @@ def test_a_reused_solver_solves_each_problem_as_a_fresh_one():
         args = (W, d0, np.arange(m, dtype=np.int32), np.ones(m, np.int32), np.zeros(m), 5000, 1e-13, False,
                 np.zeros(m))
         lam, its, res = pgs.solve(*args)
-        fresh = solve_pgs(*args)
+        fresh = PGS().solve(*args)
         assert res <= 1e-13 and its < 5000
         np.testing.assert_array_equal(lam, fresh[0])
         assert (its, res) == fresh[1:]

@@ -209,9 +209,3 @@ class PGS:
         its, res = a["info"]
         return a["lam"][:m].copy(), int(its), float(res)
 
-
-def solve_pgs(W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, rows: np.ndarray, mu: np.ndarray,
-              max_iterations: int, tolerance: float, pyramid: bool, lam0: np.ndarray) -> tuple[np.ndarray, int, float]:
-    """Solve the LCP from the warm start ``lam0``: (lambda, sweeps, residual [m]), with buffers of
-    its own (a solver that repeats solves keeps a :class:`PGS`)."""
-    return PGS().solve(W, d0, row_start, rows, mu, max_iterations, tolerance, pyramid, lam0)

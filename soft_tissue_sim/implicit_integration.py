@@ -249,6 +249,8 @@ class BackwardEuler:
         self.after_solve_reading = None
         self._readback = Readback()
         self._after_replay = graphs.Replayer(self.device, "BackwardEuler after the solve", slots=2)
+        self._correction_read = Readback()
+        self._correction_replay = graphs.Replayer(self.device, "BackwardEuler correction", slots=2)
         # the node rotations of eq. (2) launched by build() where the preconditioner takes them
         # from there (its begin_step reads fem's node rotations as build left them)
         self.node_rotations_in_build = bool(getattr(preconditioner, "uses_build_rotations", False))
@@ -470,10 +472,33 @@ class BackwardEuler:
 
         key = None
         if self.graph_steps and hook_key is not None:
-            key = (self.graph_key(), self.x.ptr, self.v.ptr, self.dv.ptr, self._guard.ptr, self.cg.scalars.ptr,
-                   float(self.dt), hook_key, self._readback.key())
+            key = (self._state_arrays_key(), self.dv.ptr, self.cg.scalars.ptr, hook_key, self._readback.key())
         self._after_replay.run(key, launches)
         return self._readback.read(self.device)
+
+    def correct_and_read(self, dx, hook: tuple = ((), None)) -> list:
+        """x += dx, v += dx / dt (:meth:`correct`; ``dx`` None: none), then the guard's reduction
+        and ``hook``'s launches (``(key, launch)`` as ``after_solve`` returns them: launched after
+        the correction, their arrays read with the guard), in one wait: [guard, *the hook's
+        arrays]. Where the step is graphed (and dx is on the device) as one graph per arguments."""
+        hook_key, hook_launch = hook
+
+        def launches():
+            if dx is not None:
+                self.correct(dx)
+            extra = hook_launch() if hook_launch is not None else []
+            self._correction_read.copy(self.launch_guard(), *extra)
+
+        key = None
+        if self.graph_steps and hook_key is not None and (dx is None or isinstance(dx, wp.array)):
+            key = (None if dx is None else dx.ptr, self._state_arrays_key(), hook_key, self._correction_read.key())
+        self._correction_replay.run(key, launches)
+        return self._correction_read.read(self.device)
+
+    def _state_arrays_key(self) -> tuple:
+        """What the update, the correction and the guard's launches depend on: the operator's
+        graph_key (FEM arrays, sizes, coefficients), the state's and the guard's arrays, dt."""
+        return self.graph_key(), self.x.ptr, self.v.ptr, self._guard.ptr, float(self.dt)
 
     def energy(self) -> tuple[float, float, float]:
         """(kinetic, gravitational potential, elastic) energy at the current state."""

@@ -72,7 +72,7 @@ from .material import Damping, MaterialTable, ParameterError
 from .paths import resolve_path
 from .preconditioner import make_preconditioner
 from .stats import GuardStats
-from .transfer import Readback, to_host
+from .transfer import to_host
 
 if TYPE_CHECKING:  # built only in scenes that name cutting
     from .cutting import CutPlan, CutResult, Tissue
@@ -289,8 +289,6 @@ class Simulation:
         self._contact_begun = False  # this step's instruments took their poses (ContactSolver.prepare)
         if self.contact is not None:  # the detection launched after the free motion, read with its result
             self.integrator.after_solve = self._launch_contact
-        self._readback = Readback()  # the guard and the gap after a contact correction
-        self._correction_replay = graphs.Replayer(self.device, "contact correction", slots=2)
         size = float(np.ptp(self.mesh.points, axis=0).max())
         g = float(np.linalg.norm(self.integrator.gravity))
         self._energy_floor = self.fem.total_mass * (g * size + 0.5)  # weight over the body size + 1 m/s
@@ -492,22 +490,15 @@ class Simulation:
     def _correct(self, dx) -> list:
         """x += dx, v += dx / dt (``dx`` None: no correction), then the guard's values and the
         smallest gap of a detection at the corrected positions, read in one wait: [guard, gap]
-        (no gap where the tissue has no surface). Where the step is graphed (``graph_steps``)
-        these launches are too (a device dx), as one graph per arguments."""
-        integ, view = self.integrator, self.view()
+        (no gap where the tissue has no surface); see :meth:`BackwardEuler.correct_and_read`."""
+        view = self.view()
 
-        def launches():
-            if dx is not None:
-                integ.correct(dx)
+        def penetration():
             gap = self.contact.launch_penetration(view)
-            self._readback.copy(integ.launch_guard(), *([gap] if gap is not None else []))
+            return [] if gap is None else [gap]
 
-        key = None
-        if integ.graph_steps and (dx is None or isinstance(dx, wp.array)):
-            key = (None if dx is None else dx.ptr, integ.graph_key(), integ.v.ptr, integ._guard.ptr, float(integ.dt),
-                   self.contact.penetration_key(view), self._readback.key())
-        self._correction_replay.run(key, launches)
-        return self._readback.read(self.device)
+        key = self.contact.penetration_key(view) if self.integrator.graph_steps else None  # None: not captured
+        return self.integrator.correct_and_read(dx, (key, penetration))
 
     def _contact_response(self, stats: StepStats) -> None:
         """The contact step under the divergence guard: a correction that leaves NaN or a runaway

@@ -200,7 +200,7 @@ def test_the_captured_contact_launches_give_the_steps_of_plain_launches():
                 st = sim.step()
                 pens.append(st.contact.max_penetration)
                 contacts.append(st.contact.contacts)
-            rep, after = sim._correction_replay, sim.integrator._after_replay
+            rep, after = sim.integrator._correction_replay, sim.integrator._after_replay
             out[graph] = (sim.positions(), np.array(pens), rep.captures, rep.replays, sim._ke_state[0])
             assert contacts[-1] > 0  # the probe is in contact: the correction moves the tissue
             assert (after.captures >= 1 and after.replays >= 2) == graph

@@ -24,7 +24,8 @@ exact factor every step, unrotated: the reference). The factor's backend (``ldlt
 * ``cholmod``: CHOLMOD's sparse LDL^T on the host, in a background worker
   (:mod:`soft_tissue_sim.ldlt_preconditioner`), applied on the host;
 * ``dense``: the dense inverse on the device (:mod:`soft_tissue_sim.dense_inverse`;
-  cuSOLVER on a GPU, LAPACK on Warp's CPU backend);
+  cuSOLVER on a GPU, LAPACK on Warp's CPU backend), applied from a single-precision copy
+  (``apply_precision``: auto = float32 on a GPU for ``async_ldlt``, float64 otherwise);
 * ``cudss``: cuDSS's sparse factor on the GPU (:mod:`soft_tissue_sim.cudss_factor`; no
   cutting, no contact);
 * ``auto``: CHOLMOD on the CPU; on a GPU the dense inverse up to ``dense_max_dofs`` degrees of
@@ -46,7 +47,7 @@ BACKENDS = ("auto", "cholmod", "dense", "cudss")
 DENSE_MAX_DOFS = 12_000  # auto: the dense inverse up to this size on a GPU (bench backends, docs/benchmarks.md)
 _RETIRED = {"apply_on", "columns_on", "lanes", "tail_width", "tail_block", "cols_lanes", "min_device_columns"}
 _LDLT_KEYS = {"backend", "rotate", "refresh_every", "device_refresh_every", "deterministic", "lag", "mode",
-              "ordering", "worker", "release_gil", "dense_max_dofs", "reserve_sms"}
+              "ordering", "worker", "release_gil", "dense_max_dofs", "reserve_sms", "apply_precision"}
 RESERVE_SMS = 16  # auto: SMs a GPU factorization leaves to the steps (sm_partition; docs/benchmarks.md)
 
 
@@ -185,10 +186,15 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, meta_fn=None, dev
     if isinstance(reserve, bool) or not isinstance(reserve, int) or reserve < 0:
         raise ParameterError(f"ldlt reserve_sms must be auto or a whole number >= 0, got {reserve!r}")
     sched["reserve_sms"] = reserve
+    precision = str(options.get("apply_precision", "auto"))
+    if precision not in ("auto", "float64", "float32"):
+        raise ParameterError(f"ldlt apply_precision must be auto, float64 or float32, got {precision!r}")
     if backend == "dense":
         from .dense_inverse import DenseInverse
 
-        factor = DenseInverse(device)
+        if precision == "auto":  # single precision where the apply is bandwidth-bound: a GPU's async factor
+            precision = "float32" if wp.get_device(device).is_cuda and not direct else "float64"
+        factor = DenseInverse(device, precision)
     else:
         from .cudss_factor import CuDSSFactor
 

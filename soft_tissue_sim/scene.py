@@ -30,6 +30,8 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
                                                   #   steps after its request (a background
                                                   #   factorization's delay, reproducibly)
                     dense_max_dofs: 12000,        # auto on a GPU: the dense inverse up to this size
+                    apply_precision: auto,        # dense: the matrix the apply reads, float32 | float64
+                                                  #   (auto: float32 on a GPU, float64 on the CPU and for direct)
                     mode: auto,                   # cholmod: auto | simplicial | supernodal
                     ordering: default,            # cholmod: default | amd | metis | nesdis | best | ...
                     worker: thread,               # cholmod: thread | process (two factorization processes)

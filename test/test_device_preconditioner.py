@@ -73,8 +73,9 @@ def _apply(pre, r, device):
 @pytest.mark.parametrize("scene", ["test_small.yaml", "layered", "brain"])
 def test_device_factor_solves_like_a_direct_solve(scene, backend):
     """At the state the factor was made (dR = I), P^-1 r = A^-1 r to 1e-10 (SuperLU here as an
-    independent direct solve)."""
-    with load_scene(_scene(scene), device=DEVICE, overrides={"solver": _solver(backend=backend)}) as sim:
+    independent direct solve), the dense inverse applied in double precision."""
+    ov = {"solver": _solver(backend=backend, apply_precision="float64")}
+    with load_scene(_scene(scene), device=DEVICE, overrides=ov) as sim:
         integ = sim.integrator
         sim.step()
         integ.build()
@@ -101,7 +102,7 @@ def test_rotated_device_apply_equals_the_host_apply(backend):
     for b in (backend, "cholmod"):
         dev = DEVICE if b != "cholmod" else "cpu"
         sims[b] = load_scene("beam_2000.yaml" if CUDA else _layered_beam(), device=dev,
-                             overrides={"solver": _solver(backend=b, refresh_every=1000)})
+                             overrides={"solver": _solver(backend=b, refresh_every=1000, apply_precision="float64")})
     try:
         for s in sims.values():
             for _ in range(12):  # swinging down: the factor of step 0 is stale and rotated
@@ -397,6 +398,9 @@ def test_backend_options():
     with pytest.raises(ParameterError, match="dense_max_dofs"):
         load_scene("test_small.yaml", device="cpu",
                    overrides={"solver": {**base, "ldlt": {"dense_max_dofs": -1}}})
+    with pytest.raises(ParameterError, match="apply_precision"):
+        load_scene("test_small.yaml", device="cpu",
+                   overrides={"solver": {**base, "ldlt": {"backend": "dense", "apply_precision": "float16"}}})
     if CUDA:
         assert choose_backend("auto", DEVICE, 5202, True, True, 12000) == "dense"
         assert choose_backend("auto", DEVICE, 300_000, False, False, 12000) == "cudss"
@@ -461,6 +465,7 @@ def test_dense_inverse_after_chained_cuts_equals_a_fresh_factorization():
 
     cfg = beam_scene(rotate=False, backend="dense")
     cfg["device"] = DEVICE
+    cfg["solver"]["ldlt"]["apply_precision"] = "float64"
     rng = np.random.default_rng(0)
     with load_scene(cfg) as sim:
         for _ in range(3):
@@ -476,3 +481,58 @@ def test_dense_inverse_after_chained_cuts_equals_a_fresh_factorization():
         assert corrected_vs_fresh(sim, rng) < 1e-8
         assert sim.preconditioner.correction.folds >= 3
 
+
+
+@pytest.mark.parametrize("scene", ["layered", "brain"])
+def test_single_precision_apply_follows_the_double_precision_inverse(scene):
+    """``apply_precision``: auto reads a single-precision copy on a GPU and the inverse itself on
+    the CPU; the copy's P^-1 r is the double-precision one to 1e-5 (not to 1e-12: it is
+    another matrix), and the copy follows the inverse through installs (same address)."""
+    runs = {}
+    for precision in ("float64", "float32", "auto"):
+        ov = {"solver": _solver(refresh_every=1000, apply_precision=precision)}
+        with load_scene(_scene(scene), device=DEVICE, overrides=ov) as sim:
+            for _ in range(4):
+                sim.step()
+            integ, pre = sim.integrator, sim.preconditioner
+            integ.build()
+            pre.begin_step(integ)
+            P = pre.backend
+            expect = precision if precision != "auto" else ("float32" if CUDA else "float64")
+            assert P.precision == expect
+            assert (P.applied is P.inv32) == (expect == "float32")
+            ptr = P.applied.ptr
+            pre.refresh(integ)  # a new factor installed: the copy refreshed in place
+            assert P.applied.ptr == ptr
+            if expect == "float32":
+                assert np.array_equal(P.inv32.numpy(), P.inv.numpy().astype(np.float32))
+            pre.begin_step(integ)
+            rng = np.random.default_rng(5)
+            runs[precision] = [_apply(pre, rng.standard_normal((sim.mesh.n_nodes, 3)), DEVICE) for _ in range(3)]
+    for z64, z32 in zip(runs["float64"], runs["float32"]):
+        err = np.linalg.norm(z32 - z64) / np.linalg.norm(z64)
+        assert 1e-12 < err < 1e-5
+
+
+def test_single_precision_apply_after_chained_cuts_follows_the_folds():
+    """The single-precision copy is remade after each fold and regrow of eq. (5)-(10): after two
+    cuts and an element removal the applied preconditioner is the modified matrix's inverse to
+    1e-5 (the double-precision one: 1e-8, test_cutting and the test above)."""
+    from test_cutting import beam_scene, corrected_vs_fresh, crosswise, lengthwise
+
+    cfg = beam_scene(rotate=False, backend="dense")
+    cfg["device"] = DEVICE
+    cfg["solver"]["ldlt"]["apply_precision"] = "float32"
+    rng = np.random.default_rng(0)
+    with load_scene(cfg) as sim:
+        for _ in range(3):
+            sim.step()
+        sim.fem.update_rotations(sim.integrator.x)
+        sim.preconditioner.refresh(sim.integrator)
+        assert lengthwise(sim, 0.035, 0.08).changed
+        assert crosswise(sim, 0.055).changed
+        assert sim.remove_elements(sim.positions()[-1], 0.012).changed
+        P = sim.preconditioner.backend
+        assert sim.preconditioner.correction.folds >= 2 and P.inv32.shape == P.inv.shape
+        assert np.array_equal(P.inv32.numpy(), P.inv.numpy().astype(np.float32))
+        assert corrected_vs_fresh(sim, rng) < 1e-5

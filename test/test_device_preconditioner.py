@@ -217,18 +217,26 @@ def test_device_pcg_zero_and_nonfinite_right_hand_sides():
         assert res.iterations == 3 and not res.converged
 
 
+@pytest.mark.parametrize("precision", ["float64", "float32"])
 @pytest.mark.parametrize("graph", [False, True])
-def test_simulation_with_the_dense_backend_follows_the_cholmod_trajectory(graph):
+def test_simulation_with_the_dense_backend_follows_the_cholmod_trajectory(graph, precision):
+    """The same steps as CHOLMOD's preconditioner on the same schedule: the same iterations
+    with the inverse applied in double precision; in single precision a solve that ends at
+    its tolerance may take one iteration more or less, the positions the same to 1e-8."""
     runs = {}
     for backend in ("cholmod", "dense"):
-        ov = {"solver": _solver(backend=backend, graph=graph and backend == "dense", refresh_every=4)}
+        ov = {"solver": _solver(backend=backend, graph=graph and backend == "dense", refresh_every=4,
+                                apply_precision=precision)}
         with load_scene("test_small.yaml", device=DEVICE if backend == "dense" else "cpu", overrides=ov) as sim:
             its = [sim.step().iterations for _ in range(20)]
             runs[backend] = (sim.positions(), its, sim.preconditioner.stats(), sim.integrator.cg)
     (xh, ih, sh, _), (xd, idv, sd, cg) = runs["cholmod"], runs["dense"]
     assert sd["backend"] == "dense" and sh["backend"] == "cholmod"
     assert max(ih) > 3  # stale factors between refreshes: several iterations
-    assert idv == ih
+    if precision == "float64":
+        assert idv == ih
+    else:
+        assert max(abs(a - b) for a, b in zip(idv, ih)) <= 1
     assert np.abs(xd - xh).max() <= 1e-8
     with load_scene("test_small.yaml", device=DEVICE) as rest:
         assert np.abs(xh - rest.positions()).max() > 1e-3  # it moved

@@ -16,8 +16,9 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   far less than a factor a few steps old does; the corrections, W and the columns U keep
   using the double-precision inverse;
 * the Sherman-Morrison-Woodbury correction of eq. (5)-(7) is exact and folded into the
-  inverse: U = P^-1 G is a gather of columns, and P^-1 - U Q U^T replaces P^-1 (a rank-3k
-  update, cuBLAS ``gemm``);
+  inverse: U = P^-1 G is a gather of columns, Q = (I + N S)^-1 N a small solve on the device
+  (S = G^T U, nothing read back), and P^-1 - U Q U^T replaces P^-1 (a rank-3k update, cuBLAS
+  ``gemm``);
 * the Delassus operator W = H P^-1 H^T of eq. (4) gathers the 3x3 blocks of the contact
   nodes (:func:`delassus_kernel`, an entry of W per thread).
 
@@ -368,17 +369,19 @@ class DenseInverse:
         return to_host(self._W)[0][: m * m].reshape(m, m)
 
     # ----------------------------------------------------------- changing it
-    def fold(self, rows: np.ndarray, Q_fn) -> None:
-        """P^-1 <- P^-1 - U Q U^T with U = P^-1 G (G selecting ``rows``): the exact corrected
-        inverse of eq. (5)-(7). ``Q_fn(S)`` returns Q (host) from S = G^T P^-1 G (host).
-        Runs on the simulation's stream."""
+    def fold(self, rows: np.ndarray, N: np.ndarray) -> None:
+        """P^-1 <- P^-1 - U Q U^T with U = P^-1 G (G selecting ``rows``) and Q = (I + N S)^-1 N,
+        S = G^T P^-1 G (:func:`~soft_tissue_sim.sherman_morrison.woodbury_q`): the exact
+        corrected inverse of eq. (5)-(7) for the perturbation N (host). Runs on the
+        simulation's stream, Q included: nothing is read back."""
+        from .sherman_morrison import woodbury_q
+
         xp = self.xp
         with xp_stream(xp, wp.get_stream(self.device) if self.device.is_cuda else None):
             P = self.matrix()
             r = xp.asarray(rows)
             U = xp.ascontiguousarray(P[r].T)  # columns of the symmetric P: rows are contiguous
-            S = U[r]
-            Q = xp.asarray(Q_fn(S if xp is np else xp.asnumpy(S)))
+            Q = woodbury_q(xp.asarray(N), U[r], xp)
             V = U @ Q
             if xp is np:
                 P -= U @ V.T

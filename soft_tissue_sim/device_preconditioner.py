@@ -39,7 +39,7 @@ import scipy.sparse as sps
 import warp as wp
 
 from . import graphs
-from .sherman_morrison import Modification, perturbation, woodbury_q
+from .sherman_morrison import Modification, perturbation
 from .sm_partition import partitioned_stream
 from .transfer import Staged
 
@@ -393,7 +393,7 @@ class AsyncDevicePreconditioner:
         corr = self.correction
         if corr is None or corr.enabled:
             rows = (3 * idx[:, None] + np.arange(3)).ravel()
-            self.backend.fold(rows, lambda S: woodbury_q(N, S))
+            self.backend.fold(rows, N)
         if corr is not None:
             corr.folds += 1
             corr.u_ms += 1000.0 * (time.perf_counter() - t0)

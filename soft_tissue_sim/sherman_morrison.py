@@ -117,10 +117,11 @@ def perturbation(mod: Modification, R_ref: np.ndarray, new_uids: np.ndarray, rot
     return N
 
 
-def woodbury_q(N: np.ndarray, S: np.ndarray) -> np.ndarray:
+def woodbury_q(N, S, xp=np):
     """Q = (I + N S)^-1 N (symmetric), the Woodbury form of eq. (7) that needs no N^-1
-    (N is singular in general); S = G^T P^-1 G."""
-    Q = np.linalg.solve(np.eye(len(N)) + N @ S, N)
+    (N is singular in general); S = G^T P^-1 G. ``xp``: the array module of N and S (NumPy, or
+    CuPy for a factor on the GPU: then Q is made on the device, without reading S)."""
+    Q = xp.linalg.solve(xp.eye(len(N)) + N @ S, N)
     return 0.5 * (Q + Q.T)
 
 

@@ -20,7 +20,8 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   (S = G^T U, nothing read back), and P^-1 - U Q U^T replaces P^-1 (a rank-3k update, cuBLAS
   ``gemm``);
 * the Delassus operator W = H P^-1 H^T of eq. (4) gathers the 3x3 blocks of the contact
-  nodes (:func:`delassus_kernel`, an entry of W per thread).
+  nodes (:func:`delassus_kernel`, an entry of W per thread; :func:`delassus_matrix_kernel`
+  for a row count read on the device, the contact LCP solved there).
 
 The matrix is symmetric and stored row-major (C order); LAPACK and cuSOLVER see it as its
 column-major transpose, the same matrix. On the CPU ``potri`` fills one triangle, which
@@ -130,14 +131,12 @@ def dense_apply_kernel(P: wp.array2d(dtype=Any), s: wp.array(dtype=wp.float64),
         z[i] = dR[i] * wp.vec3d(a0, a1, a2)
 
 
-@wp.kernel
-def delassus_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.int32),
-                    coef: wp.array2d(dtype=wp.vec3d), dR: wp.array(dtype=wp.mat33d), m: int,
-                    W: wp.array(dtype=wp.float64)):
-    """W[a m + b] = h_a^T dR P dR^T h_b for the first m constraint rows, given as up to 4 (node,
-    3-vector) pairs each (node -1: none): each pair rotated into the factor's frame by dR_n^T,
-    then 3x3 blocks of P gathered, one entry per thread (W row-major with row length m)."""
-    a, b = wp.tid()
+@wp.func
+def delassus_entry(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.int32),
+                   coef: wp.array2d(dtype=wp.vec3d), dR: wp.array(dtype=wp.mat33d), a: int, b: int):
+    """h_a^T dR P dR^T h_b for constraint rows a and b given as up to 4 (node, 3-vector) pairs
+    each (node -1: none): each pair rotated into the factor's frame by dR_n^T, then 3x3 blocks
+    of P gathered."""
     acc = wp.float64(0.0)
     for k in range(4):
         i = nodes[a, k]
@@ -150,7 +149,31 @@ def delassus_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.
                     for p in range(3):
                         for q in range(3):
                             acc += ca[p] * P[3 * i + p, 3 * j + q] * cb[q]
-    W[a * m + b] = acc
+    return acc
+
+
+@wp.kernel
+def delassus_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.int32),
+                    coef: wp.array2d(dtype=wp.vec3d), dR: wp.array(dtype=wp.mat33d), m: int,
+                    W: wp.array(dtype=wp.float64)):
+    """W[a m + b] = h_a^T dR P dR^T h_b (:func:`delassus_entry`) for the first m constraint rows,
+    one entry per thread (W row-major with row length m)."""
+    a, b = wp.tid()
+    W[a * m + b] = delassus_entry(P, nodes, coef, dR, a, b)
+
+
+@wp.kernel
+def delassus_matrix_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.int32),
+                           coef: wp.array2d(dtype=wp.vec3d), dR: wp.array(dtype=wp.mat33d),
+                           sizes: wp.array(dtype=wp.int32), scale: wp.float64, W: wp.array2d(dtype=wp.float64)):
+    """W[a, b] = scale (W_ab + W_ba) / 2 (:func:`delassus_entry`, symmetric by construction) for
+    a, b < sizes[0], the number of rows read on the device: launched over W's whole capacity,
+    so that a captured launch serves every row count."""
+    a, b = wp.tid()
+    m = sizes[0]
+    if a < m and b < m:
+        W[a, b] = scale * wp.float64(0.5) * (delassus_entry(P, nodes, coef, dR, a, b)
+                                             + delassus_entry(P, nodes, coef, dR, b, a))
 
 
 def array_module(device):
@@ -367,6 +390,13 @@ class DenseInverse:
             self._W = wp.empty(m * m, dtype=wp.float64, device=self.device)
         wp.launch(delassus_kernel, (m, m), [self.inv, nodes, coef, dR, m, self._W], device=self.device)
         return to_host(self._W)[0][: m * m].reshape(m, m)
+
+    def delassus_matrix(self, nodes: wp.array, coef: wp.array, dR: wp.array, sizes: wp.array, scale: float,
+                        W: wp.array) -> None:
+        """W[:m, :m] = scale H dR A^-1 dR^T H^T, symmetric, for the first m = sizes[0] rows (read
+        on the device: launches only, over W's capacity)."""
+        wp.launch(delassus_matrix_kernel, W.shape, [self.inv, nodes, coef, dR, sizes, float(scale), W],
+                  device=self.device)
 
     # ----------------------------------------------------------- changing it
     def fold(self, rows: np.ndarray, N: np.ndarray) -> None:

@@ -493,6 +493,20 @@ class AsyncDevicePreconditioner:
         s_coef.view()[:m] = coef
         return self.backend.delassus(s_nodes.send(4 * m), s_coef.send(4 * m), self.dR, m)
 
+    def solves_contact_on_device(self) -> bool:
+        """Can the contact LCP be solved where the factor is (:mod:`..contact.device_lcp`): a
+        backend that gathers W from a row count on the device (the dense inverse), installed."""
+        return hasattr(self.backend, "delassus_matrix") and self.device_capable()
+
+    def delassus_matrix(self, nodes: wp.array, coef: wp.array, sizes: wp.array, scale: float, W: wp.array) -> None:
+        """W[:m, :m] = scale H P^-1 H^T for the first m = sizes[0] constraint rows in node form
+        (device arrays): launches only (see :meth:`solves_contact_on_device`)."""
+        self.backend.delassus_matrix(nodes, coef, self.dR, sizes, scale, W)
+
+    def delassus_key(self) -> tuple:
+        """What :meth:`delassus_matrix`'s launch depends on besides its arguments."""
+        return self.backend.inv.ptr, self.backend.n3, self.dR.ptr
+
     # -------------------------------------------------------------- lifecycle
     def invalidate(self) -> None:
         self.mods = []

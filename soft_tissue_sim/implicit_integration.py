@@ -476,22 +476,26 @@ class BackwardEuler:
         self._after_replay.run(key, launches)
         return self._readback.read(self.device)
 
-    def correct_and_read(self, dx, hook: tuple = ((), None)) -> list:
+    def correct_and_read(self, dx, hook: tuple = ((), None), solve=None) -> list:
         """x += dx, v += dx / dt (:meth:`correct`; ``dx`` None: none), then the guard's reduction
         and ``hook``'s launches (``(key, launch)`` as ``after_solve`` returns them: launched after
-        the correction, their arrays read with the guard), in one wait: [guard, *the hook's
-        arrays]. Where the step is graphed (and dx is on the device) as one graph per arguments."""
+        the correction, their arrays read with the guard), in one wait: [guard, *solve's arrays,
+        *the hook's arrays]. ``solve``: launches that make dx first (``key()``, ``launch()`` ->
+        (dx, arrays to read); dx then None), e.g. a contact LCP solved on the device. Where the
+        step is graphed (and dx is on the device) as one graph per arguments."""
         hook_key, hook_launch = hook
 
         def launches():
-            if dx is not None:
-                self.correct(dx)
+            d, outs = solve.launch() if solve is not None else (dx, [])
+            if d is not None:
+                self.correct(d)
             extra = hook_launch() if hook_launch is not None else []
-            self._correction_read.copy(self.launch_guard(), *extra)
+            self._correction_read.copy(self.launch_guard(), *outs, *extra)
 
         key = None
         if self.graph_steps and hook_key is not None and (dx is None or isinstance(dx, wp.array)):
-            key = (None if dx is None else dx.ptr, self._state_arrays_key(), hook_key, self._correction_read.key())
+            key = (None if dx is None else dx.ptr, None if solve is None else solve.key(), self._state_arrays_key(),
+                   hook_key, self._correction_read.key())
         self._correction_replay.run(key, launches)
         return self._correction_read.read(self.device)
 

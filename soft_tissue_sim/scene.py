@@ -489,10 +489,11 @@ class Simulation:
         self._contact_begun = True
         return key, lambda: self.contact.launch_detection_of(view)
 
-    def _correct(self, dx) -> list:
-        """x += dx, v += dx / dt (``dx`` None: no correction), then the guard's values and the
-        smallest gap of a detection at the corrected positions, read in one wait: [guard, gap]
-        (no gap where the tissue has no surface); see :meth:`BackwardEuler.correct_and_read`."""
+    def _correct(self, dx, solve=None) -> list:
+        """x += dx, v += dx / dt (``dx`` None: no correction; ``solve``: a device LCP that makes
+        dx), then the guard's values and the smallest gap of a detection at the corrected
+        positions, read in one wait: [guard, *solve's output, gap] (no gap where the tissue has
+        no surface); see :meth:`BackwardEuler.correct_and_read`."""
         view = self.view()
 
         def penetration():
@@ -500,7 +501,7 @@ class Simulation:
             return [] if gap is None else [gap]
 
         key = self.contact.penetration_key(view) if self.integrator.graph_steps else None  # None: not captured
-        return self.integrator.correct_and_read(dx, (key, penetration))
+        return self.integrator.correct_and_read(dx, (key, penetration), solve)
 
     def _contact_response(self, stats: StepStats) -> None:
         """The contact step under the divergence guard: a correction that leaves NaN or a runaway
@@ -512,16 +513,24 @@ class Simulation:
         ke_free = 0.0
         if self.guard_ratio > 0:
             ke_free = self._known_kinetic_energy()
-        try:
-            read = integ.after_solve_reading  # the detection read with the free motion, if of this state
-            host = read[1] if read is not None and read[0] == self._state_key() else None
-            response = self.contact.step(self.view(), host, begin=not self._contact_begun)
-            reason = None
-        except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
-            reason = f"contact solve failed: {type(exc).__name__}: {exc}"
-        if reason is None:
+        read = integ.after_solve_reading  # the detection read with the free motion, if of this state
+        host = read[1] if read is not None and read[0] == self._state_key() else None
+        reason = None
+        for device_lcp in (True, False):
+            try:
+                response = self.contact.step(self.view(), host, begin=device_lcp and not self._contact_begun,
+                                             device_lcp=device_lcp)
+            except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
+                reason = f"contact solve failed: {type(exc).__name__}: {exc}"
+                break
             stats.contact = response.stats
-            guard, *rest = self._correct(response.dx)
+            guard, *rest = self._correct(response.dx, response.device)
+            if response.device is None or response.device.finish(rest.pop(0)):
+                break
+            # W not positive definite on the device (nothing was corrected): this step's contacts
+            # again, on the host, where the block diagonal of A stands in
+            self._restore_state(free)
+        if reason is None:
             ke, nonfinite = float(guard[0]), float(guard[1])
             if rest and np.isfinite(rest[0][0]):
                 stats.contact.max_penetration = float(max(0.0, -rest[0][0]))

@@ -38,6 +38,7 @@ class ContactStats:
     contact_ms: float = 0.0
     compliance: str | None = None  # the compliance W was built with (when there were contacts)
     compliance_fallbacks: int | None = None  # running total of fallbacks to the diagonal (idem)
+    lcp_device: bool | None = None  # the LCP was solved on the device, with the correction
 
 
 @dataclass

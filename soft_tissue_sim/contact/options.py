@@ -14,6 +14,8 @@ Scene options (all optional)::
                              # (default 2 x distance); deeper is the far side of the body
       compliance: preconditioner   # preconditioner | diagonal | exact (see contact.compliance)
       max_contacts: 2048     # keep the deepest ones beyond this
+      device_lcp_rows: 32    # with a dense factor: solve an LCP of up to this many rows on the
+                             # device, with the correction (0: always on the host)
 
 Invariant: :func:`parse_options` returns every key of :data:`DEFAULTS`, validated, or raises
 :class:`~soft_tissue_sim.material.ParameterError` with a message.
@@ -36,6 +38,7 @@ DEFAULTS = {
     "self_depth": None,
     "compliance": "preconditioner",
     "max_contacts": 2048,
+    "device_lcp_rows": 32,
 }
 
 
@@ -58,6 +61,9 @@ def parse_options(cfg) -> dict:
     for key in ("max_iterations", "max_contacts"):
         if isinstance(o[key], bool) or not isinstance(o[key], int) or o[key] < 1:
             raise ParameterError(f"contact {key} must be an integer >= 1, got {o[key]!r}")
+    rows = o["device_lcp_rows"]
+    if isinstance(rows, bool) or not isinstance(rows, int) or not 0 <= rows <= 256:
+        raise ParameterError(f"contact device_lcp_rows must be an integer in [0, 256], got {rows!r}")
     if not isinstance(o["self_collision"], bool):
         raise ParameterError(f"contact self_collision must be true or false, got {o['self_collision']!r}")
     if o["friction_cone"] not in ("disk", "pyramid"):

@@ -10,6 +10,7 @@ tissue is pushed; ``gap`` < 0 is a penetration; ``bary`` sums to 1 on rows with 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -76,3 +77,4 @@ class ContactResponse:
 
     dx: np.ndarray | wp.array | None  # (n, 3) [m] (a (n,) vec3d device array on a GPU), zero on fixed nodes
     stats: ContactStats
+    device: Any = None  # a contact.device_lcp.PendingLCP where the LCP is solved with the correction (dx None)

@@ -24,6 +24,7 @@ from ..material import ParameterError
 from ..stats import ContactStats
 from ..transfer import to_host
 from .compliance import compliance, positive_definite
+from .device_lcp import DeviceLCP, PendingLCP, scaled_free_kernel
 from .detection import SurfaceTopology, collect, launch_detection, launch_min_gap, launch_start, upload_objects
 from .geometry import cross, tangent_basis
 from .jacobian import ConstraintRows
@@ -31,14 +32,6 @@ from .options import parse_options
 from .pgs import PGS
 from .records import ContactResponse, Contacts
 from .warm import WarmStart, contact_names
-
-
-@wp.kernel
-def _scaled_free_kernel(y: wp.array(dtype=wp.vec3d), s: wp.float64, free: wp.array(dtype=wp.float64),
-                        out: wp.array(dtype=wp.vec3d)):
-    """out = s y on the free nodes, 0 on the fixed ones."""
-    i = wp.tid()
-    out[i] = (s * free[i]) * y[i]
 
 
 class ContactSolver:
@@ -86,6 +79,7 @@ class ContactSolver:
         self._topo: SurfaceTopology | None = None
         self._warm = WarmStart()
         self._pgs = PGS()
+        self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
         self._dx: wp.array | None = None  # the device correction, overwritten each step
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite
@@ -234,7 +228,8 @@ class ContactSolver:
         self._launch(topo, integ.x, topo.x_start, topo.x_start)
         return [integ.x, topo.x_start, body.fem.free, *topo.out.arrays]
 
-    def step(self, body: BodyView, host: list | None = None, begin: bool = True) -> ContactResponse:
+    def step(self, body: BodyView, host: list | None = None, begin: bool = True,
+             device_lcp: bool = True) -> ContactResponse:
         """Detect the contacts of the free motion (``body.integrator``'s x and v), solve the LCP
         and update the wrenches and :attr:`contacts`. Returns the correction of x and v (the
         caller applies it, then may measure the penetration left with
@@ -242,7 +237,11 @@ class ContactSolver:
 
         ``host``: the arrays of :meth:`launch_detection_of` for this state already read to the
         host (their views, valid until the next read of those arrays); else prepared
-        (``begin`` as in :meth:`prepare`), launched and read here in one wait."""
+        (``begin`` as in :meth:`prepare`), launched and read here in one wait.
+
+        Where the LCP is solved on the device (:mod:`.device_lcp`; ``device_lcp`` False: never)
+        the response's ``device`` is the pending solve and ``dx`` None: the caller launches it
+        with the correction and finishes it with what it reads (see :class:`PendingLCP`)."""
         t0 = time.perf_counter()
         o = self.options
         integ = body.integrator
@@ -299,16 +298,32 @@ class ContactSolver:
             self.contacts = Contacts.empty(responded=True)
             self._warm = WarmStart()
         else:
-            dx = self._respond(body, c, nodes4, w4, ws4, free, x, x_start, stats)
+            dx = self._respond(body, c, nodes4, w4, ws4, free, x, x_start, stats, device_lcp)
         stats.contact_ms = 1000.0 * (time.perf_counter() - t0)
+        if isinstance(dx, PendingLCP):
+            return ContactResponse(None, stats, dx)
         return ContactResponse(dx, stats)
 
+    def _device_solver(self, body: BodyView, m: int):
+        """The factor's services where this step's LCP of ``m`` rows is solved on the device, else
+        None (see :mod:`.device_lcp`)."""
+        rows = self.options["device_lcp_rows"]
+        inner = getattr(body.preconditioner, "inner", None)
+        if (not rows or m > rows or self.options["compliance"] != "preconditioner"
+                or not getattr(inner, "solves_contact_on_device", lambda: False)()):
+            return None
+        if self._device_lcp is None or self._device_lcp.rows != rows:
+            self._device_lcp = DeviceLCP(rows, self.device)
+        return inner
+
     def _respond(self, body: BodyView, c: Contacts, nodes4: np.ndarray, w4: np.ndarray, ws4: np.ndarray,
-                 free: np.ndarray, x: np.ndarray, x_start: np.ndarray, stats: ContactStats) -> np.ndarray:
+                 free: np.ndarray, x: np.ndarray, x_start: np.ndarray, stats: ContactStats,
+                 device_lcp: bool = True):
         """LCP of eq. (3) for the contacts ``c`` at the free motion ``x``; returns the correction
-        dx = dt^2 P^-1 H^T lambda of the positions (on the device where the factor is). ``nodes4`` (k, 4): the contact's node and
-        triangle nodes (-1: none), ``ws4`` their weights in the tissue point's relative
-        displacement, ``w4`` the same zeroed on fixed nodes (the Jacobian's)."""
+        dx = dt^2 P^-1 H^T lambda of the positions (on the device where the factor is), or the
+        pending device solve (:class:`PendingLCP`, ``device_lcp`` allowing). ``nodes4`` (k, 4):
+        the contact's node and triangle nodes (-1: none), ``ws4`` their weights in the tissue
+        point's relative displacement, ``w4`` the same zeroed on fixed nodes (the Jacobian's)."""
         o = self.options
         integ = body.integrator
         dt = integ.dt
@@ -344,17 +359,6 @@ class ContactSolver:
             dirs[rs + 1], dirs[rs + 2] = t1[f_rows], t2[f_rows]
         owner = np.repeat(np.arange(k), rows)
         H = ConstraintRows(nodes4[owner].astype(np.int32), w4[owner][:, :, None] * dirs[:, None, :], n)
-        W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
-        W = dt * dt * 0.5 * (W0 + W0.T)
-        if kind != "diagonal" and not positive_definite(W):
-            # A factor corrected by many cuts, stale, with identity-padded DOFs, can stop being
-            # positive definite on the contact rows; PGS then diverges. The block diagonal of A
-            # always is: use it for this step and say so.
-            W0, apply_y, _ = compliance(H, "diagonal", body.preconditioner, integ, body.fem)
-            W = dt * dt * 0.5 * (W0 + W0.T)
-            kind = f"diagonal ({kind} not positive definite on the contacts)"
-            self.compliance_fallbacks += 1
-        stats.compliance_fallbacks = self.compliance_fallbacks
         # warm start from last step's forces on the same (object, node) or (object, triangle)
         # pairs; nodes are named by the simulation's node uids where it keeps them (stable
         # across cuts), else by index
@@ -369,29 +373,52 @@ class ContactSolver:
             ff = fr[found]
             lam[r[ff] + 1] = np.einsum("kj,kj->k", f[ff], t1[found][ff])
             lam[r[ff] + 2] = np.einsum("kj,kj->k", f[ff], t2[found][ff])
+
+        def finish(lam: np.ndarray, its: int, res: float, kind: str = "preconditioner") -> None:
+            """Forces on the tissue, wrenches on the objects, warm start, statistics."""
+            t0 = time.perf_counter()
+            stats.gs_iterations, stats.lcp_residual, stats.compliance = its, res, kind
+            ln = lam[row_start]
+            force = ln[:, None] * normal
+            if friction:
+                rs = row_start[fr]
+                force[fr] += lam[rs + 1][:, None] * t1[fr] + lam[rs + 2][:, None] * t2[fr]
+            self._set_wrenches(c, force)
+            pressed = ln > 0.0
+            self._warm = WarmStart(names[pressed], force[pressed])
+            self.contacts = c.responded(ln, force)
+            stats.active_contacts = int(np.sum(pressed))
+            stats.contact_ms += 1000.0 * (time.perf_counter() - t0)
+
+        inner = self._device_solver(body, m) if device_lcp else None
+        if inner is not None:  # W, the LCP and the correction launched with the correction's graph
+            self._device_lcp.stage(H.nodes, H.coef, d0, lam, row_start, rows, mu)
+            stats.lcp_device = True
+            stats.compliance_fallbacks = self.compliance_fallbacks
+            return PendingLCP(self._device_lcp, inner, body.fem.free, dt, o, m, finish)
+        W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
+        W = dt * dt * 0.5 * (W0 + W0.T)
+        if kind != "diagonal" and not positive_definite(W):
+            # A factor corrected by many cuts, stale, with identity-padded DOFs, can stop being
+            # positive definite on the contact rows; PGS then diverges. The block diagonal of A
+            # always is: use it for this step and say so.
+            W0, apply_y, _ = compliance(H, "diagonal", body.preconditioner, integ, body.fem)
+            W = dt * dt * 0.5 * (W0 + W0.T)
+            kind = f"diagonal ({kind} not positive definite on the contacts)"
+            self.compliance_fallbacks += 1
+        stats.compliance_fallbacks = self.compliance_fallbacks
         lam, its, res = self._pgs.solve(W, d0, row_start, rows, mu, o["max_iterations"], o["tolerance"],
                                         o["friction_cone"] == "pyramid", lam)
-        stats.gs_iterations, stats.lcp_residual, stats.compliance = its, res, kind
         # correction with the same compliance: dx = dt^2 P^-1 H^T lambda, v += dx / dt
         y = apply_y(lam)
         if isinstance(y, wp.array):  # on the device: scaled there, never read back
             if self._dx is None or self._dx.shape[0] != n:
                 self._dx = wp.empty(n, dtype=wp.vec3d, device=self.device)
             dx = self._dx
-            wp.launch(_scaled_free_kernel, n, [y, float(dt * dt), body.fem.free, dx], device=self.device)
+            wp.launch(scaled_free_kernel, n, [y, float(dt * dt), body.fem.free, dx], device=self.device)
         else:
             dx = (dt * dt) * np.asarray(y).reshape(n, 3) * free[:, None]
-        # forces on the tissue, wrenches on the objects, warm start
-        ln = lam[row_start]
-        force = ln[:, None] * normal
-        if friction:
-            rs = row_start[fr]
-            force[fr] += lam[rs + 1][:, None] * t1[fr] + lam[rs + 2][:, None] * t2[fr]
-        self._set_wrenches(c, force)
-        pressed = ln > 0.0
-        self._warm = WarmStart(names[pressed], force[pressed])
-        self.contacts = c.responded(ln, force)
-        stats.active_contacts = int(np.sum(pressed))
+        finish(lam, its, res, kind)
         return dx
 
     def _set_wrenches(self, c: Contacts, force: np.ndarray) -> None:

@@ -1,0 +1,135 @@
+"""The contact LCP solved where the dense factor is, with the correction
+(soft_tissue_sim.contact.device_lcp): the same steps as the host solve, the row limit, the
+fallback where W is not positive definite, the kernel against the host PGS.
+
+Warp's CPU backend by default (the dense factor with NumPy and LAPACK); ``STS_TEST_DEVICE=cuda:0``
+runs the same on a GPU.
+"""
+
+import os
+
+import numpy as np
+import pytest
+import warp as wp
+
+from soft_tissue_sim import load_scene
+from soft_tissue_sim.contact.device_lcp import device_pgs_kernel
+from soft_tissue_sim.contact.pgs import PGS
+from soft_tissue_sim.dense_inverse import DenseInverse
+from soft_tissue_sim.material import ParameterError
+from test_contact import FLOOR_Z, scene
+
+DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
+
+
+def _floor_scene(rows, friction=0.0, cone="disk", graph=False):
+    floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
+    cfg = scene(obstacles=[floor], contact={"tolerance": 1e-8, "device_lcp_rows": rows, "friction": friction,
+                                            "friction_cone": cone})
+    cfg["device"] = DEVICE
+    cfg["solver"]["ldlt"].update(backend="dense")
+    cfg["solver"]["graph"] = graph
+    return cfg
+
+
+def _run(cfg, steps=40):
+    with load_scene(cfg) as sim:
+        stats = [sim.step().extra for _ in range(steps)]
+        return sim.positions(), sim.velocities(), sim.contact.wrench("floor"), stats
+
+
+@pytest.mark.parametrize("graph", [False, True])
+@pytest.mark.parametrize("friction, cone", [(0.0, "disk"), (0.4, "disk"), (0.4, "pyramid")])
+def test_the_device_solve_takes_the_host_solves_steps(friction, cone, graph):
+    """A block landing on a floor (0 to 12 contacts, 36 rows with friction): the LCP solved on
+    the device, in the correction's graph, gives the host solve's positions, velocities,
+    forces and sweeps; the statistics say where it was solved."""
+    host = _run(_floor_scene(0, friction, cone, graph))
+    dev = _run(_floor_scene(64, friction, cone, graph))
+    assert any(s.get("contacts", 0) == 12 for s in dev[3])
+    for sh, sd in zip(host[3], dev[3]):
+        assert "lcp_device" not in sh
+        if sd.get("contacts", 0):
+            assert sd["lcp_device"] is True
+            assert sd["gs_iterations"] == sh["gs_iterations"]
+            assert sd["lcp_residual"] == pytest.approx(sh["lcp_residual"], rel=1e-6, abs=1e-15)
+            assert sd["active_contacts"] == sh["active_contacts"]
+    tol = 0.0 if DEVICE == "cpu" else 1e-12  # the device scatters H^T lambda with atomic adds
+    np.testing.assert_allclose(dev[0], host[0], rtol=0, atol=tol)
+    np.testing.assert_allclose(dev[1], host[1], rtol=0, atol=tol / 0.01)
+    np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9, atol=1e-12)
+    assert dev[2][0][2] < 0.0  # the floor carries the block
+
+
+def test_a_contact_set_beyond_the_row_limit_is_solved_on_the_host():
+    """The block's 12 resting contacts: 12 rows frictionless (within a limit of 16: on the
+    device), 36 with friction (beyond it: on the host)."""
+    for friction, device in ((0.0, True), (0.4, False)):
+        stats = _run(_floor_scene(16, friction=friction), steps=30)[3]
+        resting = [s for s in stats if s.get("contacts", 0) == 12]
+        assert resting and all(s.get("lcp_device", False) is device for s in resting)
+
+
+def test_w_not_positive_definite_on_the_device_is_solved_again_on_the_host(monkeypatch):
+    """The device's check refuses a W that is not positive definite (here the gathered W
+    negated): no correction is made from it, the step's contacts are solved on the host and
+    the steps are the host solve's."""
+    host = _run(_floor_scene(0), steps=25)
+    real = DenseInverse.delassus_matrix
+
+    def negated(self, nodes, coef, dR, sizes, scale, W):
+        real(self, nodes, coef, dR, sizes, -scale, W)
+
+    monkeypatch.setattr(DenseInverse, "delassus_matrix", negated)
+    dev = _run(_floor_scene(32), steps=25)
+    assert any(s.get("contacts", 0) for s in dev[3])
+    assert all("lcp_device" not in s for s in dev[3])  # every solve redone on the host
+    np.testing.assert_allclose(dev[0], host[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad", [-1, 257, 2.5, True, "many"])
+def test_device_lcp_rows_is_validated(bad):
+    with pytest.raises(ParameterError, match="device_lcp_rows"):
+        load_scene(_floor_scene(bad))
+
+
+def test_the_device_kernel_solves_the_hosts_problems():
+    """device_pgs_kernel against the host PGS on random LCPs (frictionless and with friction
+    rows, both cones), a padded capacity and the sizes read on the device; an indefinite W is
+    refused with lambda = 0."""
+    rng = np.random.default_rng(11)
+    cap = 24
+    pgs = PGS()
+    for trial in range(8):
+        nc = int(rng.integers(2, 7))
+        rows = np.where(rng.random(nc) < 0.5, 3, 1).astype(np.int32) if trial % 2 else np.ones(nc, np.int32)
+        row_start = (np.cumsum(rows) - rows).astype(np.int32)
+        m = int(rows.sum())
+        B = rng.standard_normal((m, m + 2))
+        W = B @ B.T / m + 0.05 * np.eye(m)
+        if trial == 7:
+            W[0, 0] = -1.0
+        d0 = rng.standard_normal(m) * 1e-3
+        mu = np.full(nc, 0.3)
+        lam0 = np.abs(rng.standard_normal(m)) * 1e-4 * (rows.repeat(rows) == 1)
+        pyramid = trial % 4 == 3
+        Wd = np.zeros((cap, cap))
+        Wd[:m, :m] = W
+        pad = lambda a, n=cap: np.concatenate([a, np.zeros(n - len(a), a.dtype)])  # noqa: E731
+        arr = lambda a, t=wp.float64: wp.array(a, dtype=t, device=DEVICE)  # noqa: E731
+        lam = wp.zeros(cap, dtype=wp.float64, device=DEVICE)
+        info = wp.zeros(3, dtype=wp.float64, device=DEVICE)
+        wp.launch(device_pgs_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(pad(row_start), wp.int32),
+                                         arr(pad(rows), wp.int32), arr(pad(mu)),
+                                         arr(np.array([m, nc], np.int32), wp.int32), 200, 1e-10, int(pyramid),
+                                         wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam,
+                                         wp.zeros(cap, dtype=wp.float64, device=DEVICE), info], device=DEVICE)
+        got, inf = lam.numpy()[:m], info.numpy()
+        if trial == 7:
+            assert inf[2] == 0.0 and not got.any()
+            continue
+        ref, its, res = pgs.solve(W, d0, row_start, rows, mu, 200, 1e-10, pyramid, lam0)
+        assert inf[2] == 1.0 and int(inf[0]) == its
+        np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-15)
+        assert inf[1] == pytest.approx(res, rel=1e-6, abs=1e-18)

@@ -44,6 +44,7 @@ def test_the_device_solve_takes_the_host_solves_steps(friction, cone, graph):
     """A block landing on a floor (0 to 12 contacts, 36 rows with friction): the LCP solved on
     the device, in the correction's graph, gives the host solve's positions, velocities,
     forces and sweeps; the statistics say where it was solved."""
+    cpu = DEVICE == "cpu"
     host = _run(_floor_scene(0, friction, cone, graph))
     dev = _run(_floor_scene(64, friction, cone, graph))
     assert any(s.get("contacts", 0) == 12 for s in dev[3])
@@ -52,9 +53,11 @@ def test_the_device_solve_takes_the_host_solves_steps(friction, cone, graph):
         if sd.get("contacts", 0):
             assert sd["lcp_device"] is True
             assert sd["gs_iterations"] == sh["gs_iterations"]
-            assert sd["lcp_residual"] == pytest.approx(sh["lcp_residual"], rel=1e-6, abs=1e-15)
+            # the residual (a difference of nearly equal terms, far under the 1e-8 m tolerance)
+            # shifts with the rounding of another processor's arithmetic
+            assert sd["lcp_residual"] == pytest.approx(sh["lcp_residual"], rel=1e-6, abs=1e-15 if cpu else 1e-12)
             assert sd["active_contacts"] == sh["active_contacts"]
-    tol = 0.0 if DEVICE == "cpu" else 1e-12  # the device scatters H^T lambda with atomic adds
+    tol = 0.0 if cpu else 1e-12  # the GPU scatters H^T lambda with atomic adds, its PGS uses FMA
     np.testing.assert_allclose(dev[0], host[0], rtol=0, atol=tol)
     np.testing.assert_allclose(dev[1], host[1], rtol=0, atol=tol / 0.01)
     np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9, atol=1e-12)

@@ -85,7 +85,7 @@ class ContactSolver:
         self.objects = list(self.instruments.values()) + list(self.obstacles.values())
         self._topo: SurfaceTopology | None = None
         self._warm = WarmStart()
-        self._pgs = PGS()
+        self._pgs = PGS(o["active_set"])
         self._dx: wp.array | None = None  # the device correction, overwritten each step
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite

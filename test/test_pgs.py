@@ -188,10 +188,13 @@ def test_the_face_solve_refuses_an_indefinite_face_and_refines_a_shifted_one():
     W = _spd(rng, 6)
     d0 = rng.standard_normal(6)
     rows = np.array([0, 2, 3, 5])
-    s = face_solve(W, d0, rows, 1e-3)  # a large shift: the refinement takes out most of its error
-    exact = np.linalg.solve(W[np.ix_(rows, rows)], -d0[rows])
-    unrefined = np.linalg.solve(W[np.ix_(rows, rows)] + 1e-3 * np.eye(4), -d0[rows])
-    assert np.abs(s - exact).max() < 1e-6 * np.abs(unrefined - exact).max()
+    shift = 1e-2  # large: the refinement takes out all but a fraction shift / lambda_min of its error
+    Wpp = W[np.ix_(rows, rows)]
+    exact = np.linalg.solve(Wpp, -d0[rows])
+    unrefined = np.linalg.solve(Wpp + shift * np.eye(4), -d0[rows])
+    error = np.linalg.norm(face_solve(W, d0, rows, shift) - exact)
+    assert error <= shift / np.linalg.eigvalsh(Wpp)[0] * np.linalg.norm(unrefined - exact)
+    assert np.linalg.norm(unrefined - exact) > 1e-4  # the shift's error is there to take out
 
 
 @pytest.mark.parametrize("max_iterations", [5, 12, 20])

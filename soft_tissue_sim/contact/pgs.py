@@ -196,20 +196,18 @@ def frictionless_residual(W: np.ndarray, d0: np.ndarray, lam: np.ndarray) -> flo
 
 def face_solve(W: np.ndarray, d0: np.ndarray, rows: np.ndarray, shift: float) -> np.ndarray | None:
     """The minimizer of 1/2 lambda^T W lambda + delta^0 . lambda over the face where only
-    ``rows`` are free: W_PP s = -delta^0_P, by a Cholesky factor of W_PP + shift I refined
-    twice against W_PP itself (so the shift, there for a singular W_PP, leaves no error of
-    its own where W_PP is regular). None where W_PP + shift I is not positive definite."""
-    Wpp = W[np.ix_(rows, rows)]
+    ``rows`` are free: W_PP s = -delta^0_P, by a Cholesky factor of W_PP + shift I and one
+    step of refinement against W_PP itself (so that the shift, there for a singular W_PP,
+    leaves an error of order shift^2 only where W_PP is regular). None where W_PP + shift I is
+    not positive definite."""
+    Wpp = W.take(rows, 0).take(rows, 1)
     b = -d0[rows]
-    A = Wpp.copy()
-    A.flat[:: len(rows) + 1] += shift
+    A = Wpp + shift * np.eye(len(rows))
     c, info = dpotrf(A.T, lower=1, clean=0, overwrite_a=1)  # A symmetric: its transpose is Fortran-ordered
     if info != 0:
         return None
     s = dpotrs(c, b, lower=1)[0]
-    for _ in range(2):
-        s += dpotrs(c, b - Wpp @ s, lower=1)[0]
-    return s
+    return s + dpotrs(c, b - Wpp @ s, lower=1)[0]
 
 
 def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float, max_steps: int,
@@ -322,7 +320,8 @@ class PGS:
               lam0: np.ndarray) -> tuple[np.ndarray, int, float]:
         """Solve the LCP from the warm start ``lam0``: (lambda, sweeps, residual [m]). sweeps:
         the Gauss-Seidel sweeps plus the active-set method's steps (face solves), at most
-        ``max_iterations``."""
+        ``max_iterations``. The contacts' rows (``rows[c]`` from ``row_start[c]``) partition the
+        m rows, as :class:`~soft_tissue_sim.contact.solver.ContactSolver` lays them out."""
         m, nc = len(d0), len(row_start)
         self._reserve(m, nc)
         a = self._np
@@ -331,7 +330,7 @@ class PGS:
         a["row_start"][:nc] = row_start
         a["n_rows"][:nc] = rows
         a["mu"][:nc] = mu
-        finish = self.active_set and nc == m and bool(np.all(rows == 1))
+        finish = self.active_set and nc == m  # the contacts' rows partition the m rows: no friction rows
         first = min(self.first_sweeps, max_iterations) if finish else max_iterations
         lam, its, res = self._sweeps(lam0, m, nc, first, tolerance, pyramid)
         if res <= tolerance or not finish or its >= max_iterations:

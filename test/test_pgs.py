@@ -197,6 +197,26 @@ def test_the_face_solve_refuses_an_indefinite_face_and_refines_a_shifted_one():
     assert np.linalg.norm(unrefined - exact) > 1e-4  # the shift's error is there to take out
 
 
+def test_where_a_face_is_indefinite_the_sweeps_go_on_and_report_their_residual():
+    """ContactSolver never passes an indefinite W (it falls back to the diagonal compliance);
+    if one comes, the active-set method stops at the first face that is not positive definite
+    (one face solve) and the sweeps take the rest of the budget from the better lambda, the
+    residual reported being that of the lambda returned. An empty problem is its own
+    solution."""
+    W = np.array([[1.0, 2.0], [2.0, 1.0]])
+    d0 = np.array([-1.0, -1.0])
+    lam0 = np.array([1.0, 1.0])  # both passive: the face W itself, indefinite
+    lam, steps = active_set(W, d0, lam0, 1e-8, 50)
+    assert steps == 1
+    np.testing.assert_array_equal(lam, lam0)
+    lam, its, res = PGS(first_sweeps=0).solve(*_frictionless(W, d0, 30, 1e-8, lam0))
+    assert 1 < its < 30 and res <= 1e-8
+    assert res == pytest.approx(frictionless_residual(W, d0, lam), abs=1e-15)
+    _assert_complementary(W, d0, lam, 1e-8)
+    lam, steps = active_set(np.zeros((0, 0)), np.zeros(0), np.zeros(0), 1e-8, 10)
+    assert lam.shape == (0,) and steps == 0
+
+
 @pytest.mark.parametrize("max_iterations", [5, 12, 20])
 def test_sweeps_and_active_set_steps_share_the_iteration_budget(max_iterations):
     """sweeps = Gauss-Seidel sweeps + face solves <= max_iterations, and the residual reported

@@ -231,8 +231,10 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
     """
     m = len(d0)
     lam = np.maximum(lam, 0.0)
+    if m == 0:
+        return lam, 0
     passive = lam > 0.0
-    shift = shift * float(W.diagonal().max()) if m else 0.0
+    shift *= float(W.diagonal().max())
     steps, joined = 0, -1
     while steps < max_steps:
         P = np.flatnonzero(passive)
@@ -245,7 +247,8 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
             s[P] = face
             low = P[face <= 0.0]
             if len(low):  # to the boundary: the first row of P to reach 0 leaves it
-                ratio = lam[low] / (lam[low] - s[low])
+                gap = lam[low] - s[low]  # >= 0; 0 only for a row that just joined and stays at 0
+                ratio = np.divide(lam[low], gap, out=np.zeros(len(low)), where=gap > 0.0)
                 alpha = ratio.min()
                 leave = low[ratio <= alpha]
                 if alpha <= 0.0 and joined in leave:
@@ -258,8 +261,8 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
         lam = s
         w = -(W @ lam + d0)
         w[passive] = -np.inf
-        j = int(np.argmax(w)) if m else 0
-        if m == 0 or w[j] <= tolerance:
+        j = int(np.argmax(w))
+        if w[j] <= tolerance:
             return lam, steps
         passive[j] = True
         joined = j

@@ -518,8 +518,10 @@ class Simulation:
         reason = None
         for device_lcp in (True, False):
             try:
-                response = self.contact.step(self.view(), host, begin=device_lcp and not self._contact_begun,
-                                             device_lcp=device_lcp)
+                # the retry detects again: the correction's penetration detection reused the slots
+                # that `host` views on the CPU device
+                response = self.contact.step(self.view(), host if device_lcp else None,
+                                             begin=device_lcp and not self._contact_begun, device_lcp=device_lcp)
             except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
                 reason = f"contact solve failed: {type(exc).__name__}: {exc}"
                 break
@@ -527,8 +529,8 @@ class Simulation:
             guard, *rest = self._correct(response.dx, response.device)
             if response.device is None or response.device.finish(rest.pop(0)):
                 break
-            # W not positive definite on the device (nothing was corrected): this step's contacts
-            # again, on the host, where the block diagonal of A stands in
+            # the device refused W (nothing corrected) or its sweeps left a frictionless LCP above
+            # the tolerance: this step's contacts again, on the host
             self._restore_state(free)
         if reason is None:
             ke, nonfinite = float(guard[0]), float(guard[1])

@@ -32,7 +32,7 @@ class ContactStats:
     self_contacts: int = 0  # of which tissue against tissue
     face_contacts: int = 0  # of which an instrument against a tissue triangle
     active_contacts: int = 0  # with a positive normal force
-    gs_iterations: int = 0  # Gauss-Seidel sweeps
+    gs_iterations: int = 0  # Gauss-Seidel sweeps plus active-set steps (contact.pgs)
     lcp_residual: float = 0.0  # [m] largest change one more sweep would make
     max_penetration: float = 0.0  # [m] deepest penetration left after the correction
     contact_ms: float = 0.0

@@ -103,6 +103,25 @@ def test_block_lands_and_rests_on_a_floor(kind, backend, worker):
         assert sim.preconditioner.stats()["backend"] == backend
 
 
+def test_the_active_set_option_reaches_the_lcp_solver_and_both_settings_rest_the_block_alike():
+    """contact.active_set: the frictionless LCP finished by the active-set method (default) or
+    by the sweeps alone. At a tolerance of 1e-10 m the finish reaches it at every step; the
+    sweeps alone stop at their 200 before it on the landing, still within 1e-8 m; both rest
+    the block with the same forces."""
+    floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
+    tol = 1e-10
+    forces, worst = {}, {}
+    for active in (True, False):
+        with load_scene(scene(obstacles=[floor], contact={"tolerance": tol, "active_set": active})) as sim:
+            assert sim.contact.options["active_set"] is active and sim.contact._pgs.active_set is active
+            worst[active] = max(sim.step().extra["lcp_residual"] for _ in range(60))
+            assert sim.step().extra["active_contacts"] == 12
+            forces[active] = sim.contact.contact_forces()
+    assert worst[True] <= tol < worst[False] <= 1e-8
+    mg = forces[True][:, 2].sum()
+    np.testing.assert_allclose(forces[True], forces[False], rtol=0, atol=1e-6 * mg)
+
+
 def test_exact_compliance_with_the_jacobi_preconditioner_gives_the_weight():
     floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, -0.01], "normal": [0.0, 0.0, 1.0]}
     cfg = scene(obstacles=[floor], contact={"compliance": "exact"})
@@ -723,6 +742,7 @@ BAD_SCENES = [
     ({"contact": {"max_iterations": 0}, "instruments": [{"name": "p", "radius": 0.01}]}, "max_iterations"),
     ({"contact": {"compliance": "magic"}, "instruments": [{"name": "p", "radius": 0.01}]}, "compliance"),
     ({"contact": {"self_collision": "yes"}}, "self_collision"),
+    ({"contact": {"active_set": 1}, "instruments": [{"name": "p", "radius": 0.01}]}, "active_set"),
     ({"contact": {"self_collision": True, "self_depth": -1.0}}, "self_depth"),
     ({"instruments": [{"name": "p", "radius": 0.0}]}, "radius"),
     ({"instruments": [{"name": "p"}]}, "radius"),

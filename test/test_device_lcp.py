@@ -22,10 +22,10 @@ from test_contact import FLOOR_Z, scene
 DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 
 
-def _floor_scene(rows, friction=0.0, cone="disk", graph=False):
+def _floor_scene(rows, friction=0.0, cone="disk", graph=False, tol=1e-8, active_set=True):
     floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
-    cfg = scene(obstacles=[floor], contact={"tolerance": 1e-8, "device_lcp_rows": rows, "friction": friction,
-                                            "friction_cone": cone})
+    cfg = scene(obstacles=[floor], contact={"tolerance": tol, "device_lcp_rows": rows, "friction": friction,
+                                            "friction_cone": cone, "active_set": active_set})
     cfg["device"] = DEVICE
     cfg["solver"]["ldlt"].update(backend="dense")
     cfg["solver"]["graph"] = graph
@@ -43,10 +43,11 @@ def _run(cfg, steps=40):
 def test_the_device_solve_takes_the_host_solves_steps(friction, cone, graph):
     """A block landing on a floor (0 to 12 contacts, 36 rows with friction): the LCP solved on
     the device, in the correction's graph, gives the host solve's positions, velocities,
-    forces and sweeps; the statistics say where it was solved."""
+    forces and sweeps (the sweeps alone on both: the host's active-set finish is the next
+    test's); the statistics say where it was solved."""
     cpu = DEVICE == "cpu"
-    host = _run(_floor_scene(0, friction, cone, graph))
-    dev = _run(_floor_scene(64, friction, cone, graph))
+    host = _run(_floor_scene(0, friction, cone, graph, active_set=False))
+    dev = _run(_floor_scene(64, friction, cone, graph, active_set=False))
     assert any(s.get("contacts", 0) == 12 for s in dev[3])
     for sh, sd in zip(host[3], dev[3]):
         assert "lcp_device" not in sh
@@ -91,6 +92,25 @@ def test_w_not_positive_definite_on_the_device_is_solved_again_on_the_host(monke
     np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9, atol=1e-12)
 
 
+def test_sweeps_that_end_above_the_tolerance_are_finished_on_the_host():
+    """At 1e-10 m the landing block's frictionless LCPs stop at the 200 sweeps before the
+    tolerance: the device's sweeps are then dropped and the host's active-set finish solves
+    the step (the host solve's steps, residuals within the tolerance); with the finish off,
+    the device keeps its sweeps' lambda."""
+    tol = 1e-10
+    host = _run(_floor_scene(0, tol=tol), steps=30)
+    dev = _run(_floor_scene(32, tol=tol), steps=30)
+    pressed = [s for s in dev[3] if s.get("contacts", 0)]
+    assert any(s.get("lcp_device") for s in pressed) and any("lcp_device" not in s for s in pressed)
+    assert max(s["lcp_residual"] for s in pressed) <= tol
+    # the device's converged sweeps and the host's active set stop at different lambdas within
+    # the tolerance: the paths agree to a few tolerances
+    np.testing.assert_allclose(dev[0], host[0], rtol=0, atol=20 * tol)
+    sweeps_only = _run(_floor_scene(32, tol=tol, active_set=False), steps=30)[3]
+    pressed = [s for s in sweeps_only if s.get("contacts", 0)]
+    assert all(s.get("lcp_device") for s in pressed) and max(s["lcp_residual"] for s in pressed) > tol
+
+
 @pytest.mark.parametrize("bad", [-1, 257, 2.5, True, "many"])
 def test_device_lcp_rows_is_validated(bad):
     with pytest.raises(ParameterError, match="device_lcp_rows"):
@@ -103,7 +123,7 @@ def test_the_device_kernel_solves_the_hosts_problems():
     refused with lambda = 0."""
     rng = np.random.default_rng(11)
     cap = 24
-    pgs = PGS()
+    pgs = PGS(active_set=False)
     for trial in range(8):
         nc = int(rng.integers(2, 7))
         rows = np.where(rng.random(nc) < 0.5, 3, 1).astype(np.int32) if trial % 2 else np.ones(nc, np.int32)

@@ -1,12 +1,14 @@
-"""The contact LCP by projected Gauss-Seidel (soft_tissue_sim.contact.pgs) against an exact
-solution by enumeration of the active sets, and the friction cone."""
+"""The contact LCP (soft_tissue_sim.contact.pgs): projected Gauss-Seidel and the active-set
+finish of a frictionless LCP against an exact solution by enumeration of the active sets, on
+near-singular W like the resection's (where the sweeps alone stall), against the sweeps alone
+on well-conditioned problems, and the friction cone."""
 
 import itertools
 
 import numpy as np
 import pytest
 
-from soft_tissue_sim.contact.pgs import PGS
+from soft_tissue_sim.contact.pgs import PGS, active_set, face_solve, frictionless_residual
 
 
 def _spd(rng, m):
@@ -91,3 +93,176 @@ def test_a_reused_solver_solves_each_problem_as_a_fresh_one():
             ref = _lcp_by_enumeration(W, d0)
             np.testing.assert_allclose(lam, ref, atol=1e-10 * np.abs(ref).max())
     assert pgs.rows_cap == 40
+
+
+# ------------------------------------------------ the active-set finish of a frictionless LCP
+def _frictionless(W, d0, max_iterations=200, tolerance=1e-8, lam0=None):
+    m = len(d0)
+    return (W, d0, np.arange(m, dtype=np.int32), np.ones(m, np.int32), np.zeros(m), max_iterations, tolerance,
+            False, np.zeros(m) if lam0 is None else lam0)
+
+
+def _clustered(seed, k=30, r=8, n=90, pressed=20):
+    """A near-singular W like the resection's: k contacts on nearly r points (each row a
+    barycentric-like mix of r base rows, plus a perturbation of 1e-4 to 1e-1 of its own), so
+    that W = H A^-1 H^T has eigenvalues down to about 1e-8 of the largest; scaled to the
+    resection's diagonal (4e-3 m/N) and gaps (about -1 mm). delta^0 is made from a known
+    solution lambda* with ``pressed`` rows pressed and the others apart by up to 0.1 mm."""
+    rng = np.random.default_rng(seed)
+    B = rng.standard_normal((n, n))
+    A = B @ B.T + n * np.eye(n)
+    mix = rng.random((k, r)) ** 4
+    H = (mix / mix.sum(axis=1, keepdims=True)) @ rng.standard_normal((r, n))
+    H += 10.0 ** rng.uniform(-4, -1, (k, 1)) * rng.standard_normal((k, n))
+    W = H @ np.linalg.solve(A, H.T)
+    W = 0.5 * (W + W.T) * (4e-3 / np.mean(np.diag(H @ np.linalg.solve(A, H.T))))
+    lam = np.zeros(k)
+    on = rng.choice(k, pressed, replace=False)
+    lam[on] = 0.05 * rng.random(pressed)
+    delta = 1e-4 * rng.random(k)
+    delta[on] = 0.0
+    return W, delta - W @ lam, lam
+
+
+def _assert_complementary(W, d0, lam, tol):
+    d = W @ lam + d0
+    assert (lam >= 0).all()
+    assert (d >= -tol).all()
+    assert np.abs(d[lam > 0]).max(initial=0.0) <= tol
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_active_set_finish_reaches_the_tolerance_where_the_sweeps_alone_stall(seed):
+    W, d0, ref = _clustered(seed)
+    e = np.linalg.eigvalsh(W)
+    assert e[0] < 1e-7 * e[-1]  # near singular
+    tol = 1e-8
+    lam_gs, its_gs, res_gs = PGS(active_set=False).solve(*_frictionless(W, d0))
+    assert its_gs == 200 and res_gs > 10 * tol  # the sweeps alone stop at the cap, far from the tolerance
+    lam, its, res = PGS().solve(*_frictionless(W, d0))
+    assert res <= tol and its <= 40
+    assert res == pytest.approx(frictionless_residual(W, d0, lam), rel=1e-6, abs=1e-18)
+    _assert_complementary(W, d0, lam, tol)
+    # lambda is not unique where W is singular; delta = W lambda + d0 is (up to the tolerance)
+    assert np.abs(W @ (lam - ref)).max() <= 3 * tol
+    assert np.abs(W @ (lam_gs - ref)).max() > 3 * tol
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_active_set_method_alone_equals_the_exact_lcp_solution(seed):
+    """From a cold start (every row leaves the passive set's empty start by joining it) and from
+    a wrong warm start (rows passive that are apart at the solution, rows apart that are
+    pressed), on positive definite problems with a unique solution."""
+    rng = np.random.default_rng(seed)
+    m = 7
+    W = _spd(rng, m)
+    d0 = rng.standard_normal(m)
+    ref = _lcp_by_enumeration(W, d0)
+    for start in (np.zeros(m), np.where(ref > 0, 0.0, 1.0 + rng.random(m))):
+        lam, steps = active_set(W, d0, start, 1e-13, 100)
+        assert steps < 100
+        np.testing.assert_allclose(lam, ref, atol=1e-12 * np.abs(ref).max())
+        assert frictionless_residual(W, d0, lam) <= 1e-13
+
+
+def test_repeated_rows_make_w_singular_and_share_their_force():
+    """Rows repeated exactly (a node contact and a face contact at the node): W singular, the
+    face solve's shifted factor still defined; the result complementary, its normal force
+    sum per repeated pair fixed by W lambda."""
+    rng = np.random.default_rng(4)
+    W, d0, _ = _clustered(1)
+    rep = np.concatenate([np.arange(len(d0)), rng.choice(len(d0), 8, replace=False)])
+    Wr, dr = W[np.ix_(rep, rep)], d0[rep]
+    assert np.linalg.eigvalsh(Wr)[0] < 1e-17 * np.linalg.eigvalsh(Wr)[-1]
+    lam, its, res = PGS().solve(*_frictionless(Wr, dr))
+    assert res <= 1e-8 and its < 200
+    _assert_complementary(Wr, dr, lam, 1e-8)
+    single, _, _ = PGS().solve(*_frictionless(W, d0))
+    np.testing.assert_allclose(Wr @ lam + dr, (W @ single + d0)[rep], atol=2e-8)
+
+
+def test_the_face_solve_refuses_an_indefinite_face_and_refines_a_shifted_one():
+    W = np.array([[1.0, 2.0], [2.0, 1.0]])
+    assert face_solve(W, np.array([1.0, 1.0]), np.arange(2), 1e-12) is None
+    rng = np.random.default_rng(0)
+    W = _spd(rng, 6)
+    d0 = rng.standard_normal(6)
+    rows = np.array([0, 2, 3, 5])
+    shift = 1e-2  # large: the refinement takes out all but a fraction shift / lambda_min of its error
+    Wpp = W[np.ix_(rows, rows)]
+    exact = np.linalg.solve(Wpp, -d0[rows])
+    unrefined = np.linalg.solve(Wpp + shift * np.eye(4), -d0[rows])
+    error = np.linalg.norm(face_solve(W, d0, rows, shift) - exact)
+    assert error <= shift / np.linalg.eigvalsh(Wpp)[0] * np.linalg.norm(unrefined - exact)
+    assert np.linalg.norm(unrefined - exact) > 1e-4  # the shift's error is there to take out
+
+
+def test_where_a_face_is_indefinite_the_sweeps_go_on_and_report_their_residual():
+    """ContactSolver never passes an indefinite W (it falls back to the diagonal compliance);
+    if one comes, the active-set method stops at the first face that is not positive definite
+    (one face solve) and the sweeps take the rest of the budget from the better lambda, the
+    residual reported being that of the lambda returned. An empty problem is its own
+    solution."""
+    W = np.array([[1.0, 2.0], [2.0, 1.0]])
+    d0 = np.array([-1.0, -1.0])
+    lam0 = np.array([1.0, 1.0])  # both passive: the face W itself, indefinite
+    lam, steps = active_set(W, d0, lam0, 1e-8, 50)
+    assert steps == 1
+    np.testing.assert_array_equal(lam, lam0)
+    lam, its, res = PGS(first_sweeps=0).solve(*_frictionless(W, d0, 30, 1e-8, lam0))
+    assert 1 < its < 30 and res <= 1e-8
+    assert res == pytest.approx(frictionless_residual(W, d0, lam), abs=1e-15)
+    _assert_complementary(W, d0, lam, 1e-8)
+    lam, steps = active_set(np.zeros((0, 0)), np.zeros(0), np.zeros(0), 1e-8, 10)
+    assert lam.shape == (0,) and steps == 0
+
+
+@pytest.mark.parametrize("max_iterations", [5, 12, 20])
+def test_sweeps_and_active_set_steps_share_the_iteration_budget(max_iterations):
+    """sweeps = Gauss-Seidel sweeps + face solves <= max_iterations, and the residual reported
+    is the returned lambda's."""
+    W, d0, _ = _clustered(0)
+    lam, its, res = PGS().solve(*_frictionless(W, d0, max_iterations))
+    assert its <= max_iterations
+    assert res == pytest.approx(frictionless_residual(W, d0, lam), rel=1e-6, abs=1e-18)
+    assert (lam >= 0).all()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_on_well_conditioned_problems_the_finish_agrees_with_the_sweeps_alone(seed):
+    """Frictionless, warm and cold, m = 40 (many sweeps to converge at a tight tolerance): the
+    same solution as the sweeps alone within the tolerance, in fewer sweeps."""
+    rng = np.random.default_rng(seed)
+    m = 40
+    A = rng.standard_normal((m, m))
+    W = A @ A.T / m + 0.05 * np.eye(m)  # condition number about 100: the sweeps need many
+    W = 0.5 * (W + W.T)
+    d0 = rng.standard_normal(m)
+    lam0 = np.abs(rng.standard_normal(m)) * (seed % 2)
+    tol = 1e-11
+    lam_gs, its_gs, res_gs = PGS(active_set=False).solve(*_frictionless(W, d0, 5000, tol, lam0))
+    lam, its, res = PGS().solve(*_frictionless(W, d0, 5000, tol, lam0))
+    assert res_gs <= tol and res <= tol and its < its_gs
+    smallest = np.linalg.eigvalsh(W)[0]
+    np.testing.assert_allclose(lam, lam_gs, atol=4 * tol / smallest)
+    np.testing.assert_array_equal(lam > 1e-9, lam_gs > 1e-9)
+
+
+@pytest.mark.parametrize("pyramid", [False, True])
+def test_with_friction_rows_the_solver_sweeps_as_without_the_finish(pyramid):
+    """Friction (every contact, or some of them) keeps the sweeps alone: the same lambda,
+    sweeps and residual as PGS(active_set=False)."""
+    rng = np.random.default_rng(11)
+    k = 6
+    rows = np.array([3, 1, 3, 3, 1, 3], np.int32)
+    for rows_ in (np.full(k, 3, np.int32), rows):
+        m = int(rows_.sum())
+        W = _spd(rng, m)
+        d0 = rng.standard_normal(m)
+        row_start = (np.cumsum(rows_) - rows_).astype(np.int32)
+        d0[row_start] = -np.abs(d0[row_start])
+        mu = np.where(rows_ == 3, 0.4, 0.0)
+        args = (W, d0, row_start, rows_, mu, 300, 1e-10, pyramid, np.zeros(m))
+        new, old = PGS().solve(*args), PGS(active_set=False).solve(*args)
+        np.testing.assert_array_equal(new[0], old[0])
+        assert new[1:] == old[1:]

@@ -6,8 +6,10 @@ Scene options (all optional)::
       distance: 0.002        # [m] detection distance: pairs closer than this become constraints
       friction: 0.0          # Coulomb coefficient (obstacles / instruments may set their own)
       friction_cone: disk    # disk | pyramid
-      max_iterations: 200    # Gauss-Seidel sweeps
+      max_iterations: 200    # Gauss-Seidel sweeps plus active-set steps
       tolerance: 1.0e-8      # [m] LCP residual (largest W_rr |change of lambda_r| in a sweep)
+      active_set: true       # a frictionless LCP: finish the sweeps by an exact active-set
+                             # method (contact.pgs); false: sweeps only
       self_collision: false  # tissue surface nodes against the tissue's own triangles
       facing: 0.5            # same-component self contact only if n_node . n_triangle <= -facing
       self_depth: null       # [m] deepest penetration behind a tissue triangle taken as real
@@ -33,6 +35,7 @@ DEFAULTS = {
     "friction_cone": "disk",
     "max_iterations": 200,
     "tolerance": 1e-8,
+    "active_set": True,
     "self_collision": False,
     "facing": 0.5,
     "self_depth": None,
@@ -64,8 +67,9 @@ def parse_options(cfg) -> dict:
     rows = o["device_lcp_rows"]
     if isinstance(rows, bool) or not isinstance(rows, int) or not 0 <= rows <= 256:
         raise ParameterError(f"contact device_lcp_rows must be an integer in [0, 256], got {rows!r}")
-    if not isinstance(o["self_collision"], bool):
-        raise ParameterError(f"contact self_collision must be true or false, got {o['self_collision']!r}")
+    for key in ("self_collision", "active_set"):
+        if not isinstance(o[key], bool):
+            raise ParameterError(f"contact {key} must be true or false, got {o[key]!r}")
     if o["friction_cone"] not in ("disk", "pyramid"):
         raise ParameterError(f"contact friction_cone must be 'disk' or 'pyramid', got {o['friction_cone']!r}")
     if o["compliance"] not in COMPLIANCES:

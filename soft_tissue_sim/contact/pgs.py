@@ -1,4 +1,5 @@
-"""The contact LCP (paper eq. 3) by projected Gauss-Seidel: a Warp kernel and its launch.
+"""The contact LCP (paper eq. 3): projected Gauss-Seidel (a Warp kernel) and, for a
+frictionless LCP, an exact active-set finish on the host.
 
     delta = W lambda + delta^0,   0 <= delta_n  _|_  lambda_n >= 0,
     |lambda_t| <= mu lambda_n     (Coulomb: a disk, or a pyramid per tangent component)
@@ -7,12 +8,31 @@ Contact c owns row ``row_start[c]`` (normal) and, with friction, the two tangent
 it. Invariants of the result: lambda_n >= 0 and the friction force within its cone; the
 residual is the largest change one more (Jacobi) sweep would make [m], 0 exactly at a
 solution. The kernel runs on one thread (the sweeps are sequential), on the CPU.
+
+Projected Gauss-Seidel converges slowly where W is near singular: rows that nearly repeat a
+constraint (a node contact and face contacts next to it, self-contacts of one fold) share
+their force along directions of W with eigenvalues at 1e-6 to 1e-17 of the largest, and the
+sweeps move the shares by tiny amounts each. A frictionless LCP with W symmetric positive
+semidefinite is the convex quadratic program
+
+    min  1/2 lambda^T W lambda + delta^0 . lambda   subject to  lambda >= 0,
+
+i.e. a non-negative least-squares problem given by its normal equations (W = X^T X,
+-delta^0 = X^T y), which Lawson and Hanson's active-set method solves exactly in finitely
+many steps; Bro and de Jong (1997, "A fast non-negativity-constrained least squares
+algorithm") run it on W and delta^0 themselves. :class:`PGS` makes a few sweeps first (their
+passive set is the method's warm start, as in the PGS-subspace-minimization methods of
+Kocvara and Zowe, and Morales, Nocedal and Smelyanskiy) and finishes with
+:func:`active_set`. With friction the kernel's sweeps run alone: the Coulomb problem is not
+a quadratic program, and where nearly repeated contacts share a force the split between
+sticking and sliding is itself degenerate.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import warp as wp
+from scipy.linalg.lapack import dpotrf, dpotrs
 
 from .geometry import F64
 
@@ -164,12 +184,109 @@ def pgs_kernel(
     info[1] = res
 
 
-class PGS:
-    """The projected Gauss-Seidel solver with its CPU buffers kept between solves: they grow to
-    the largest problem seen and are filled in place, and the kernel's launch is recorded once
-    per set of buffers, so that a solve allocates no Warp array and makes one launch."""
+def frictionless_residual(W: np.ndarray, d0: np.ndarray, lam: np.ndarray) -> float:
+    """:func:`pgs_residual` of a frictionless LCP (each row a contact's normal), on the host: the
+    largest W_ii |max(0, lambda_i - delta_i / W_ii) - lambda_i| [m]."""
+    if len(d0) == 0:
+        return 0.0
+    diag = W.diagonal()
+    delta = W @ lam + d0
+    return float(np.max(diag * np.abs(np.maximum(0.0, lam - delta / diag) - lam)))
 
-    def __init__(self):
+
+def face_solve(W: np.ndarray, d0: np.ndarray, rows: np.ndarray, shift: float) -> np.ndarray | None:
+    """The minimizer of 1/2 lambda^T W lambda + delta^0 . lambda over the face where only
+    ``rows`` are free: W_PP s = -delta^0_P, by a Cholesky factor of W_PP + shift I and one
+    step of refinement against W_PP itself (so that the shift, there for a singular W_PP,
+    leaves an error of order shift^2 only where W_PP is regular). None where W_PP + shift I is
+    not positive definite."""
+    Wpp = W.take(rows, 0).take(rows, 1)
+    b = -d0[rows]
+    A = Wpp + shift * np.eye(len(rows))
+    c, info = dpotrf(A.T, lower=1, clean=0, overwrite_a=1)  # A symmetric: its transpose is Fortran-ordered
+    if info != 0:
+        return None
+    s = dpotrs(c, b, lower=1)[0]
+    return s + dpotrs(c, b - Wpp @ s, lower=1)[0]
+
+
+def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float, max_steps: int,
+               shift: float = 1e-12) -> tuple[np.ndarray, int]:
+    """Lawson and Hanson's active-set method for the frictionless LCP, on W and delta^0 (Bro
+    and de Jong's form), from the warm start ``lam`` (projected onto lambda >= 0); returns
+    (lambda, face solves made).
+
+    The passive set P starts as the rows with lambda > 0. A step solves the face problem of P
+    (:func:`face_solve`, W_PP shifted by ``shift`` times the largest diagonal of W, so that
+    repeated rows give a finite, shared force instead of a division by zero). If the solution
+    s is positive on P it becomes lambda, and the row with the most negative delta joins P;
+    otherwise lambda moves towards s until a row of P reaches 0 (the ratio test, so lambda
+    stays feasible and the objective decreases), that row leaves P, and the face is solved
+    again. It ends when no row outside P has delta < -tolerance and lambda solves its face
+    (then the residual of :func:`pgs_residual` is <= tolerance up to the face solve's
+    rounding), or unfinished, with the last feasible iterate: after ``max_steps`` face solves,
+    where a face is not positive definite (W indefinite), or where a row that just joined
+    leaves again without a step (rounding in a degenerate face). A step costs one Cholesky
+    factorization of |P| rows and one product W lambda.
+    """
+    m = len(d0)
+    lam = np.maximum(lam, 0.0)
+    if m == 0:
+        return lam, 0
+    passive = lam > 0.0
+    shift *= float(W.diagonal().max())
+    steps, joined = 0, -1
+    while steps < max_steps:
+        P = np.flatnonzero(passive)
+        s = np.zeros(m)
+        if len(P):
+            face = face_solve(W, d0, P, shift)
+            steps += 1
+            if face is None:
+                return lam, steps
+            s[P] = face
+            low = P[face <= 0.0]
+            if len(low):  # to the boundary: the first row of P to reach 0 leaves it
+                gap = lam[low] - s[low]  # >= 0; 0 only for a row that just joined and stays at 0
+                ratio = np.divide(lam[low], gap, out=np.zeros(len(low)), where=gap > 0.0)
+                alpha = ratio.min()
+                leave = low[ratio <= alpha]
+                if alpha <= 0.0 and joined in leave:
+                    return lam, steps
+                lam = lam + alpha * (s - lam)
+                lam[leave] = 0.0
+                passive[leave] = False
+                joined = -1
+                continue
+        lam = s
+        w = -(W @ lam + d0)
+        w[passive] = -np.inf
+        j = int(np.argmax(w))
+        if w[j] <= tolerance:
+            return lam, steps
+        passive[j] = True
+        joined = j
+    return lam, steps
+
+
+class PGS:
+    """The contact LCP's solver: projected Gauss-Seidel sweeps (:func:`pgs_kernel`) and, for a
+    frictionless LCP (every contact one row), :func:`active_set` after ``first_sweeps`` of
+    them.
+
+    A frictionless solve sweeps until the tolerance or ``first_sweeps``; if not converged, the
+    active-set method continues from the sweeps' lambda with the rest of ``max_iterations`` as
+    its steps; if that does not finish within tolerance (see :func:`active_set`), the sweeps
+    go on from the better of the two for what is left. A solve with friction rows sweeps up to
+    ``max_iterations``. ``active_set=False``: sweeps only, always. The CPU buffers are kept
+    between solves: they grow to the largest problem seen and are filled in place, and the
+    kernel's launch is recorded once per set of buffers, so that a sweep phase allocates no
+    Warp array and makes one launch.
+    """
+
+    def __init__(self, active_set: bool = True, first_sweeps: int = 10):
+        self.active_set = bool(active_set)
+        self.first_sweeps = int(first_sweeps)
         self.rows_cap = self.contacts_cap = 0
         self._cmd = None
 
@@ -189,19 +306,11 @@ class PGS:
         self._np = {name: getattr(self, name).numpy() for name in
                     ("W", "d0", "lam", "row_start", "n_rows", "mu", "info")}
 
-    def solve(self, W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, rows: np.ndarray, mu: np.ndarray,
-              max_iterations: int, tolerance: float, pyramid: bool,
-              lam0: np.ndarray) -> tuple[np.ndarray, int, float]:
-        """Solve the LCP from the warm start ``lam0``: (lambda, sweeps, residual [m])."""
-        m, nc = len(d0), len(row_start)
-        self._reserve(m, nc)
+    def _sweeps(self, lam: np.ndarray, m: int, nc: int, max_iterations: int, tolerance: float,
+                pyramid: bool) -> tuple[np.ndarray, int, float]:
+        """Up to ``max_iterations`` sweeps from ``lam`` on the problem in the buffers."""
         a = self._np
-        a["W"][:m, :m] = W
-        a["d0"][:m] = d0
-        a["lam"][:m] = lam0
-        a["row_start"][:nc] = row_start
-        a["n_rows"][:nc] = rows
-        a["mu"][:nc] = mu
+        a["lam"][:m] = lam
         cmd = self._cmd
         for index, value in ((5, m), (6, nc), (7, int(max_iterations)), (8, float(tolerance)), (9, int(pyramid))):
             cmd.set_param_at_index(index, value)
@@ -209,3 +318,32 @@ class PGS:
         its, res = a["info"]
         return a["lam"][:m].copy(), int(its), float(res)
 
+    def solve(self, W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, rows: np.ndarray, mu: np.ndarray,
+              max_iterations: int, tolerance: float, pyramid: bool,
+              lam0: np.ndarray) -> tuple[np.ndarray, int, float]:
+        """Solve the LCP from the warm start ``lam0``: (lambda, sweeps, residual [m]). sweeps:
+        the Gauss-Seidel sweeps plus the active-set method's steps (face solves), at most
+        ``max_iterations``. The contacts' rows (``rows[c]`` from ``row_start[c]``) partition the
+        m rows, as :class:`~soft_tissue_sim.contact.solver.ContactSolver` lays them out."""
+        m, nc = len(d0), len(row_start)
+        self._reserve(m, nc)
+        a = self._np
+        a["W"][:m, :m] = W
+        a["d0"][:m] = d0
+        a["row_start"][:nc] = row_start
+        a["n_rows"][:nc] = rows
+        a["mu"][:nc] = mu
+        finish = self.active_set and nc == m  # the contacts' rows partition the m rows: no friction rows
+        first = min(self.first_sweeps, max_iterations) if finish else max_iterations
+        lam, its, res = self._sweeps(lam0, m, nc, first, tolerance, pyramid)
+        if res <= tolerance or not finish or its >= max_iterations:
+            return lam, its, res
+        la, steps = active_set(W, d0, lam, tolerance, max_iterations - its)  # every row a contact's normal
+        its += steps
+        ra = frictionless_residual(W, d0, la)
+        if ra < res:
+            lam, res = la, ra
+        if res <= tolerance or its >= max_iterations:
+            return lam, its, res
+        lam, more, res = self._sweeps(lam, m, nc, max_iterations - its, tolerance, pyramid)
+        return lam, its + more, res

@@ -78,7 +78,7 @@ class ContactSolver:
         self.objects = list(self.instruments.values()) + list(self.obstacles.values())
         self._topo: SurfaceTopology | None = None
         self._warm = WarmStart()
-        self._pgs = PGS()
+        self._pgs = PGS(o["active_set"])
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
         self._dx: wp.array | None = None  # the device correction, overwritten each step
         self.contacts = Contacts.empty(responded=True)
@@ -395,7 +395,7 @@ class ContactSolver:
             self._device_lcp.stage(H.nodes, H.coef, d0, lam, row_start, rows, mu)
             stats.lcp_device = True
             stats.compliance_fallbacks = self.compliance_fallbacks
-            return PendingLCP(self._device_lcp, inner, body.fem.free, dt, o, m, finish)
+            return PendingLCP(self._device_lcp, inner, body.fem.free, dt, o, m, len(row_start), finish)
         W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
         W = dt * dt * 0.5 * (W0 + W0.T)
         if kind != "diagonal" and not positive_definite(W):

@@ -249,7 +249,9 @@ class BackwardEuler:
         self.after_solve_reading = None
         self._readback = Readback()
         self._after_replay = graphs.Replayer(self.device, "BackwardEuler after the solve", slots=2)
-        self._correction_read = Readback()
+        # the correction's read-back, one per layout (with a solve's output or without), so that a
+        # replayed graph writes into the buffers of the layout it was captured with
+        self._correction_reads = {False: Readback(), True: Readback()}
         self._correction_replay = graphs.Replayer(self.device, "BackwardEuler correction", slots=2)
         # the node rotations of eq. (2) launched by build() where the preconditioner takes them
         # from there (its begin_step reads fem's node rotations as build left them)
@@ -484,20 +486,21 @@ class BackwardEuler:
         (dx, arrays to read); dx then None), e.g. a contact LCP solved on the device. Where the
         step is graphed (and dx is on the device) as one graph per arguments."""
         hook_key, hook_launch = hook
+        readback = self._correction_reads[solve is not None]
 
         def launches():
             d, outs = solve.launch() if solve is not None else (dx, [])
             if d is not None:
                 self.correct(d)
             extra = hook_launch() if hook_launch is not None else []
-            self._correction_read.copy(self.launch_guard(), *outs, *extra)
+            readback.copy(self.launch_guard(), *outs, *extra)
 
         key = None
         if self.graph_steps and hook_key is not None and (dx is None or isinstance(dx, wp.array)):
             key = (None if dx is None else dx.ptr, None if solve is None else solve.key(), self._state_arrays_key(),
-                   hook_key, self._correction_read.key())
+                   hook_key, readback.key())
         self._correction_replay.run(key, launches)
-        return self._correction_read.read(self.device)
+        return readback.read(self.device)
 
     def _state_arrays_key(self) -> tuple:
         """What the update, the correction and the guard's launches depend on: the operator's

@@ -111,6 +111,36 @@ def test_sweeps_that_end_above_the_tolerance_are_finished_on_the_host():
     assert all(s.get("lcp_device") for s in pressed) and max(s["lcp_residual"] for s in pressed) > tol
 
 
+def test_steps_with_and_without_a_device_solve_alternate_under_graphs():
+    """A capsule tapping a clamped block every other step, graphs on: the correction's graphs
+    with and without the device solve are replayed in turn (each writes the read-back it was
+    captured with) and give the host solve's steps."""
+    runs = {}
+    for rows in (0, 32):
+        cfg = scene(mesh={"generator": "beam", "n_long": 5, "n_cross": 4, "spacing": 0.005},
+                    fixed={"axis": "z", "below": -0.007},
+                    instruments=[{"name": "probe", "shape": "capsule", "radius": 0.004, "length": 0.05}],
+                    contact={"device_lcp_rows": rows, "active_set": False})
+        cfg["device"] = DEVICE
+        cfg["solver"]["ldlt"].update(backend="dense")
+        cfg["solver"]["graph"] = True
+        q = [0.0, np.sin(np.pi / 4), 0.0, np.cos(np.pi / 4)]  # tool +z along world +x
+        with load_scene(cfg) as sim:
+            top = sim.positions()[:, 2].max()
+            stats = []
+            for i in range(24):
+                z = top + 0.004 - (0.0008 if i % 2 else -0.003)  # in, out, in, ...
+                sim.set_instrument_pose("probe", [-0.006, 0.001, z], q)
+                stats.append(sim.step().extra)
+            runs[rows] = (sim.positions(), stats, sim.integrator._correction_replay.replays)
+    (x0, s0, _), (x1, s1, replays) = runs[0], runs[32]
+    assert [s.get("contacts", 0) > 0 for s in s1] == [i % 2 == 1 for i in range(24)]
+    assert all(s.get("lcp_device") for s in s1 if s.get("contacts", 0))
+    assert replays >= 15
+    assert [s.get("active_contacts", 0) for s in s0] == [s.get("active_contacts", 0) for s in s1]
+    np.testing.assert_allclose(x1, x0, rtol=0, atol=0.0 if DEVICE == "cpu" else 1e-12)
+
+
 @pytest.mark.parametrize("bad", [-1, 257, 2.5, True, "many"])
 def test_device_lcp_rows_is_validated(bad):
     with pytest.raises(ParameterError, match="device_lcp_rows"):

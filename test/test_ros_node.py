@@ -102,7 +102,7 @@ class RecordingInstruments:
     def contact_points(self):
         return np.array([[0.05, 0.0, 0.01], [0.06, 0.0, 0.01]])
 
-    def step(self, body, host=None, begin=True):
+    def step(self, body, host=None, begin=True, device_lcp=True):
         return ContactResponse(None, ContactStats(contacts=2))
 
     def launch_penetration(self, body):

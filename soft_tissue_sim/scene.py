@@ -339,6 +339,21 @@ class Simulation:
         plan.result.ms = 1000.0 * (time.perf_counter() - plan.t0)
         return plan.result
 
+    def _refresh_surface(self) -> float:
+        """The contact surface rebuilt for the current mesh (after a change), in ms (0: no contact)."""
+        return self.contact.refresh_surface(self.fem) if self.contact is not None else 0.0
+
+    def _request(self, plan_fn) -> CutResult:
+        """A modification asked through the API: ``plan_fn(tissue)`` plans it, then it is
+        applied with its debris and the contact surface rebuilt; the result's ``ms`` is the
+        wall time of all of it (the state's read included), ``surface_ms`` the rebuild's."""
+        t0 = time.perf_counter()
+        res = self._modify(plan_fn(self.tissue()))
+        if res.changed:
+            res.surface_ms = self._refresh_surface()
+        res.ms = 1000.0 * (time.perf_counter() - t0)
+        return res
+
     def _apply_topology(self, plan: CutPlan) -> None:
         """Mesh, FEM, state and node identities from ``plan.change``; the modification of A it
         makes (the blocks of the removed and added elements, with the rotations of one state)
@@ -553,8 +568,14 @@ class Simulation:
         if self.contact is not None:
             self._contact_response(stats)  # LCP correction of x and v, eq. (3)-(4)
         if self.cutting is not None:  # blade motion -> mesh change + SMF, eq. (5)-(12)
+            t0 = time.perf_counter()
             ops = self.cutting.step(self.step_count, self._instruments())
-            stats.cutting = self.cutting.step_stats([self._modify(op(self.tissue())) for op in ops])
+            results = [self._modify(op(self.tissue())) for op in ops]
+            surface_ms = self._refresh_surface() if any(r.changed for r in results) else 0.0
+            stats.cutting = self.cutting.step_stats(results)
+            if ops:  # the whole cutting phase: the state's reads, planning, changes, correction, surface
+                stats.cutting.cut_ms = 1000.0 * (time.perf_counter() - t0)
+                stats.cutting.surface_ms = surface_ms
         if not getattr(self.preconditioner, "factorizing", lambda: False)():
             graphs.release()  # graphs replaced by a cut, now that no factorization runs beside the steps
         self.last_stats = stats
@@ -643,14 +664,14 @@ class Simulation:
         """Cut along the blade path since the last cut. Returns a CutResult (tets_changed, message)."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self._modify(self.cutting.cut(self.tissue(), self._instruments()))
+        return self._request(lambda tissue: self.cutting.cut(tissue, self._instruments()))
 
     def cut_at_blade(self):
         """One cut where the cutting instrument's blade is now (a stab incision as wide as the
         instrument). Returns a CutResult."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self._modify(self.cutting.cut_at_blade(self.tissue(), self._instruments()))
+        return self._request(lambda tissue: self.cutting.cut_at_blade(tissue, self._instruments()))
 
     def blade_triangles(self):
         """The cutting blade where it is now as two triangles (2, 3, 3), world frame, or None."""
@@ -662,19 +683,19 @@ class Simulation:
         """Cut along blade triangles (k, 3, 3) in the world (current) or rest frame. Returns a CutResult."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self._modify(self.cutting.cut_triangles(self.tissue(), triangles, frame))
+        return self._request(lambda tissue: self.cutting.cut_triangles(tissue, triangles, frame))
 
     def remove_elements(self, center, radius: float, frame: str = "world"):
         """Ablation / aspiration: delete the elements whose centroid is within radius of center."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self._modify(self.cutting.remove_elements(self.tissue(), center, radius, frame))
+        return self._request(lambda tissue: self.cutting.remove_elements(tissue, center, radius, frame))
 
     def remove_tets(self, tets):
         """Delete given tets (boolean mask or indices): e.g. lift out a part that was cut free."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self._modify(self.cutting.remove_tets(self.tissue(), tets))
+        return self._request(lambda tissue: self.cutting.remove_tets(tissue, tets))
 
     def set_cutting(self, active: bool) -> None:
         """Blade active: cut continuously while the instrument moves (like a pedal)."""

@@ -157,6 +157,14 @@ class ContactSolver:
             self._topo = SurfaceTopology(fem, self.options["self_collision"], self.objects)
         return self._topo
 
+    def refresh_surface(self, fem) -> float:
+        """Bring the tissue surface up to date with ``fem``'s mesh now (after a topology change,
+        so that its cost is the change's, not the next detection's); returns the milliseconds
+        it took (about none where it was current)."""
+        t0 = time.perf_counter()
+        self._topology(fem)
+        return 1000.0 * (time.perf_counter() - t0)
+
     def _launch(self, topo: SurfaceTopology, x: wp.array, x_features: wp.array, x_start: wp.array | None) -> None:
         o = self.options
         launch_detection(topo, self.objects, x, x_features, o["distance"], topo.reach, x_start, o["facing"],

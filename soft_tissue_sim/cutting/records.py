@@ -25,9 +25,11 @@ class CutResult:
     perturbation_nodes: int = 0  # nodes of N against the factor in use after it (paper's measure)
     faces_cut: int = 0
     debris_tets: int = 0  # tets of fragments below `min_fragment` removed after the change
-    ms: float = 0.0  # whole modification, correction included
+    ms: float = 0.0  # whole modification: planning, mesh change, correction (and, asked through the
+    # Simulation's API, the state's read and the contact surface's rebuild)
     smf_u_ms: float = 0.0  # U = P^-1 G (batched triangular solves)
     smf_q_ms: float = 0.0  # Q = (I + N S)^-1 N
+    surface_ms: float = 0.0  # the contact surface's rebuild (API requests; a step's is in its CutStats)
 
 
 @dataclass

@@ -321,7 +321,7 @@ class Simulation:
         """The body as cutting reads it: the rest mesh and copies of the state on it."""
         from .cutting import Tissue
 
-        return Tissue(self.mesh, self.positions(), self.velocities(), self.node_uids, self.fem.free.numpy())
+        return Tissue(self.mesh, self.positions(), self.velocities(), self.node_uids, self.fem.free.numpy().copy())
 
     def _instruments(self) -> dict:
         return self.contact.instruments if self.contact is not None else {}
@@ -332,9 +332,9 @@ class Simulation:
         if plan.change is None:
             return plan.result
         self._apply_topology(plan)
-        debris = self.cutting.debris(self.tissue())
+        debris = self.cutting.debris(plan.change.tissue())  # the body as the change left it (no read)
         if debris is not None and debris.change is not None:
-            self._apply_topology(debris)
+            self._apply_topology(debris, rotations_current=True)
             self.cutting.absorb_debris(plan.result, debris.result)
         plan.result.ms = 1000.0 * (time.perf_counter() - plan.t0)
         return plan.result
@@ -354,18 +354,22 @@ class Simulation:
         res.ms = 1000.0 * (time.perf_counter() - t0)
         return res
 
-    def _apply_topology(self, plan: CutPlan) -> None:
+    def _apply_topology(self, plan: CutPlan, rotations_current: bool = False) -> None:
         """Mesh, FEM, state and node identities from ``plan.change``; the modification of A it
         makes (the blocks of the removed and added elements, with the rotations of one state)
-        goes to the cutter's correction, or the preconditioner starts afresh without one."""
+        goes to the cutter's correction, or the preconditioner starts afresh without one.
+        ``rotations_current``: the element rotations are those of the current state already
+        (a change applied just before, with no step between)."""
         change, fem, integ = plan.change, self.fem, self.integrator
         m_coef, k_coef = integ.m_coef, integ.k_coef
-        fem.update_rotations(integ.x)
+        if not rotations_current:
+            fem.update_rotations(integ.x)
         R_nodes = fem.node_rotations()
         old_blocks = fem.element_blocks(change.removed_tets, m_coef, k_coef)
         fem.set_mesh(change.mesh, change.fixed, change.tet_source)
         integ.set_state(change.x, change.v)
-        fem.update_rotations(integ.x)
+        # the state is the same node for node: the tets that kept their source's shape keep its rotation
+        fem.update_rotations(integ.x, changed_only=True)
         new_blocks = fem.element_blocks(change.added_tets, m_coef, k_coef)
         self.mesh, self.node_uids = change.mesh, change.node_uids
         self.mesh_version += 1

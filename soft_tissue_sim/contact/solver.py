@@ -154,7 +154,8 @@ class ContactSolver:
     def _topology(self, fem) -> SurfaceTopology:
         if self._topo is None or not self._topo.matches(fem):
             self._retire_topology()
-            self._topo = SurfaceTopology(fem, self.options["self_collision"], self.objects)
+            self._topo = SurfaceTopology(fem, self.options["self_collision"], self.objects,
+                                         None if self._topo is None else self._topo.buffers)  # its arrays, kept
         return self._topo
 
     def refresh_surface(self, fem) -> float:

@@ -71,6 +71,11 @@ class TopologyChange:
     def fixed(self) -> np.ndarray:
         return np.flatnonzero(self.free == 0.0)
 
+    def tissue(self) -> Tissue:
+        """The body once this change is applied, as cutting reads it (what the simulation
+        would read back from the device: the same arrays)."""
+        return Tissue(self.mesh, self.x, self.v, self.node_uids, self.free)
+
     def modification(self, version: int, old_blocks, new_blocks, R_nodes: np.ndarray) -> Modification:
         """The change of A (eq. 5-7) from the removed tets' element blocks (old numbering) and the
         added ones' (new numbering), with the old nodes' rotations ``R_nodes`` (a new node takes

@@ -443,12 +443,14 @@ class CorotationalFEM:
                                          "tets": wp.vec4i, "src": wp.int32, "Dm_inv": wp.mat33d,
                                          "volume": wp.float64, "mu": wp.float64, "lam": wp.float64,
                                          "rho": wp.float64}, d)
-            self._sub = PackedArrays({"ids": wp.int32, "tets": wp.vec4i, "Dm_inv": wp.mat33d}, d)
+            self._sub = PackedArrays({"ids": wp.int32, "tets": wp.vec4i, "Dm_inv": wp.mat33d, "volume": wp.float64,
+                                      "nodes": wp.int32}, d)
             self._grow = {name: GrowArray(dtype, d, fill) for name, dtype, fill in (
                 ("rotations", wp.mat33d, None), ("_rot_old", wp.mat33d, None), ("_Kp", wp.vec3d, None),
                 ("_rot_acc", wp.mat33d, None), ("_node_rot", wp.mat33d, None), ("_ones", wp.float64, 1.0),
                 ("_all_tets", wp.int32, lambda cap: np.arange(cap, dtype=np.int32)), ("_rows", wp.int32, None),
-                ("_cols", wp.int32, None), ("_vals", wp.mat33d, None), ("_sub_R", wp.mat33d, None))}
+                ("_cols", wp.int32, None), ("_vals", wp.mat33d, None), ("_sub_R", wp.mat33d, None),
+                ("_sub_acc", wp.mat33d, None), ("_sub_node_R", wp.mat33d, None))}
         packed, grow = self._packed, self._grow
         # the element rotations the new tets take over from their sources: in place where each
         # keeps its source's index (a node split), else gathered from a copy of the old ones
@@ -508,31 +510,64 @@ class CorotationalFEM:
         self.fixed_nodes = np.flatnonzero(free == 0.0)
 
     # -------------------------------------------------------------- per step
-    def update_rotations(self, x: wp.array, changed_only: bool = False) -> None:
-        """The element rotations at positions ``x``. ``changed_only``: right after a
-        :meth:`set_mesh` with ``tet_source``, whose rotations before it were of the same
-        positions node for node (a topology change: the state unchanged), compute only the
-        tets that did not take over their source's (the others' would come out the same)."""
+    def update_rotations(self, x: wp.array, changed_only: bool = False, tets=None) -> None:
+        """The element rotations at positions ``x``: of all tets, or of ``tets`` (indices; the
+        others keep theirs). ``changed_only``: right after a :meth:`set_mesh` with
+        ``tet_source``, whose rotations before it were of the same positions node for node (a
+        topology change: the state unchanged), compute only the tets that did not take over
+        their source's (the others' would come out the same)."""
         self.node_rotations_current = False
-        ids = self._carried if changed_only else None
+        ids = self._carried if changed_only else (None if tets is None else np.asarray(tets, np.int64))
         self._carried = None
         if ids is None:
             wp.launch(element_rotations_kernel, self.n_tets, [x, self.tets, self.Dm_inv, self.rotations],
                       device=self.device)
-            return
-        k = len(ids)
-        if k == 0:
-            return
-        sub, d = self._sub, self.device
-        sub.reserve({"ids": k, "tets": k, "Dm_inv": k})
+        elif len(ids):
+            self._subset_rotations(x, ids)
+
+    def _subset_rotations(self, x: wp.array, ids: np.ndarray, nodes=None) -> wp.array:
+        """The rotations at ``x`` of the tets ``ids`` (ascending), into the element rotations
+        (the same kernel as for all tets, on those: the same numbers); with ``nodes``, also the
+        node rotations of those nodes from these tets alone. Returns the tets' rotations."""
+        k, d = len(ids), self.device
+        sub = self._sub
+        counts = {"ids": k, "tets": k, "Dm_inv": k, "volume": k, "nodes": 0 if nodes is None else len(nodes)}
+        sub.reserve(counts)
         sub.host("ids")[...] = ids
         sub.host("tets")[...] = np.take(self._rest_tets[1], ids, axis=0)
         sub.host("Dm_inv")[...] = np.take(self._element_host["Dm_inv"], ids, axis=0)
-        sub.send(("ids", "tets", "Dm_inv"))
+        fields = ["ids", "tets", "Dm_inv"]
+        if nodes is not None:
+            sub.host("volume")[...] = np.take(self._element_host["volume"], ids)
+            sub.host("nodes")[...] = nodes
+            fields += ["volume", "nodes"]
+        sub.send(fields)
         R = self._grow["_sub_R"].view(k)
-        # the same kernel as for all tets, on those (the same numbers), then put in place
         wp.launch(element_rotations_kernel, k, [x, sub.array("tets"), sub.array("Dm_inv"), R], device=d)
         wp.launch(_scatter_rotations_kernel, k, [sub.array("ids"), R, self.rotations], device=d)
+        return R
+
+    def node_rotations_around(self, x: wp.array, tets, nodes) -> np.ndarray:
+        """The node rotations (eq. 2) of ``nodes`` at positions ``x``, from the element
+        rotations of ``tets`` alone, which must hold every tet of those nodes (ascending, so
+        that each node's volume-weighted sum adds up in the order of :meth:`update_node_rotations`:
+        the same numbers). The tets' rotations at ``x`` go into the element rotations too (the
+        others keep theirs). Returns (n, 3, 3) on the host, NaN outside ``nodes``."""
+        ids, nodes = np.asarray(tets, np.int64), np.asarray(nodes, np.int32)
+        out = np.full((self.n_nodes, 3, 3), np.nan)
+        self.node_rotations_current = False
+        if not len(nodes):
+            return out
+        R = self._subset_rotations(x, ids, nodes)
+        d, sub, g = self.device, self._sub, self._grow
+        self._rot_acc.zero_()
+        wp.launch(node_rotation_accumulate_kernel, len(ids), [sub.array("tets"), sub.array("volume"), R, self._rot_acc],
+                  device=d)
+        acc, R_nodes = g["_sub_acc"].view(len(nodes)), g["_sub_node_R"].view(len(nodes))
+        wp.launch(_gather_rotations_kernel, len(nodes), [sub.array("nodes"), self._rot_acc, acc], device=d)
+        wp.launch(orthonormalize_kernel, len(nodes), [acc, R_nodes], device=d)
+        out[nodes] = to_host(R_nodes)[0]
+        return out
 
     def add_elastic_forces(self, x: wp.array, f: wp.array) -> None:
         """f += elastic forces at positions x, with the current element rotations."""
@@ -686,5 +721,5 @@ class CorotationalFEM:
         return self._node_rot if self.node_rotations_current else self.update_node_rotations()
 
     def node_rotations(self) -> np.ndarray:
-        """:meth:`update_node_rotations` read back to the host, (n, 3, 3)."""
-        return self.update_node_rotations().numpy()
+        """:meth:`update_node_rotations` read back to the host, (n, 3, 3) (a copy)."""
+        return to_host(self.update_node_rotations())[0].copy()

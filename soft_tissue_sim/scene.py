@@ -334,7 +334,7 @@ class Simulation:
         self._apply_topology(plan)
         debris = self.cutting.debris(plan.change.tissue())  # the body as the change left it (no read)
         if debris is not None and debris.change is not None:
-            self._apply_topology(debris, rotations_current=True)
+            self._apply_topology(debris)
             self.cutting.absorb_debris(plan.result, debris.result)
         plan.result.ms = 1000.0 * (time.perf_counter() - plan.t0)
         return plan.result
@@ -354,17 +354,23 @@ class Simulation:
         res.ms = 1000.0 * (time.perf_counter() - t0)
         return res
 
-    def _apply_topology(self, plan: CutPlan, rotations_current: bool = False) -> None:
+    def _apply_topology(self, plan: CutPlan) -> None:
         """Mesh, FEM, state and node identities from ``plan.change``; the modification of A it
         makes (the blocks of the removed and added elements, with the rotations of one state)
         goes to the cutter's correction, or the preconditioner starts afresh without one.
-        ``rotations_current``: the element rotations are those of the current state already
-        (a change applied just before, with no step between)."""
+
+        The rotations are of the current state, computed for the tets around the change alone:
+        the removed tets' and the node rotations of their nodes (and of the nodes new ones copy),
+        which is all the modification reads; the other tets keep the step's (the next step
+        computes all of them, as it does after every step)."""
         change, fem, integ = plan.change, self.fem, self.integrator
         m_coef, k_coef = integ.m_coef, integ.k_coef
-        if not rotations_current:
-            fem.update_rotations(integ.x)
-        R_nodes = fem.node_rotations()
+        old_tets = fem.mesh.tets
+        need = np.zeros(fem.n_nodes, bool)
+        need[old_tets[change.removed_tets].ravel()] = True
+        need[np.asarray(change.rotation_source, np.int64)] = True
+        around = np.flatnonzero(need[old_tets].any(axis=1))  # every tet of those nodes
+        R_nodes = fem.node_rotations_around(integ.x, around, np.flatnonzero(need))
         old_blocks = fem.element_blocks(change.removed_tets, m_coef, k_coef)
         fem.set_mesh(change.mesh, change.fixed, change.tet_source)
         integ.set_state(change.x, change.v)

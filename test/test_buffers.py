@@ -123,21 +123,17 @@ def test_arrays_kept_across_changes_give_the_results_of_fresh_ones(monkeypatch):
     assert n_kept == n_fresh and kept == fresh
 
 
-def test_after_changes_every_array_equals_a_fresh_build_and_the_rotations_a_full_update():
-    """After each change the FEM's rest data equals a FEM built on the new mesh, the element
-    rotations taken over from the source tets (and computed for the others) equal a full
-    update at the state, and the surface rebuilt on the kept arrays equals a fresh one."""
+def test_after_changes_every_array_equals_a_fresh_build():
+    """After each change the FEM's rest data equals a FEM built on the new mesh, and the
+    surface rebuilt on the kept arrays equals a fresh one (and detects the same contacts)."""
     with load_scene(_contact_beam()) as sim:
         sim.step()
         for change in _changes(sim):
             assert change().changed
-            fem, x = sim.fem, sim.integrator.x
+            fem = sim.fem
             fresh = CorotationalFEM(sim.mesh, sim.materials, "cpu", fixed_nodes=fem.fixed_nodes)
             for name in ("rest", "tets", "Dm_inv", "volume", "mu", "lam", "rho", "lumped_mass", "free"):
                 assert np.array_equal(getattr(fem, name).numpy(), getattr(fresh, name).numpy()), name
-            carried = fem.rotations.numpy().copy()
-            fem.update_rotations(x)
-            assert np.array_equal(carried, fem.rotations.numpy())
             topo = sim.contact._topo
             assert topo.matches(fem)  # rebuilt by the change, not left to the next step
             new = SurfaceTopology(fem, True, sim.contact.objects)
@@ -152,6 +148,34 @@ def test_after_changes_every_array_equals_a_fresh_build_and_the_rotations_a_full
             for k in ("node", "obj", "gap", "normal", "point", "tri", "bary"):
                 assert np.array_equal(getattr(got, k), getattr(ref, k)), k
             sim.step()
+
+
+def test_rotations_around_some_nodes_equal_those_of_all_tets():
+    """node_rotations_around: the element rotations of the tets around some nodes and those
+    nodes' rotations, from those tets alone, are the numbers of the full update (the others
+    are NaN); update_rotations of some tets leaves the others as they were."""
+    with load_scene(_contact_beam()) as sim:
+        for _ in range(4):
+            sim.step()
+        fem, x = sim.fem, sim.integrator.x
+        before = fem.rotations.numpy().copy()
+        nodes = np.array([3, 40, 41, 70, fem.n_nodes - 1])
+        need = np.zeros(fem.n_nodes, bool)
+        need[nodes] = True
+        around = np.flatnonzero(need[fem.mesh.tets].any(axis=1))
+        R = fem.node_rotations_around(x, around, nodes)
+        part = fem.rotations.numpy().copy()
+        fem.update_rotations(x)
+        full_tets, full_nodes = fem.rotations.numpy().copy(), fem.node_rotations()
+        assert np.array_equal(R[nodes], full_nodes[nodes]) and np.isnan(np.delete(R, nodes, axis=0)).all()
+        assert np.array_equal(part[around], full_tets[around])
+        others = np.setdiff1d(np.arange(fem.n_tets), around)
+        assert np.array_equal(part[others], before[others]) and not np.array_equal(before, full_tets)
+        fem.rotations.assign(before)
+        fem.update_rotations(x, tets=others[::3])
+        after = fem.rotations.numpy()
+        assert np.array_equal(after[others[::3]], full_tets[others[::3]])
+        assert np.array_equal(np.delete(after, others[::3], axis=0), np.delete(before, others[::3], axis=0))
 
 
 def test_a_change_that_fits_keeps_the_arrays_addresses():

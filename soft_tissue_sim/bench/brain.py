@@ -104,6 +104,8 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                          "modified": asked is not None or sim.cutting.modifications > mods_before,
                          "cut_ms": d.get("cut_ms", 0.0) + extra_ms,
                          "surface_ms": d.get("surface_ms", 0.0) + (asked.surface_ms if asked is not None else 0.0),
+                         "smf_ms": d.get("smf_u_ms", 0.0) + d.get("smf_q_ms", 0.0)
+                         + (asked.smf_u_ms + asked.smf_q_ms if asked is not None else 0.0),
                          "wrench_probe_N": float(np.linalg.norm(sim.instrument_wrench("probe")[0]))})
             its_sum[0] += d["iterations"]
             if prog is not None:
@@ -214,6 +216,7 @@ def main(argv=None) -> int:
         "cut_steps": len(cut), "cut_ms_median": float(np.median(cut)) if len(cut) else 0.0,
         "cut_ms_p99": float(np.percentile(cut, 99)) if len(cut) else 0.0,
         "surface_ms_median": float(np.median([r["surface_ms"] for r in rows if r["modified"]])) if len(cut) else 0.0,
+        "correction_ms_median": float(np.median([r["smf_ms"] for r in rows if r["modified"]])) if len(cut) else 0.0,
         "contacts_mean": float(np.mean([r["contacts"] for r in rows])),
         "max_penetration": float(max(r["max_penetration"] for r in rows)),
         "refresh_interval": rows[-1]["refresh_interval"], "rollbacks": int(sum(r["rolled_back"] for r in rows)),

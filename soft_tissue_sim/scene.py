@@ -65,6 +65,7 @@ from . import graphs
 from . import mesh as mesh_mod
 from .blas_threads import one_thread
 from .body import BodyView
+from .buffers import GrowArray
 from .cg import DevicePCG
 from .corotational_fem import CorotationalFEM
 from .implicit_integration import BackwardEuler, StepStats
@@ -318,10 +319,12 @@ class Simulation:
         return {"uids": self.node_uids.copy(), "version": self.mesh_version}
 
     def tissue(self) -> Tissue:
-        """The body as cutting reads it: the rest mesh and copies of the state on it."""
+        """The body as cutting reads it: the rest mesh and copies of the state on it (read in
+        one transfer)."""
         from .cutting import Tissue
 
-        return Tissue(self.mesh, self.positions(), self.velocities(), self.node_uids, self.fem.free.numpy().copy())
+        x, v, free = to_host(self.integrator.x, self.integrator.v, self.fem.free)
+        return Tissue(self.mesh, x.copy(), v.copy(), self.node_uids, free.copy())
 
     def _instruments(self) -> dict:
         return self.contact.instruments if self.contact is not None else {}
@@ -411,13 +414,14 @@ class Simulation:
         return known[0] if known is not None and known[1] == self._state_key() else self._kinetic_energy()
 
     def _copy_state(self, purpose: str) -> tuple:
-        """(x, v) copied on the device into buffers kept for ``purpose`` (reused while the node
-        count holds): a state the step may go back to."""
+        """(x, v) copied on the device into buffers kept for ``purpose`` (grow-only, across node
+        count changes too): a state the step may go back to."""
         integ = self.integrator
-        bufs = self._copies.get(purpose)
-        if bufs is None or bufs[0].shape != integ.x.shape:
-            bufs = (wp.empty_like(integ.x), wp.empty_like(integ.v))
-            self._copies[purpose] = bufs
+        grow = self._copies.get(purpose)
+        if grow is None:
+            grow = self._copies[purpose] = (GrowArray(wp.vec3d, self.device), GrowArray(wp.vec3d, self.device))
+        n = integ.x.shape[0]
+        bufs = (grow[0].view(n), grow[1].view(n))
         wp.copy(bufs[0], integ.x)
         wp.copy(bufs[1], integ.v)
         return bufs

@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from ..body import BodyView
+from ..buffers import GrowArray
 from ..instrument import Instrument, MeshObstacle, obstacle_from_config
 from ..material import ParameterError
 from ..stats import ContactStats
@@ -86,7 +87,7 @@ class ContactSolver:
         self._topo: SurfaceTopology | None = None
         self._warm = WarmStart()
         self._pgs = PGS()
-        self._dx: wp.array | None = None  # the device correction, overwritten each step
+        self._dx = GrowArray(wp.vec3d, device)  # the device correction, overwritten each step
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite
 
@@ -384,9 +385,7 @@ class ContactSolver:
         # correction with the same compliance: dx = dt^2 P^-1 H^T lambda, v += dx / dt
         y = apply_y(lam)
         if isinstance(y, wp.array):  # on the device: scaled there, never read back
-            if self._dx is None or self._dx.shape[0] != n:
-                self._dx = wp.empty(n, dtype=wp.vec3d, device=self.device)
-            dx = self._dx
+            dx = self._dx.view(n)
             wp.launch(_scaled_free_kernel, n, [y, float(dt * dt), body.fem.free, dx], device=self.device)
         else:
             dx = (dt * dt) * np.asarray(y).reshape(n, 3) * free[:, None]

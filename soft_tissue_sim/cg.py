@@ -35,6 +35,7 @@ import numpy as np
 import warp as wp
 
 from . import graphs
+from .buffers import GrowArray
 
 
 @wp.kernel
@@ -177,13 +178,16 @@ class PCG:
         self.resize(n)
 
     def resize(self, n: int) -> None:
+        """Work vectors for ``n`` nodes, zeroed: views of allocations kept across resizes
+        (:class:`soft_tissue_sim.buffers.GrowArray`)."""
         d = self.device
         self.n = n
-        self.r = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self.z = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self.p = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self.Ap = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self._dot = wp.zeros(1, dtype=wp.float64, device=d)
+        if getattr(self, "_bufs", None) is None:
+            self._bufs = [GrowArray(wp.vec3d, d) for _ in range(4)]
+            self._dot = wp.zeros(1, dtype=wp.float64, device=d)
+        self.r, self.z, self.p, self.Ap = (b.view(n) for b in self._bufs)
+        for a in (self.r, self.z, self.p, self.Ap, self._dot):
+            a.zero_()
 
     def _inner(self, a: wp.array, b: wp.array) -> float:
         wp.utils.array_inner(a, b, out=self._dot)
@@ -454,13 +458,17 @@ class DevicePCG(PCG):
     def resize(self, n: int) -> None:
         super().resize(n)
         d = self.device
-        self._s = wp.zeros(_NSCAL, dtype=wp.float64, device=d)
-        self._flag = wp.zeros(1, dtype=wp.int32, device=d)
+        if getattr(self, "_s", None) is None:
+            self._s = wp.zeros(_NSCAL, dtype=wp.float64, device=d)
+            self._flag = wp.zeros(1, dtype=wp.int32, device=d)
+            self._partials_buf = GrowArray(wp.float64, d)
         # dot products: a block per chunk, then one block adds the partial sums (no allocation,
         # deterministic; Warp's array_inner allocates scratch, which a conditional graph body forbids)
         self._block = _RED_BLOCK if d.is_cuda else 1
         nb = min(128, max(1, -(-n // (2 * _RED_BLOCK)))) if d.is_cuda else 1
-        self._partials = wp.zeros(nb, dtype=wp.float64, device=d)
+        self._partials = self._partials_buf.view(nb)
+        for a in (self._s, self._flag, self._partials):
+            a.zero_()
         self.replay.clear()  # a graph of the old size is released where no factorization runs
 
     # ------------------------------------------------------------------ pieces

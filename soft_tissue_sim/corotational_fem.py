@@ -29,9 +29,11 @@ import numpy as np
 import scipy.sparse as sps
 import warp as wp
 
+from .buffers import GrowArray, PackedArrays
 from .host_assembly import AssemblyState
 from .material import MaterialTable
 from .mesh import TetMesh
+from .transfer import to_host
 
 _F64 = wp.float64
 
@@ -319,6 +321,23 @@ def orthonormalize_kernel(acc: wp.array(dtype=wp.mat33d), out: wp.array(dtype=wp
     out[i] = rotation_from(acc[i])
 
 
+@wp.kernel
+def _gather_rotations_kernel(src: wp.array(dtype=wp.int32), old: wp.array(dtype=wp.mat33d),
+                             R: wp.array(dtype=wp.mat33d)):
+    """R[e] = old[src[e]] where src[e] >= 0 (a tet taking over its source's rotation)."""
+    e = wp.tid()
+    s = src[e]
+    if s >= 0:
+        R[e] = old[s]
+
+
+@wp.kernel
+def _scatter_rotations_kernel(ids: wp.array(dtype=wp.int32), R_sub: wp.array(dtype=wp.mat33d),
+                              R: wp.array(dtype=wp.mat33d)):
+    s = wp.tid()
+    R[ids[s]] = R_sub[s]
+
+
 def _same_rest_shape(X, T, X_old, T_old) -> np.ndarray:
     """(k,) whether the tets T (k, 4) of points X have the rest positions of the tets T_old of
     points X_old, node for node (float equality of all 12 coordinates). A node that keeps its
@@ -359,8 +378,14 @@ class CorotationalFEM:
         ``tet_source`` (m,): for each tet, the tet of the previous mesh it comes from, or -1
         (a topology change keeps most tets as they were). A tet whose four rest positions equal
         its source's, bit for bit, takes the source's Dm^-1 and volume; the others are computed.
-        Both ways give the same numbers (each tet's are a function of its rest positions).
-        Bad input raises ValueError and leaves the FEM as it was."""
+        Both ways give the same numbers (each tet's are a function of its rest positions). Such
+        a tet also takes its source's element rotation; :meth:`update_rotations` with
+        ``changed_only`` then computes the others' (where the previous rotations were of the
+        same positions, node for node). Without ``tet_source`` the rotations are the identity.
+
+        The arrays are views into allocations kept across changes (:mod:`soft_tissue_sim.
+        buffers`); the data that changed is sent in one copy per run of fields. Bad input
+        raises ValueError and leaves the FEM as it was."""
         n, m = mesh.n_nodes, mesh.n_tets
         X = mesh.points.astype(np.float64)
         T = mesh.tets.astype(np.int32)
@@ -373,64 +398,110 @@ class CorotationalFEM:
                                  f"shape {src.shape}")
             k = np.flatnonzero(src >= 0)
             reuse[k] = _same_rest_shape(X, np.take(T, k, axis=0), prev[0], np.take(prev[1], src[k], axis=0))
-        if reuse.any():  # every tet's from its source, then the computed ones overwritten
-            take = np.where(reuse, src, 0)
-            host = self._element_host  # the previous mesh's Dm^-1 and volumes (their bytes)
-            Dm_inv, vol = np.take(host["Dm_inv"], take, axis=0), np.take(host["volume"], take)
+        host = self.__dict__.setdefault("_element_host", {})  # the element data on the device, as sent
+        # every tet in place with its source's shape (a node split): the rest data is the old one
+        same_place = bool(m and len(prev[1]) == m and reuse.all() and np.array_equal(src, np.arange(m))) \
+            if src is not None else False
+        kept = set()  # the element fields known unchanged (not sent again)
+        if same_place:
+            Dm_inv, vol = host["Dm_inv"], host["volume"]
+            kept |= {"Dm_inv", "volume"}
         else:
-            Dm_inv, vol = np.empty((m, 3, 3)), np.empty(m)
-        new = np.flatnonzero(~reuse)
-        Xn = np.take(X, np.take(T, new, axis=0), axis=0)  # (k, 4, 3) the computed tets' rest positions
-        Dm = np.stack([Xn[:, 1] - Xn[:, 0], Xn[:, 2] - Xn[:, 0], Xn[:, 3] - Xn[:, 0]], axis=2)
-        vol[new] = np.linalg.det(Dm) / 6.0
-        if np.any(vol <= 0.0):
-            bad = np.flatnonzero(vol <= 0.0)
-            raise ValueError(f"{len(bad)} tets with non-positive rest volume, e.g. {bad[:10].tolist()}")
-        Dm_inv[new] = np.linalg.inv(Dm)
-        mu, lam, rho = self.materials.element_arrays(mesh.material_ids)
+            if reuse.any():  # every tet's from its source, then the computed ones overwritten
+                take = np.where(reuse, src, 0)
+                Dm_inv, vol = np.take(host["Dm_inv"], take, axis=0), np.take(host["volume"], take)
+            else:
+                Dm_inv, vol = np.empty((m, 3, 3)), np.empty(m)
+            new = np.flatnonzero(~reuse)
+            Xn = np.take(X, np.take(T, new, axis=0), axis=0)  # (k, 4, 3) the computed tets' rest positions
+            Dm = np.stack([Xn[:, 1] - Xn[:, 0], Xn[:, 2] - Xn[:, 0], Xn[:, 3] - Xn[:, 0]], axis=2)
+            vol[new] = np.linalg.det(Dm) / 6.0
+            if np.any(vol <= 0.0):
+                bad = np.flatnonzero(vol <= 0.0)
+                raise ValueError(f"{len(bad)} tets with non-positive rest volume, e.g. {bad[:10].tolist()}")
+            Dm_inv[new] = np.linalg.inv(Dm)
+        mats = mesh.material_ids
+        old_mats = host.get("material_ids")
+        if (src is not None and old_mats is not None and (m == 0 or src.min() >= 0)
+                and np.array_equal(mats, old_mats if same_place else np.take(old_mats, src))):
+            if same_place:  # each tet's material as its source's: the same (mu, lambda, rho)
+                mu, lam, rho = host["mu"], host["lam"], host["rho"]
+                kept |= {"mu", "lam", "rho"}
+            else:
+                mu, lam, rho = (np.take(host[k], src) for k in ("mu", "lam", "rho"))
+        else:
+            mu, lam, rho = self.materials.element_arrays(mats)
         lumped = np.bincount(T.ravel(), weights=np.repeat(rho * vol / 4.0, 4), minlength=n)  # in order, as add.at
         free = np.ones(n)
         if fixed_nodes is not None and len(fixed_nodes):
             free[np.asarray(fixed_nodes, dtype=np.int64)] = 0.0
         d = self.device
+        if getattr(self, "_packed", None) is None:
+            # rest data: the fields that change with every mesh first (one run), then the element
+            # data, which a node split leaves as it was; src: the tets' rotation sources (a gather)
+            self._packed = PackedArrays({"rest": wp.vec3d, "lumped_mass": wp.float64, "free": wp.float64,
+                                         "tets": wp.vec4i, "src": wp.int32, "Dm_inv": wp.mat33d,
+                                         "volume": wp.float64, "mu": wp.float64, "lam": wp.float64,
+                                         "rho": wp.float64}, d)
+            self._sub = PackedArrays({"ids": wp.int32, "tets": wp.vec4i, "Dm_inv": wp.mat33d, "volume": wp.float64,
+                                      "nodes": wp.int32}, d)
+            self._grow = {name: GrowArray(dtype, d, fill) for name, dtype, fill in (
+                ("rotations", wp.mat33d, None), ("_rot_old", wp.mat33d, None), ("_Kp", wp.vec3d, None),
+                ("_rot_acc", wp.mat33d, None), ("_node_rot", wp.mat33d, None), ("_ones", wp.float64, 1.0),
+                ("_all_tets", wp.int32, lambda cap: np.arange(cap, dtype=np.int32)), ("_rows", wp.int32, None),
+                ("_cols", wp.int32, None), ("_vals", wp.mat33d, None), ("_sub_R", wp.mat33d, None),
+                ("_sub_acc", wp.mat33d, None), ("_sub_node_R", wp.mat33d, None))}
+        packed, grow = self._packed, self._grow
+        # the element rotations the new tets take over from their sources: in place where each
+        # keeps its source's index (a node split), else gathered from a copy of the old ones
+        carry = src is not None and reuse.any() and getattr(self, "rotations", None) is not None
+        gather = carry and (m > grow["rotations"].capacity
+                            or not np.array_equal(np.flatnonzero(reuse), src[reuse]))
+        if gather:
+            old = grow["_rot_old"].view(self.n_tets)
+            wp.copy(old, self.rotations)
+        data = {"rest": X, "lumped_mass": lumped, "free": free, "tets": T, "Dm_inv": Dm_inv, "volume": vol,
+                "mu": mu, "lam": lam, "rho": rho}
+        if gather:
+            data["src"] = np.where(reuse, src, -1).astype(np.int32)
+        realloc = packed.reserve({k: len(data[k]) if k in data else m for k in packed.fields})
+        changed = []
+        for name, a in data.items():
+            if realloc or name not in kept:
+                h = packed.host(name)
+                h[...] = a.reshape(h.shape)
+                if name != "src":
+                    host[name] = a
+                changed.append(name)
+        host["material_ids"] = mats.copy()
+        packed.send(changed)
+        self.uploads = changed  # the fields this change sent (tests, statistics)
         self.mesh = mesh
         self.n_nodes, self.n_tets = n, m
-        self.rest = wp.array(X, dtype=wp.vec3d, device=d)
-        self.tets = wp.array(T, dtype=wp.vec4i, device=d)
-        self.Dm_inv = self._element_array("Dm_inv", Dm_inv, wp.mat33d)
-        self.volume = self._element_array("volume", vol, wp.float64)
-        self.mu = self._element_array("mu", mu, wp.float64)
-        self.lam = self._element_array("lam", lam, wp.float64)
-        self.rho = self._element_array("rho", rho, wp.float64)
-        self.lumped_mass = wp.array(lumped, dtype=wp.float64, device=d)
-        self.free = wp.array(free, dtype=wp.float64, device=d)
+        for name in data:
+            if name != "src":
+                setattr(self, name, packed.array(name))
         self.fixed_nodes = np.flatnonzero(free == 0.0)
-        self.rotations = wp.full(m, wp.mat33d(*np.eye(3).ravel()), dtype=wp.mat33d, device=d)
-        self._Kp = wp.zeros(n, dtype=wp.vec3d, device=d)
+        self.rotations = grow["rotations"].view(m)
+        self._carried = None
+        if carry:  # the others' rotations are left undefined: update_rotations(changed_only) computes them
+            if gather:
+                wp.launch(_gather_rotations_kernel, m, [packed.array("src"), old, self.rotations], device=d)
+            self._carried = np.flatnonzero(~reuse)
+        else:
+            self.rotations.fill_(wp.mat33d(*np.eye(3).ravel()))
+        self._Kp = grow["_Kp"].view(n)
         self.node_rotations_current = False  # update_node_rotations ran after the last update_rotations
-        self._rot_acc = wp.zeros(n, dtype=wp.mat33d, device=d)
-        self._node_rot = wp.zeros(n, dtype=wp.mat33d, device=d)
+        self._rot_acc = grow["_rot_acc"].view(n)
+        self._node_rot = grow["_node_rot"].view(n)
         # COO triplets of A: 16 blocks per element + one diagonal block per node.
         nt = 16 * m + n
-        self._all_tets = self._element_array("_all_tets", np.arange(m, dtype=np.int32), wp.int32)
-        self._rows = wp.empty(nt, dtype=wp.int32, device=d)  # assemble_triplets writes every entry
-        self._cols = wp.empty(nt, dtype=wp.int32, device=d)
-        self._vals = wp.empty(nt, dtype=wp.mat33d, device=d)
+        self._all_tets = grow["_all_tets"].view(m)
+        self._rows = grow["_rows"].view(nt)  # assemble_triplets writes every entry
+        self._cols = grow["_cols"].view(nt)
+        self._vals = grow["_vals"].view(nt)
         self.total_mass = float(lumped.sum())
         self._rest_tets = (X, T)  # with _element_host: what the next set_mesh may take over (tet_source)
-
-    def _element_array(self, name: str, host: np.ndarray, dtype) -> wp.array:
-        """The device array of the per-element data ``host``: the one ``name`` already holds
-        where it was made from the very same bytes (a topology change keeps most elements, and
-        often all of their rest data and materials), else a new upload. These arrays are never
-        written after set_mesh, so a kept one still holds what it was made from."""
-        made = self.__dict__.setdefault("_element_host", {})
-        old = made.get(name)
-        if (old is not None and old.shape == host.shape and old.dtype == host.dtype
-                and np.array_equal(old.reshape(-1).view(np.uint8), host.reshape(-1).view(np.uint8))):
-            return getattr(self, name)
-        made[name] = host
-        return wp.array(host, dtype=dtype, device=self.device)
 
     def set_fixed_nodes(self, fixed_nodes) -> None:
         free = np.ones(self.n_nodes)
@@ -439,9 +510,64 @@ class CorotationalFEM:
         self.fixed_nodes = np.flatnonzero(free == 0.0)
 
     # -------------------------------------------------------------- per step
-    def update_rotations(self, x: wp.array) -> None:
+    def update_rotations(self, x: wp.array, changed_only: bool = False, tets=None) -> None:
+        """The element rotations at positions ``x``: of all tets, or of ``tets`` (indices; the
+        others keep theirs). ``changed_only``: right after a :meth:`set_mesh` with
+        ``tet_source``, whose rotations before it were of the same positions node for node (a
+        topology change: the state unchanged), compute only the tets that did not take over
+        their source's (the others' would come out the same)."""
         self.node_rotations_current = False
-        wp.launch(element_rotations_kernel, self.n_tets, [x, self.tets, self.Dm_inv, self.rotations], device=self.device)
+        ids = self._carried if changed_only else (None if tets is None else np.asarray(tets, np.int64))
+        self._carried = None
+        if ids is None:
+            wp.launch(element_rotations_kernel, self.n_tets, [x, self.tets, self.Dm_inv, self.rotations],
+                      device=self.device)
+        elif len(ids):
+            self._subset_rotations(x, ids)
+
+    def _subset_rotations(self, x: wp.array, ids: np.ndarray, nodes=None) -> wp.array:
+        """The rotations at ``x`` of the tets ``ids`` (ascending), into the element rotations
+        (the same kernel as for all tets, on those: the same numbers); with ``nodes``, also the
+        node rotations of those nodes from these tets alone. Returns the tets' rotations."""
+        k, d = len(ids), self.device
+        sub = self._sub
+        counts = {"ids": k, "tets": k, "Dm_inv": k, "volume": k, "nodes": 0 if nodes is None else len(nodes)}
+        sub.reserve(counts)
+        sub.host("ids")[...] = ids
+        sub.host("tets")[...] = np.take(self._rest_tets[1], ids, axis=0)
+        sub.host("Dm_inv")[...] = np.take(self._element_host["Dm_inv"], ids, axis=0)
+        fields = ["ids", "tets", "Dm_inv"]
+        if nodes is not None:
+            sub.host("volume")[...] = np.take(self._element_host["volume"], ids)
+            sub.host("nodes")[...] = nodes
+            fields += ["volume", "nodes"]
+        sub.send(fields)
+        R = self._grow["_sub_R"].view(k)
+        wp.launch(element_rotations_kernel, k, [x, sub.array("tets"), sub.array("Dm_inv"), R], device=d)
+        wp.launch(_scatter_rotations_kernel, k, [sub.array("ids"), R, self.rotations], device=d)
+        return R
+
+    def node_rotations_around(self, x: wp.array, tets, nodes) -> np.ndarray:
+        """The node rotations (eq. 2) of ``nodes`` at positions ``x``, from the element
+        rotations of ``tets`` alone, which must hold every tet of those nodes (ascending, so
+        that each node's volume-weighted sum adds up in the order of :meth:`update_node_rotations`:
+        the same numbers). The tets' rotations at ``x`` go into the element rotations too (the
+        others keep theirs). Returns (n, 3, 3) on the host, NaN outside ``nodes``."""
+        ids, nodes = np.asarray(tets, np.int64), np.asarray(nodes, np.int32)
+        out = np.full((self.n_nodes, 3, 3), np.nan)
+        self.node_rotations_current = False
+        if not len(nodes):
+            return out
+        R = self._subset_rotations(x, ids, nodes)
+        d, sub, g = self.device, self._sub, self._grow
+        self._rot_acc.zero_()
+        wp.launch(node_rotation_accumulate_kernel, len(ids), [sub.array("tets"), sub.array("volume"), R, self._rot_acc],
+                  device=d)
+        acc, R_nodes = g["_sub_acc"].view(len(nodes)), g["_sub_node_R"].view(len(nodes))
+        wp.launch(_gather_rotations_kernel, len(nodes), [sub.array("nodes"), self._rot_acc, acc], device=d)
+        wp.launch(orthonormalize_kernel, len(nodes), [acc, R_nodes], device=d)
+        out[nodes] = to_host(R_nodes)[0]
+        return out
 
     def add_elastic_forces(self, x: wp.array, f: wp.array) -> None:
         """f += elastic forces at positions x, with the current element rotations."""
@@ -481,9 +607,7 @@ class CorotationalFEM:
         )
 
     def _ones(self) -> wp.array:
-        if getattr(self, "_ones_arr", None) is None or self._ones_arr.shape[0] != self.n_nodes:
-            self._ones_arr = wp.full(self.n_nodes, 1.0, dtype=wp.float64, device=self.device)
-        return self._ones_arr
+        return self._grow["_ones"].view(self.n_nodes)
 
     def mass_product(self, p: wp.array, out: wp.array) -> None:
         """out = M p (lumped or consistent, unfiltered)."""
@@ -541,18 +665,29 @@ class CorotationalFEM:
         k = 16 * len(ids)
         if k == 0:
             return np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 3, 3))
-        d = self.device
-        rows = wp.zeros(k, dtype=wp.int32, device=d)
-        cols = wp.zeros(k, dtype=wp.int32, device=d)
-        vals = wp.zeros(k, dtype=wp.mat33d, device=d)
+        # rows and cols are the tets' nodes (block (i, j) of tet t at (t_i, t_j)): from the host's
+        # copy of the tets; the values come from the device, in one read
+        T = np.take(self._rest_tets[1], ids, axis=0)
+        rows, cols = np.repeat(T, 4, axis=1).reshape(-1), np.tile(T, (1, 4)).reshape(-1)
+        d, g = self.device, self._grow
+        if getattr(self, "_block_ids", None) is None:
+            self._block_ids = PackedArrays({"ids": wp.int32}, d)
+            g["_block_rows"], g["_block_cols"] = GrowArray(wp.int32, d), GrowArray(wp.int32, d)
+            g["_block_vals"] = GrowArray(wp.mat33d, d)
+        sent = self._block_ids
+        sent.reserve({"ids": len(ids)})
+        sent.host("ids")[...] = ids
+        sent.send(("ids",))
+        vals = g["_block_vals"].view(k)
         wp.launch(
             element_blocks_subset_kernel,
             len(ids),
-            [wp.array(ids, dtype=wp.int32, device=d), self.tets, self.free, self.Dm_inv, self.volume, self.mu, self.lam,
-             self.rho, self.rotations, float(k_coef), float(m_coef), int(self.consistent_mass), rows, cols, vals],
+            [sent.array("ids"), self.tets, self.free, self.Dm_inv, self.volume, self.mu, self.lam, self.rho,
+             self.rotations, float(k_coef), float(m_coef), int(self.consistent_mass), g["_block_rows"].view(k),
+             g["_block_cols"].view(k), vals],
             device=d,
         )
-        return rows.numpy(), cols.numpy(), vals.numpy()
+        return rows, cols, to_host(vals)[0].copy()  # a copy: the buffers serve the next call
 
     def assembly_state(self, m_coef: float, k_coef: float) -> AssemblyState:
         """Host copies of what the filtered A = m_coef M + k_coef K depends on now (the element
@@ -586,5 +721,5 @@ class CorotationalFEM:
         return self._node_rot if self.node_rotations_current else self.update_node_rotations()
 
     def node_rotations(self) -> np.ndarray:
-        """:meth:`update_node_rotations` read back to the host, (n, 3, 3)."""
-        return self.update_node_rotations().numpy()
+        """:meth:`update_node_rotations` read back to the host, (n, 3, 3) (a copy)."""
+        return to_host(self.update_node_rotations())[0].copy()

@@ -34,6 +34,7 @@ import numpy as np
 import warp as wp
 
 from . import graphs
+from .buffers import GrowArray, PackedArrays
 from .cg import PCG
 from .corotational_fem import CorotationalFEM
 from .material import Damping, ParameterError
@@ -261,9 +262,15 @@ class BackwardEuler:
         self.graph_steps = False
         self._build_replay = graphs.Replayer(self.device, "BackwardEuler.build")
         self.state_version = 0  # counts set_state calls: with step_index, names the state (x, v)
+        # the work vectors and the state: views into allocations kept across node-count changes
+        self._work = {name: GrowArray(wp.float64 if name in ("_energy", "_guard") else wp.vec3d, self.device)
+                      for name in self._WORK}
+        self._state = PackedArrays({"x": wp.vec3d, "v": wp.vec3d}, self.device)
         self._allocate()
-        self.x = wp.clone(fem.rest)
-        self.v = wp.zeros_like(fem.rest)
+        self._state.reserve({"x": fem.n_nodes, "v": fem.n_nodes})
+        self.x, self.v = self._state.array("x"), self._state.array("v")
+        wp.copy(self.x, fem.rest)
+        self.v.zero_()
 
     # coefficients of A = m_coef M + k_coef K
     @property
@@ -274,30 +281,34 @@ class BackwardEuler:
     def k_coef(self) -> float:
         return self.dt * self.damping.stiffness + self.dt * self.dt
 
+    # f, the external forces, M dv of the first linearisation (zero), b, dv, M v, K v, the energy
+    # and guard reductions (2 values each), the step's start velocity (Newton), its dv and M dv
+    _WORK = ("f", "f_ext", "_zero", "b", "dv", "_Mv", "_Kv", "_energy", "_guard", "_v_t", "_dvel", "_Mdv")
+
     def _allocate(self) -> None:
-        n, d = self.fem.n_nodes, self.device
-        self.f = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self._zero = wp.zeros(n, dtype=wp.vec3d, device=d)  # M dv of the first linearisation
-        self.f_ext = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self.b = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self.dv = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self._Mv = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self._Kv = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self._energy = wp.zeros(2, dtype=wp.float64, device=d)
-        self._guard = wp.zeros(2, dtype=wp.float64, device=d)
-        self._v_t = wp.zeros(n, dtype=wp.vec3d, device=d)  # the step's start velocity (Newton)
-        self._dvel = wp.zeros(n, dtype=wp.vec3d, device=d)
-        self._Mdv = wp.zeros(n, dtype=wp.vec3d, device=d)
+        """The work vectors for the current node count, zeroed (views of kept allocations)."""
+        n = self.fem.n_nodes
+        for name, buf in self._work.items():
+            a = buf.view(2 if name in ("_energy", "_guard") else n)
+            a.zero_()
+            setattr(self, name, a)
 
     def set_state(self, x: np.ndarray, v: np.ndarray) -> None:
-        """Replace positions and velocities (e.g. after a topology change or a rollback)."""
+        """Replace positions and velocities (e.g. after a topology change or a rollback): written
+        into the state's kept arrays (their addresses change only where the node count outgrows
+        them), sent in one copy."""
         if x.shape[0] != self.fem.n_nodes:
             raise ValueError("state size does not match the mesh")
-        if x.shape[0] != self.f.shape[0]:
+        n = x.shape[0]
+        if n != self.f.shape[0]:
             self._allocate()
-            self.cg.resize(x.shape[0])
-        self.x = wp.array(x, dtype=wp.vec3d, device=self.device)
-        self.v = wp.array(v, dtype=wp.vec3d, device=self.device)
+            self.cg.resize(n)
+        st = self._state
+        st.reserve({"x": n, "v": n})
+        st.host("x")[...] = x
+        st.host("v")[...] = v
+        st.send(("x", "v"))
+        self.x, self.v = st.array("x"), st.array("v")
         self.state_version += 1
 
     def matvec(self, p: wp.array, out: wp.array) -> None:

@@ -69,6 +69,7 @@ from . import graphs
 from . import mesh as mesh_mod
 from .blas_threads import one_thread
 from .body import BodyView
+from .buffers import GrowArray
 from .cg import DevicePCG
 from .corotational_fem import CorotationalFEM
 from .implicit_integration import BackwardEuler, StepStats
@@ -335,10 +336,12 @@ class Simulation:
         return {"uids": self.node_uids.copy(), "version": self.mesh_version}
 
     def tissue(self) -> Tissue:
-        """The body as cutting reads it: the rest mesh and copies of the state on it."""
+        """The body as cutting reads it: the rest mesh and copies of the state on it (read in
+        one transfer)."""
         from .cutting import Tissue
 
-        return Tissue(self.mesh, self.positions(), self.velocities(), self.node_uids, self.fem.free.numpy())
+        x, v, free = to_host(self.integrator.x, self.integrator.v, self.fem.free)
+        return Tissue(self.mesh, x.copy(), v.copy(), self.node_uids, free.copy())
 
     def _instruments(self) -> dict:
         return self.contact.instruments if self.contact is not None else {}
@@ -349,25 +352,50 @@ class Simulation:
         if plan.change is None:
             return plan.result
         self._apply_topology(plan)
-        debris = self.cutting.debris(self.tissue())
+        debris = self.cutting.debris(plan.change.tissue())  # the body as the change left it (no read)
         if debris is not None and debris.change is not None:
             self._apply_topology(debris)
             self.cutting.absorb_debris(plan.result, debris.result)
         plan.result.ms = 1000.0 * (time.perf_counter() - plan.t0)
         return plan.result
 
+    def _refresh_surface(self) -> float:
+        """The contact surface rebuilt for the current mesh (after a change), in ms (0: no contact)."""
+        return self.contact.refresh_surface(self.fem) if self.contact is not None else 0.0
+
+    def _request(self, plan_fn) -> CutResult:
+        """A modification asked through the API: ``plan_fn(tissue)`` plans it, then it is
+        applied with its debris and the contact surface rebuilt; the result's ``ms`` is the
+        wall time of all of it (the state's read included), ``surface_ms`` the rebuild's."""
+        t0 = time.perf_counter()
+        res = self._modify(plan_fn(self.tissue()))
+        if res.changed:
+            res.surface_ms = self._refresh_surface()
+        res.ms = 1000.0 * (time.perf_counter() - t0)
+        return res
+
     def _apply_topology(self, plan: CutPlan) -> None:
         """Mesh, FEM, state and node identities from ``plan.change``; the modification of A it
         makes (the blocks of the removed and added elements, with the rotations of one state)
-        goes to the cutter's correction, or the preconditioner starts afresh without one."""
+        goes to the cutter's correction, or the preconditioner starts afresh without one.
+
+        The rotations are of the current state, computed for the tets around the change alone:
+        the removed tets' and the node rotations of their nodes (and of the nodes new ones copy),
+        which is all the modification reads; the other tets keep the step's (the next step
+        computes all of them, as it does after every step)."""
         change, fem, integ = plan.change, self.fem, self.integrator
         m_coef, k_coef = integ.m_coef, integ.k_coef
-        fem.update_rotations(integ.x)
-        R_nodes = fem.node_rotations()
+        old_tets = fem.mesh.tets
+        need = np.zeros(fem.n_nodes, bool)
+        need[old_tets[change.removed_tets].ravel()] = True
+        need[np.asarray(change.rotation_source, np.int64)] = True
+        around = np.flatnonzero(need[old_tets].any(axis=1))  # every tet of those nodes
+        R_nodes = fem.node_rotations_around(integ.x, around, np.flatnonzero(need))
         old_blocks = fem.element_blocks(change.removed_tets, m_coef, k_coef)
         fem.set_mesh(change.mesh, change.fixed, change.tet_source)
         integ.set_state(change.x, change.v)
-        fem.update_rotations(integ.x)
+        # the state is the same node for node: the tets that kept their source's shape keep its rotation
+        fem.update_rotations(integ.x, changed_only=True)
         new_blocks = fem.element_blocks(change.added_tets, m_coef, k_coef)
         self.mesh, self.node_uids = change.mesh, change.node_uids
         self.mesh_version += 1
@@ -403,13 +431,14 @@ class Simulation:
         return known[0] if known is not None and known[1] == self._state_key() else self._kinetic_energy()
 
     def _copy_state(self, purpose: str) -> tuple:
-        """(x, v) copied on the device into buffers kept for ``purpose`` (reused while the node
-        count holds): a state the step may go back to."""
+        """(x, v) copied on the device into buffers kept for ``purpose`` (grow-only, across node
+        count changes too): a state the step may go back to."""
         integ = self.integrator
-        bufs = self._copies.get(purpose)
-        if bufs is None or bufs[0].shape != integ.x.shape:
-            bufs = (wp.empty_like(integ.x), wp.empty_like(integ.v))
-            self._copies[purpose] = bufs
+        grow = self._copies.get(purpose)
+        if grow is None:
+            grow = self._copies[purpose] = (GrowArray(wp.vec3d, self.device), GrowArray(wp.vec3d, self.device))
+        n = integ.x.shape[0]
+        bufs = (grow[0].view(n), grow[1].view(n))
         wp.copy(bufs[0], integ.x)
         wp.copy(bufs[1], integ.v)
         return bufs
@@ -581,8 +610,14 @@ class Simulation:
         if self.contact is not None:
             self._contact_response(stats)  # LCP correction of x and v, eq. (3)-(4)
         if self.cutting is not None:  # blade motion -> mesh change + SMF, eq. (5)-(12)
+            t0 = time.perf_counter()
             ops = self.cutting.step(self.step_count, self._instruments())
-            stats.cutting = self.cutting.step_stats([self._modify(op(self.tissue())) for op in ops])
+            results = [self._modify(op(self.tissue())) for op in ops]
+            surface_ms = self._refresh_surface() if any(r.changed for r in results) else 0.0
+            stats.cutting = self.cutting.step_stats(results)
+            if ops:  # the whole cutting phase: the state's reads, planning, changes, correction, surface
+                stats.cutting.cut_ms = 1000.0 * (time.perf_counter() - t0)
+                stats.cutting.surface_ms = surface_ms
         if not getattr(self.preconditioner, "factorizing", lambda: False)():
             graphs.release()  # graphs replaced by a cut, now that no factorization runs beside the steps
         self.last_stats = stats
@@ -671,14 +706,14 @@ class Simulation:
         """Cut along the blade path since the last cut. Returns a CutResult (tets_changed, message)."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self._modify(self.cutting.cut(self.tissue(), self._instruments()))
+        return self._request(lambda tissue: self.cutting.cut(tissue, self._instruments()))
 
     def cut_at_blade(self):
         """One cut where the cutting instrument's blade is now (a stab incision as wide as the
         instrument). Returns a CutResult."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self._modify(self.cutting.cut_at_blade(self.tissue(), self._instruments()))
+        return self._request(lambda tissue: self.cutting.cut_at_blade(tissue, self._instruments()))
 
     def blade_triangles(self):
         """The cutting blade where it is now as two triangles (2, 3, 3), world frame, or None."""
@@ -690,19 +725,19 @@ class Simulation:
         """Cut along blade triangles (k, 3, 3) in the world (current) or rest frame. Returns a CutResult."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self._modify(self.cutting.cut_triangles(self.tissue(), triangles, frame))
+        return self._request(lambda tissue: self.cutting.cut_triangles(tissue, triangles, frame))
 
     def remove_elements(self, center, radius: float, frame: str = "world"):
         """Ablation / aspiration: delete the elements whose centroid is within radius of center."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self._modify(self.cutting.remove_elements(self.tissue(), center, radius, frame))
+        return self._request(lambda tissue: self.cutting.remove_elements(tissue, center, radius, frame))
 
     def remove_tets(self, tets):
         """Delete given tets (boolean mask or indices): e.g. lift out a part that was cut free."""
         if self.cutting is None:
             raise ValueError("this scene has no cutting")
-        return self._modify(self.cutting.remove_tets(self.tissue(), tets))
+        return self._request(lambda tissue: self.cutting.remove_tets(tissue, tets))
 
     def set_cutting(self, active: bool) -> None:
         """Blade active: cut continuously while the instrument moves (like a pedal)."""

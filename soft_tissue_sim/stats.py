@@ -48,6 +48,7 @@ class CutStats:
     cuts: int = 0  # running total of modifications
     tets_changed: int = 0
     affected_nodes: int = 0
-    cut_ms: float = 0.0  # mesh change and preconditioner correction
+    cut_ms: float = 0.0  # the step's cutting phase: planning, mesh change, correction, contact surface
+    surface_ms: float = 0.0  # of which the contact surface's rebuild (scenes with contact)
     smf_u_ms: float = 0.0  # U = P^-1 G of the Sherman-Morrison correction (eq. 8)
     smf_q_ms: float = 0.0  # Q = (I + N S)^-1 N (eq. 9)

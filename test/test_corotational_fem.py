@@ -216,7 +216,8 @@ def test_rest_data_taken_over_from_the_source_tets_equal_a_fresh_build():
 
 def test_a_split_keeps_the_device_arrays_of_unchanged_element_data():
     """A node split changes no element's rest shape or material: set_mesh keeps those device
-    arrays (same objects, same bytes); a removal changes them and uploads new ones."""
+    arrays (same objects, same bytes) and sends only the nodes' data and the tets; a removal
+    changes them and sends them too (views of the same allocation)."""
     from soft_tissue_sim.mesh import TetMesh
 
     mesh = beam_mesh(6, n_cross=3, spacing=0.01)
@@ -228,8 +229,11 @@ def test_a_split_keeps_the_device_arrays_of_unchanged_element_data():
     f.set_mesh(split, np.arange(9), tet_source=np.arange(mesh.n_tets))
     assert all(getattr(f, k) is before[k] for k in names)
     assert f.tets is not None and np.array_equal(f.tets.numpy(), split.tets)
+    assert sorted(f.uploads) == ["free", "lumped_mass", "rest", "tets"]
     f.set_mesh(TetMesh(split.points, split.tets[5:]), np.arange(9), tet_source=np.arange(5, mesh.n_tets))
     assert not any(getattr(f, k) is before[k] for k in names)
+    assert {"Dm_inv", "volume", "mu", "lam", "rho"} <= set(f.uploads)
+    assert f.Dm_inv.ptr == before["Dm_inv"].ptr  # the same allocation: it fits
     fresh = CorotationalFEM(f.mesh, mat, "cpu", fixed_nodes=np.arange(9))
     for a, b in zip(_rest_arrays(f), _rest_arrays(fresh)):
         np.testing.assert_array_equal(a, b)

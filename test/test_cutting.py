@@ -753,3 +753,27 @@ def test_the_edge_table_a_cut_or_a_removal_hands_on_equals_the_recomputed_one(sc
             np.testing.assert_array_equal(m.node_components(), connected_components(g, directed=False)[1])
         tissue = Tissue(c.mesh, c.x, c.v, c.node_uids, c.free)
     assert carried >= (20 if scheme == "split" else 10)
+
+
+def test_the_removal_sphere_takes_the_tets_of_all_centroids_within_it():
+    """remove_elements tests only the tets whose box meets the sphere's: it removes exactly the
+    tets whose centroid, computed for every tet, lies within the radius (spheres of every size,
+    centred inside, on and beyond the body, some on nodes and tet centroids)."""
+    from soft_tissue_sim.mesh import centroids
+
+    rng = np.random.default_rng(5)
+    with load_scene(beam_scene(n_long=8, n_cross=4)) as sim:
+        tissue = sim.tissue()
+        P, T = tissue.mesh.points, tissue.mesh.tets
+        cen = centroids(P, T)
+        lo, hi = P.min(axis=0), P.max(axis=0)
+        centres = [rng.uniform(lo - 0.01, hi + 0.01) for _ in range(40)] + list(P[::17]) + list(cen[::23])
+        for c in centres:
+            for r in (1e-4, 0.003, 0.006, 0.0125, float(np.linalg.norm(cen[7] - c)), 0.05):
+                expect = np.flatnonzero(np.linalg.norm(cen - c, axis=1) <= r)
+                plan = sim.cutting.remove_elements(tissue, c, r, frame="rest")
+                got = np.zeros(0, np.int64) if plan.change is None else np.sort(plan.change.removed_tets)
+                if len(expect) == len(T):  # refused: it would remove every element
+                    assert plan.change is None
+                else:
+                    assert np.array_equal(got, expect), (c, r)

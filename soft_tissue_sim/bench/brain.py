@@ -11,6 +11,8 @@ wedges.
 
 Reported: modifications (cuts and removals) with their affected nodes and the nodes of N (the
 paper's measure), PCG iterations (mean and max), step time (mean, median, p99) and frame rate,
+the host cost of the steps with a modification (``cut_ms_*``: the step's cutting phase and a
+removal asked before it, contact surface rebuild included),
 contacts, LCP residual, max penetration, rollbacks, whether the tumour ended in a part no
 longer attached to the fixed base (``tumour_freed``), whether the planned bites alone did it
 (``freed_by_plan``), that no tumour tet was removed before it was freed
@@ -74,6 +76,7 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
         def do(a):
             t0 = time.perf_counter()
             r, bite = surgeon.act(a)
+            asked = r if r is not None and r.changed else None  # a removal asked before the step
             extra_ms = r.ms if r is not None else 0.0
             if bite is not None:
                 bites.append({"step": sim.step_count, "center": bite[0].tolist(), "radius": bite[1],
@@ -83,12 +86,12 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
             if r is not None and r.changed:
                 kind = "extraction" if "extract" in a else "removal"
                 mods.append(record(kind, r, **({} if kind == "extraction" else {"cleanup": "cleanup_tet" in a})))
-            n_before = len(sim.cutting.history)
+            n_before, mods_before = len(sim.cutting.history), sim.cutting.modifications
             s = sim.step()
             wall = 1000.0 * (time.perf_counter() - t0)
-            for r in sim.cutting.history[n_before:]:
-                if r.changed and r.message.startswith("cut"):
-                    mods.append(record("cut", r))
+            for h in sim.cutting.history[n_before:]:
+                if h.changed and h.message.startswith("cut"):
+                    mods.append(record("cut", h))
             d = s.as_dict()
             rows.append({"step": sim.step_count, "wall_ms": wall, "total_ms": d["total_ms"] + d.get("cut_ms", 0.0)
                          + d.get("contact_ms", 0.0) + extra_ms, "iterations": d["iterations"],
@@ -96,6 +99,13 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                          "max_penetration": d.get("max_penetration", 0.0), "lcp_residual": d.get("lcp_residual", 0.0),
                          "factor_age": d["factor_age"], "refresh_interval": d["refresh_interval"],
                          "rolled_back": bool(d.get("rolled_back", False)),
+                         # the host cost of this step's modifications: the step's cutting phase and
+                         # the request made before it (the surgeon's removal), each with its surface
+                         "modified": asked is not None or sim.cutting.modifications > mods_before,
+                         "cut_ms": d.get("cut_ms", 0.0) + extra_ms,
+                         "surface_ms": d.get("surface_ms", 0.0) + (asked.surface_ms if asked is not None else 0.0),
+                         "smf_ms": d.get("smf_u_ms", 0.0) + d.get("smf_q_ms", 0.0)
+                         + (asked.smf_u_ms + asked.smf_q_ms if asked is not None else 0.0),
                          "wrench_probe_N": float(np.linalg.norm(sim.instrument_wrench("probe")[0]))})
             its_sum[0] += d["iterations"]
             if prog is not None:
@@ -186,6 +196,7 @@ def main(argv=None) -> int:
                                                         progress=True, lag=args.lag, reserve_sms=args.reserve_sms)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
+    cut = np.array([r["cut_ms"] for r in rows if r["modified"]])
     summary = {
         "steps": len(rows), "modifications": len(mods),
         "cuts": sum(m["kind"] == "cut" for m in mods), "removals": sum(m["kind"] == "removal" for m in mods),
@@ -201,6 +212,11 @@ def main(argv=None) -> int:
         "converged_fraction": float(np.mean([r["converged"] for r in rows])),
         "step_ms_mean": float(wall.mean()), "step_ms_median": float(np.median(wall)),
         "step_ms_p99": float(np.percentile(wall, 99)), "fps_mean": float(1000.0 / wall.mean()),
+        # the host cost of the steps with a modification (cutting phase and removals asked before the step)
+        "cut_steps": len(cut), "cut_ms_median": float(np.median(cut)) if len(cut) else 0.0,
+        "cut_ms_p99": float(np.percentile(cut, 99)) if len(cut) else 0.0,
+        "surface_ms_median": float(np.median([r["surface_ms"] for r in rows if r["modified"]])) if len(cut) else 0.0,
+        "correction_ms_median": float(np.median([r["smf_ms"] for r in rows if r["modified"]])) if len(cut) else 0.0,
         "contacts_mean": float(np.mean([r["contacts"] for r in rows])),
         "max_penetration": float(max(r["max_penetration"] for r in rows)),
         "refresh_interval": rows[-1]["refresh_interval"], "rollbacks": int(sum(r["rolled_back"] for r in rows)),

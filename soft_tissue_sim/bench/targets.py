@@ -20,6 +20,10 @@ Rows (scenes of ``config/scenes``):
 * ``brain_contact_step_*``: the brain with both instruments pressed into it, no cutting;
 * ``brain_resection_*``: the shipped scripted resection (``bench brain``): step time,
   iterations, the tumour freed, rollbacks, inverted tets; on the CPU its frame rate;
+* ``brain_cut_ms_*``: from the same run, the host cost of the steps with a modification
+  (median and p99): the wall time of the step's cutting phase (the state's read, planning,
+  mesh change, FEM and state arrays, the preconditioner's correction, the contact surface's
+  rebuild) plus a removal asked before the step (the surgeon's bites), the same parts;
 * ``close_s``: ``Simulation.close()`` of the brain while a factorization is in flight.
 """
 
@@ -164,7 +168,24 @@ def brain_resection_rows(device):
            _row("brain_resection_inverted_tets", int(info["inverted_tets_end"]), "", 0, "==")]
     if not wp.get_device(device).is_cuda:
         out.append(_row("brain_resection_fps", float(1000.0 / wall.mean()), "FPS", 20.0, ">=", note=note))
-    return out
+    return out + cut_rows(rows)
+
+
+def cut_rows(rows) -> list:
+    """brain_cut_ms_median and brain_cut_ms_p99 from the resection's step rows (``bench brain``'s:
+    ``modified``, ``cut_ms``, ``surface_ms``): over the steps with a modification."""
+    mod = [r for r in rows if r.get("modified")]
+    if not mod:
+        return [_row(n, None, "ms", g, note="no step with a modification") for n, g in
+                (("brain_cut_ms_median", 5.0), ("brain_cut_ms_p99", 20.0))]
+    cut = np.array([r["cut_ms"] for r in mod])
+    surface = np.array([r.get("surface_ms", 0.0) for r in mod])
+    smf = np.array([r.get("smf_ms", 0.0) for r in mod])
+    note = (f"{len(mod)} steps with a modification; wall time of the host's cutting phase: planning, mesh "
+            f"change, FEM and state arrays, preconditioner correction (median {np.median(smf):.2f} ms), contact "
+            f"surface rebuild (median {np.median(surface):.2f} ms); the rest median {np.median(cut - smf - surface):.2f} ms")
+    return [_row("brain_cut_ms_median", float(np.median(cut)), "ms", 5.0, note=note),
+            _row("brain_cut_ms_p99", float(np.percentile(cut, 99)), "ms", 20.0, note=note)]
 
 
 def close_rows(device):

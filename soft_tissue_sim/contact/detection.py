@@ -27,6 +27,7 @@ import numpy as np
 import warp as wp
 
 from .. import graphs
+from ..buffers import GrowArray, PackedArrays
 from ..instrument import Instrument, MeshObstacle, PlaneObstacle
 from ..transfer import Staged
 from .detection_kernels import (
@@ -72,19 +73,26 @@ class Section:
     size: int
 
 
+_OUTPUTS = (("active", wp.int32), ("gap", wp.float64), ("normal", wp.vec3d), ("point", wp.vec3d), ("tri", wp.int32),
+            ("bary", wp.vec3d))
+
+
 class Outputs:
     """The output slots of every launch of one detection, in one set of device arrays, so that
-    one read brings them all to the host (:meth:`read`)."""
+    one read brings them all to the host (:meth:`read`). ``buffers``: the
+    :class:`~soft_tissue_sim.buffers.GrowArray` per array to take them from (zeroed), kept
+    across surfaces; None: new arrays."""
 
-    def __init__(self, sections: list[Section], device):
+    def __init__(self, sections: list[Section], device, buffers: dict | None = None):
         self.sections = sections
         n = max(sum(s.size for s in sections), 1)
-        self.active = wp.zeros(n, dtype=wp.int32, device=device)
-        self.gap = wp.zeros(n, dtype=wp.float64, device=device)
-        self.normal = wp.zeros(n, dtype=wp.vec3d, device=device)
-        self.point = wp.zeros(n, dtype=wp.vec3d, device=device)
-        self.tri = wp.zeros(n, dtype=wp.int32, device=device)
-        self.bary = wp.zeros(n, dtype=wp.vec3d, device=device)
+        for name, dtype in _OUTPUTS:
+            if buffers is None:
+                a = wp.zeros(n, dtype=dtype, device=device)
+            else:
+                a = buffers[name].view(n)
+                a.zero_()
+            setattr(self, name, a)
         self.all = self.slots(Section(-2, "all", 0, n))
 
     @property
@@ -150,45 +158,76 @@ def collect(topo: "SurfaceTopology", host: list) -> Contacts:
 _SERIALS = itertools.count()
 
 
+class SurfaceBuffers:
+    """The device arrays of the surfaces one contact solver builds, kept from one surface to
+    the next (a cut replaces the surface every few steps): the surface's tables in one
+    :class:`~soft_tissue_sim.buffers.PackedArrays` (sent in one copy), the output slots and
+    the per-node work arrays as grow-only views, and the per-object arrays, whose size is the
+    solver's (the same for every surface)."""
+
+    def __init__(self, n_objects: int, device):
+        dev = wp.get_device(device)
+        self.tables = PackedArrays({"nodes": wp.int32, "faces": wp.vec3i, "edge_owner": wp.vec3i,
+                                    "node_comp": wp.int32, "face_comp": wp.int32, "ring_offsets": wp.int32,
+                                    "ring_nodes": wp.int32, "points32": wp.vec3}, dev)
+        self.outputs = {name: GrowArray(dtype, dev) for name, dtype in _OUTPUTS}
+        self.x_start, self.node_normal = GrowArray(wp.vec3d, dev), GrowArray(wp.vec3d, dev)
+        self.reach = wp.zeros(1, dtype=wp.float64, device=dev)
+        self.inside = wp.zeros(max(n_objects, 1), dtype=wp.int32, device=dev)
+        self.min_gap = wp.zeros(1, dtype=wp.float64, device=dev)
+        self.geom_in = Staged(4 * max(n_objects, 1), wp.vec3d, dev)
+        self.params_in = Staged(3 * max(n_objects, 1), wp.float64, dev)
+
+
 class SurfaceTopology:
     """Surface data of one mesh; rebuilt when cutting changes the mesh (never reused across
     a change of node count or tets)."""
 
-    def __init__(self, fem, self_collision: bool, objects: list = ()):
+    def __init__(self, fem, self_collision: bool, objects: list = (), buffers: SurfaceBuffers | None = None):
         """``objects``: the contact solver's instruments and obstacles, in order (their index is
-        the contacts' ``obj``): each gets its output slots."""
+        the contacts' ``obj``): each gets its output slots. ``buffers``: the device arrays kept
+        from the surface this one replaces (the same ``objects``); its arrays become this
+        surface's (the replaced one must not be used any more). None: new ones."""
         mesh, dev = fem.mesh, fem.device
+        self.buffers = buffers = buffers if buffers is not None else SurfaceBuffers(len(objects), dev)
         self.keys = (fem.mesh, fem.mesh.tets, fem.tets, fem.n_nodes)
-        self.n_nodes = fem.n_nodes
+        self.n_nodes = n = fem.n_nodes
         self.faces = mesh.boundary_faces()
         on = np.zeros(fem.n_nodes, bool)
         on[self.faces.ravel()] = True
         self.surface = np.flatnonzero(on).astype(np.int32)  # the surface nodes, ascending
         ns = max(len(self.surface), 1)
-        self.nodes = wp.array(self.surface, dtype=wp.int32, device=dev)
         self.scale = float(np.ptp(mesh.points, axis=0).max()) or 1.0
-        # faces on the device, and which face owns each surface edge: edge_owner[f, k] = 1 where
-        # face f owns its edge from vertex k to vertex k + 1, each edge owned by exactly one of
-        # the faces sharing it, the lowest index (np.unique's first occurrence, face-major order)
+        # the tables, sent in one copy: the surface nodes; the faces, and which face owns each
+        # surface edge: edge_owner[f, k] = 1 where face f owns its edge from vertex k to vertex
+        # k + 1, each edge owned by exactly one of the faces sharing it, the lowest index
+        # (np.unique's first occurrence, face-major order); for self-collision the parts, the
+        # node rings and the rest positions (the BVH's first points)
         nf = max(len(self.faces), 1)
-        self.faces_wp = wp.array(self.faces if len(self.faces) else np.zeros((1, 3), np.int32), dtype=wp.vec3i,
-                                 device=dev)
-        self.edge_owner = wp.array(edge_ownership(self.faces) if len(self.faces) else np.zeros((1, 3), np.int32),
-                                   dtype=wp.vec3i, device=dev)
-        self.wmesh = None
-        if self_collision and len(self.faces):
-            n = fem.n_nodes
+        faces = self.faces if len(self.faces) else np.zeros((1, 3), np.int32)
+        data = {"nodes": self.surface if len(self.surface) else np.zeros(1, np.int32), "faces": faces,
+                "edge_owner": edge_ownership(faces) if len(self.faces) else np.zeros((1, 3), np.int32)}
+        collide = self_collision and len(self.faces)
+        if collide:
             offsets, ring = mesh.node_ring()  # the neighbours through the edges (per connectivity)
             comp = mesh.node_components()  # the same parts as the edges make
             self.n_components = int(comp.max()) + 1
-            self.node_comp = wp.array(comp.astype(np.int32), dtype=wp.int32, device=dev)
-            self.face_comp = wp.array(comp[self.faces[:, 0]].astype(np.int32), dtype=wp.int32, device=dev)
-            self.ring_offsets = wp.array(offsets, dtype=wp.int32, device=dev)
-            self.ring_nodes = wp.array(ring, dtype=wp.int32, device=dev)
-            self.points32 = wp.array(mesh.points.astype(np.float32), dtype=wp.vec3, device=dev)
-            self.node_normal = wp.zeros(n, dtype=wp.vec3d, device=dev)
-            self.wmesh = wp.Mesh(points=self.points32, indices=wp.array(self.faces.reshape(-1), dtype=wp.int32,
-                                                                          device=dev))
+            data.update(node_comp=comp, face_comp=comp[self.faces[:, 0]], ring_offsets=offsets, ring_nodes=ring,
+                        points32=mesh.points.astype(np.float32))
+        tables = buffers.tables
+        tables.reserve({k: len(data[k]) if k in data else 0 for k in tables.fields})
+        for k, v in data.items():
+            h = tables.host(k)
+            h[...] = v.reshape(h.shape)
+        tables.send(data)
+        self.nodes, self.faces_wp, self.edge_owner = (tables.array(k) for k in ("nodes", "faces", "edge_owner"))
+        self.wmesh = None
+        if collide:
+            self.node_comp, self.face_comp, self.ring_offsets, self.ring_nodes, self.points32 = (
+                tables.array(k) for k in ("node_comp", "face_comp", "ring_offsets", "ring_nodes", "points32"))
+            self.node_normal = buffers.node_normal.view(n)
+            self.node_normal.zero_()
+            self.wmesh = wp.Mesh(points=self.points32, indices=tables.alias("faces", wp.int32, 3 * nf))
         # output slots: per object, one per surface node and, for an instrument, one per surface
         # face; then one per surface node for self-collision
         sections, base = [], 0
@@ -200,17 +239,16 @@ class SurfaceTopology:
                 base += nf
         if self.wmesh is not None:
             sections.append(Section(-1, "self", base, ns))
-        self.out = Outputs(sections, dev)
+        self.out = Outputs(sections, dev, buffers.outputs)
         self.slot_map = SlotMap(sections, self.out.active.shape[0], self.surface)
         # state of one detection on the device: the step's start, the reach of the free motion,
         # which instruments were through the surface at the start, the smallest gap
-        self.x_start = wp.zeros(fem.n_nodes, dtype=wp.vec3d, device=dev)
-        self.reach = wp.zeros(1, dtype=wp.float64, device=dev)
-        self.inside = wp.zeros(max(len(objects), 1), dtype=wp.int32, device=dev)
-        self.min_gap = wp.zeros(1, dtype=wp.float64, device=dev)
+        self.x_start = buffers.x_start.view(n)
+        self.reach, self.inside, self.min_gap = buffers.reach, buffers.inside, buffers.min_gap
+        for a in (self.x_start, self.reach, self.inside, self.min_gap):
+            a.zero_()
         # the objects' geometry of the step, on the device (see upload_objects)
-        self.geom_in = Staged(4 * max(len(objects), 1), wp.vec3d, dev)
-        self.params_in = Staged(3 * max(len(objects), 1), wp.float64, dev)
+        self.geom_in, self.params_in = buffers.geom_in, buffers.params_in
         self.geom, self.params = self.geom_in.array, self.params_in.array
         self.replay = graphs.Replayer(dev, "contact detection", slots=4)  # captured detections, by arguments
         self.serial = next(_SERIALS)  # names this surface in the keys of graphs that launch on it

@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from ..body import BodyView
+from ..buffers import GrowArray
 from ..instrument import Instrument, MeshObstacle, obstacle_from_config
 from ..material import ParameterError
 from ..stats import ContactStats
@@ -80,7 +81,7 @@ class ContactSolver:
         self._warm = WarmStart()
         self._pgs = PGS(o["active_set"])
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
-        self._dx: wp.array | None = None  # the device correction, overwritten each step
+        self._dx = GrowArray(wp.vec3d, device)  # the device correction, overwritten each step
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite
 
@@ -148,8 +149,17 @@ class ContactSolver:
     def _topology(self, fem) -> SurfaceTopology:
         if self._topo is None or not self._topo.matches(fem):
             self._retire_topology()
-            self._topo = SurfaceTopology(fem, self.options["self_collision"], self.objects)
+            self._topo = SurfaceTopology(fem, self.options["self_collision"], self.objects,
+                                         None if self._topo is None else self._topo.buffers)  # its arrays, kept
         return self._topo
+
+    def refresh_surface(self, fem) -> float:
+        """Bring the tissue surface up to date with ``fem``'s mesh now (after a topology change,
+        so that its cost is the change's, not the next detection's); returns the milliseconds
+        it took (about none where it was current)."""
+        t0 = time.perf_counter()
+        self._topology(fem)
+        return 1000.0 * (time.perf_counter() - t0)
 
     def _launch(self, topo: SurfaceTopology, x: wp.array, x_features: wp.array, x_start: wp.array | None) -> None:
         o = self.options
@@ -412,9 +422,7 @@ class ContactSolver:
         # correction with the same compliance: dx = dt^2 P^-1 H^T lambda, v += dx / dt
         y = apply_y(lam)
         if isinstance(y, wp.array):  # on the device: scaled there, never read back
-            if self._dx is None or self._dx.shape[0] != n:
-                self._dx = wp.empty(n, dtype=wp.vec3d, device=self.device)
-            dx = self._dx
+            dx = self._dx.view(n)
             wp.launch(scaled_free_kernel, n, [y, float(dt * dt), body.fem.free, dx], device=self.device)
         else:
             dx = (dt * dt) * np.asarray(y).reshape(n, 3) * free[:, None]

@@ -17,7 +17,7 @@ from ..mesh import (TetMesh, centroids, edge_table_after_change, interior_faces_
                     tet_quality)
 from ..sherman_morrison import Modification
 from ..stats import CutStats
-from .geometry import _path_planes, faces_cut_by_triangles, sweep_triangles
+from .geometry import _path_planes, faces_cut_by_triangles, sweep_triangles, tets_near_box
 from .records import CutPlan, CutResult, Tissue, TopologyChange
 from .subdivision import CutState, faces_on_cut, subdivide_for_cut
 from .topology import split_along_faces
@@ -379,8 +379,13 @@ class Cutter:
                                      f"{radius!r}"))
         mesh = tissue.mesh
         pts = tissue.x if frame == "world" else mesh.points
-        cen = centroids(pts, mesh.tets)
-        gone = np.linalg.norm(cen - c, axis=1) <= float(radius)
+        # a centroid lies in its tet's box: only the tets whose nodes are not all beyond one
+        # face of the sphere's box (a little widened against rounding) can have it inside
+        r = float(radius)
+        widen = 1e-9 * (r + float(np.abs(c).max()))
+        cand = tets_near_box(pts, mesh.tets, c - r - widen, c + r + widen)
+        gone = np.zeros(mesh.n_tets, bool)
+        gone[cand[np.linalg.norm(centroids(pts, mesh.tets[cand]) - c, axis=1) <= r]] = True
         if not gone.any():
             return CutPlan(CutResult(False, "no element within the removal sphere: nothing changed"))
         return self._removal(tissue, gone, t0)

@@ -39,13 +39,17 @@ def _dot(u, v):
 _LOW_BITS, _HIGH_BITS = np.array([1, 2, 4], np.uint8), np.array([8, 16, 32], np.uint8)
 
 
-def _near_blade(points, tets, tri, tol):
-    """Indices of the tets whose bounding box meets the triangle's, widened by ``tol``: a tet
-    is far when all its nodes lie beyond the same face of that box (their outcodes share a bit)."""
-    lo, hi = tri.min(axis=0) - tol, tri.max(axis=0) + tol
+def tets_near_box(points, tets, lo, hi):
+    """Indices of the tets whose bounding box meets the box [lo, hi]: a tet is far when all its
+    nodes lie beyond the same face of the box (their outcodes share a bit)."""
     code = ((points < lo) @ _LOW_BITS) | ((points > hi) @ _HIGH_BITS)
     c = code[tets]
     return np.flatnonzero((c[:, 0] & c[:, 1] & c[:, 2] & c[:, 3]) == 0)
+
+
+def _near_blade(points, tets, tri, tol):
+    """Indices of the tets whose bounding box meets the triangle's, widened by ``tol``."""
+    return tets_near_box(points, tets, tri.min(axis=0) - tol, tri.max(axis=0) + tol)
 
 
 def _in_triangles(p, a, b, c, tol):

@@ -25,9 +25,11 @@ class CutResult:
     perturbation_nodes: int = 0  # nodes of N against the factor in use after it (paper's measure)
     faces_cut: int = 0
     debris_tets: int = 0  # tets of fragments below `min_fragment` removed after the change
-    ms: float = 0.0  # whole modification, correction included
+    ms: float = 0.0  # whole modification: planning, mesh change, correction (and, asked through the
+    # Simulation's API, the state's read and the contact surface's rebuild)
     smf_u_ms: float = 0.0  # U = P^-1 G (batched triangular solves)
     smf_q_ms: float = 0.0  # Q = (I + N S)^-1 N
+    surface_ms: float = 0.0  # the contact surface's rebuild (API requests; a step's is in its CutStats)
 
 
 @dataclass
@@ -68,6 +70,11 @@ class TopologyChange:
     @property
     def fixed(self) -> np.ndarray:
         return np.flatnonzero(self.free == 0.0)
+
+    def tissue(self) -> Tissue:
+        """The body once this change is applied, as cutting reads it (what the simulation
+        would read back from the device: the same arrays)."""
+        return Tissue(self.mesh, self.x, self.v, self.node_uids, self.free)
 
     def modification(self, version: int, old_blocks, new_blocks, R_nodes: np.ndarray) -> Modification:
         """The change of A (eq. 5-7) from the removed tets' element blocks (old numbering) and the

@@ -1,0 +1,48 @@
+"""bench targets: the rows of the cut's host cost, from the resection run it already makes."""
+
+import numpy as np
+import pytest
+
+from soft_tissue_sim.bench import brain, targets
+
+
+def _rows(cut_ms, modified):
+    return [{"step": k + 1, "wall_ms": 10.0 + c, "iterations": 4, "rolled_back": False, "modified": m,
+             "cut_ms": c, "surface_ms": 0.25 * c if m else 0.0, "smf_ms": 0.5 * c if m else 0.0}
+            for k, (c, m) in enumerate(zip(cut_ms, modified))]
+
+
+def test_the_cut_rows_are_the_median_and_p99_over_the_steps_with_a_modification():
+    rng = np.random.default_rng(0)
+    cut = rng.uniform(0.1, 30.0, 300)
+    mod = rng.uniform(size=300) < 0.3
+    rows = targets.cut_rows(_rows(cut, mod))
+    by = {r["name"]: r for r in rows}
+    assert set(by) == {"brain_cut_ms_median", "brain_cut_ms_p99"}
+    med, p99 = by["brain_cut_ms_median"], by["brain_cut_ms_p99"]
+    assert med["value"] == pytest.approx(np.median(cut[mod])) and med["goal"] == 5.0
+    assert p99["value"] == pytest.approx(np.percentile(cut[mod], 99)) and p99["goal"] == 20.0
+    for r in (med, p99):
+        assert r["unit"] == "ms" and r["goal_relation"] == "<=" and r["met"] == (r["value"] <= r["goal"])
+        assert f"{mod.sum()} steps with a modification" in r["note"] and "surface" in r["note"]
+        assert f"correction (median {np.median(0.5 * cut[mod]):.2f} ms)" in r["note"]
+    none = targets.cut_rows(_rows([1.0, 2.0], [False, False]))
+    assert [r["value"] for r in none] == [None, None] and all(r["met"] is None for r in none)
+
+
+def test_the_resection_rows_include_the_cut_rows(monkeypatch):
+    """brain_resection_rows takes the cut rows from the same run (no second run)."""
+    calls = []
+
+    def fake_run(device, progress=False):
+        calls.append(device)
+        rows = _rows([0.0, 4.0, 0.0, 6.0, 8.0], [False, True, False, True, True])
+        return rows, [{}] * 3, True, True, 0, 0, {"inverted_tets_end": 0}
+
+    monkeypatch.setattr(brain, "run", fake_run)
+    rows = {r["name"]: r for r in targets.brain_resection_rows("cpu")}
+    assert calls == ["cpu"]
+    assert rows["brain_cut_ms_median"]["value"] == 6.0 and rows["brain_cut_ms_median"]["met"] is False
+    assert rows["brain_cut_ms_p99"]["value"] == pytest.approx(np.percentile([4.0, 6.0, 8.0], 99))
+    assert rows["brain_cut_ms_p99"]["goal"] == rows["brain_resection_step_p99_ms"]["goal"] == 20.0
+    assert "brain_resection_step_median_ms" in rows and "brain_resection_fps" in rows

@@ -30,6 +30,7 @@ Rows (scenes of ``config/scenes``):
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import sys
 import time
@@ -197,8 +198,10 @@ def close_rows(device):
     return [_row("close_s", time.perf_counter() - t0, "s", 1.0, note="brain, a factorization in flight")]
 
 
-GROUPS = {"precond": precond_rows, "cut_beam": cut_beam_rows, "beam100k": beam100k_rows,
-          "brain_contact": brain_contact_rows, "brain_resection": brain_resection_rows, "close": close_rows}
+# the 100,000-node beam after the brain's rows: what it leaves behind (gigabytes of device memory
+# in CUDA's pool, cuDSS's state) is not the brain's to pay
+GROUPS = {"precond": precond_rows, "cut_beam": cut_beam_rows, "brain_contact": brain_contact_rows,
+          "brain_resection": brain_resection_rows, "beam100k": beam100k_rows, "close": close_rows}
 
 
 def markdown(paths) -> str:
@@ -269,6 +272,7 @@ def main(argv=None) -> int:
             rows = GROUPS[g](device)
         except Exception as exc:  # noqa: BLE001 - recorded as rows without a value; the others still run
             rows = [_row(g, None, "", None, note=f"failed: {type(exc).__name__}: {exc}")]
+        gc.collect()  # the group's scenes closed and gone before the next group
         for r in rows:
             v = r["value"]
             vs = "-" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v))

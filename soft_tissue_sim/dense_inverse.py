@@ -131,6 +131,13 @@ def dense_apply_kernel(P: wp.array2d(dtype=Any), s: wp.array(dtype=wp.float64),
         z[i] = dR[i] * wp.vec3d(a0, a1, a2)
 
 
+# both precisions declared with the module, so that building it (bench targets does, first)
+# builds them: an overload first met at a launch would rebuild the module then
+for _p in (wp.float64, wp.float32):
+    wp.overload(dense_apply_kernel, {"P": wp.array2d(dtype=_p), "s": wp.array(dtype=wp.float64),
+                                     "dR": wp.array(dtype=wp.mat33d), "z": wp.array(dtype=wp.vec3d)})
+
+
 @wp.func
 def delassus_entry(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.int32),
                    coef: wp.array2d(dtype=wp.vec3d), dR: wp.array(dtype=wp.mat33d), a: int, b: int):

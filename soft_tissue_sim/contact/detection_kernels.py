@@ -385,11 +385,6 @@ def self_contacts_kernel(
     for f in query:
         t = faces[f]
         ok = t[0] != p and t[1] != p and t[2] != p
-        if ok:
-            for j in range(ring_offsets[p], ring_offsets[p + 1]):
-                r = ring_nodes[j]
-                if r == t[0] or r == t[1] or r == t[2]:
-                    ok = False
         va = x[t[0]]
         vb = x[t[1]]
         vc = x[t[2]]
@@ -424,6 +419,11 @@ def self_contacts_kernel(
                     q = w[0] * va + w[1] * vb + w[2] * vc
                     g = s
                     valid = True
+            if valid and wp.abs(g) < best:  # the node's own neighbourhood last: the costliest test
+                for j in range(ring_offsets[p], ring_offsets[p + 1]):
+                    r = ring_nodes[j]
+                    if r == t[0] or r == t[1] or r == t[2]:
+                        valid = False
             if valid and wp.abs(g) < best:
                 best = wp.abs(g)
                 best_face = f

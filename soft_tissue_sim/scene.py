@@ -40,8 +40,6 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
                                                   #   steps (auto: 16; 0: it may take them all)
              graph: auto,                         # auto (on CUDA with a device factor) | true | false
              stream_priority: high,               # CUDA: the simulation's stream ahead of the factor's | default
-             mempool_keep: auto,                  # CUDA: bytes of freed device memory the pool keeps
-                                                  #   for reuse (auto: 2 GiB where the driver's is 0)
              blas_threads: one}                   # one: a step's host BLAS on one thread (beside the
                                                   #   factorization) | default: the libraries' own
 
@@ -81,8 +79,6 @@ from .transfer import to_host
 
 if TYPE_CHECKING:  # built only in scenes that name cutting
     from .cutting import CutPlan, CutResult, Tissue
-
-MEMPOOL_KEEP = 2 << 30  # solver.mempool_keep auto: freed device memory CUDA's pool keeps [bytes]
 
 _KNOWN_KEYS = {
     "name", "description", "device", "mesh", "materials", "mass", "damping", "gravity", "fixed", "time",
@@ -246,17 +242,6 @@ class Simulation:
         if blas not in ("one", "default"):
             raise ParameterError(f"solver blas_threads must be one or default, got {blas!r}")
         self._blas_scope = one_thread if blas == "one" else contextlib.nullcontext
-        keep = solver.get("mempool_keep", "auto")
-        if keep != "auto" and (isinstance(keep, bool) or not isinstance(keep, (int, float)) or keep < 0):
-            raise ParameterError(f"solver mempool_keep must be auto or a number of bytes >= 0, got {keep!r}")
-        if wp.get_device(self.device).is_cuda and wp.is_mempool_enabled(self.device):
-            # freed device memory kept in CUDA's pool instead of going back to the driver at every
-            # wait (its default): a mesh change replaces arrays, the dense inverse among them
-            if keep == "auto":
-                if wp.get_mempool_release_threshold(self.device) == 0:
-                    wp.set_mempool_release_threshold(self.device, MEMPOOL_KEEP)
-            else:
-                wp.set_mempool_release_threshold(self.device, int(keep))
         self.stream = None
         if wp.get_device(self.device).is_cuda and priority == "high":
             # the step's kernels go ahead of a factorization running beside them on another stream

@@ -6,7 +6,6 @@ Warp's CPU backend by default; ``STS_TEST_DEVICE=cuda:0`` goes through pinned mi
 import os
 
 import numpy as np
-import pytest
 import warp as wp
 
 from soft_tissue_sim.transfer import Staged, to_host
@@ -65,28 +64,3 @@ def test_pinned_pool_recycles_blocks_by_size_and_keeps_a_lent_one_apart():
         wp.copy(b, src)
         wp.synchronize_device(DEVICE)
         np.testing.assert_array_equal(b.numpy(), np.arange(30.0))
-
-
-def test_the_scene_keeps_freed_device_memory_in_the_pool():
-    """solver.mempool_keep: auto raises CUDA's release threshold from the driver's 0 (freed
-    memory back to the driver at every wait) to MEMPOOL_KEEP, a number sets it, and a bad value
-    is refused. On the CPU only the validation applies."""
-    from soft_tissue_sim import ParameterError, load_scene
-    from soft_tissue_sim.scene import MEMPOOL_KEEP
-
-    for bad in (-1, "lots", True):
-        with pytest.raises(ParameterError, match="mempool_keep"):
-            load_scene("test_small.yaml", device=DEVICE, overrides={"solver": {"mempool_keep": bad}})
-    if not wp.get_device(DEVICE).is_cuda or not wp.is_mempool_enabled(DEVICE):
-        return
-    before = wp.get_mempool_release_threshold(DEVICE)
-    try:
-        wp.set_mempool_release_threshold(DEVICE, 0)
-        with load_scene("test_small.yaml", device=DEVICE):
-            assert wp.get_mempool_release_threshold(DEVICE) == MEMPOOL_KEEP
-        with load_scene("test_small.yaml", device=DEVICE, overrides={"solver": {"mempool_keep": 3 << 20}}):
-            assert wp.get_mempool_release_threshold(DEVICE) == 3 << 20
-        with load_scene("test_small.yaml", device=DEVICE):  # auto leaves a threshold someone set
-            assert wp.get_mempool_release_threshold(DEVICE) == 3 << 20
-    finally:
-        wp.set_mempool_release_threshold(DEVICE, before)

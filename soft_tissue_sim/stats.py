@@ -39,6 +39,7 @@ class ContactStats:
     compliance: str | None = None  # the compliance W was built with (when there were contacts)
     compliance_fallbacks: int | None = None  # running total of fallbacks to the diagonal (idem)
     lcp_device: bool | None = None  # the LCP was solved on the device, with the correction
+    lcp_redone: bool | None = None  # the device's solve was refused and redone on the host
 
 
 @dataclass

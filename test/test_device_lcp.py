@@ -88,6 +88,7 @@ def test_w_not_positive_definite_on_the_device_is_solved_again_on_the_host(monke
     dev = _run(_floor_scene(32), steps=25)
     assert any(s.get("contacts", 0) for s in dev[3])
     assert all("lcp_device" not in s for s in dev[3])  # every solve redone on the host
+    assert all(s["lcp_redone"] for s in dev[3] if s.get("contacts", 0))
     np.testing.assert_allclose(dev[0], host[0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9, atol=1e-12)
 
@@ -102,6 +103,7 @@ def test_sweeps_that_end_above_the_tolerance_are_finished_on_the_host():
     dev = _run(_floor_scene(32, tol=tol), steps=30)
     pressed = [s for s in dev[3] if s.get("contacts", 0)]
     assert any(s.get("lcp_device") for s in pressed) and any("lcp_device" not in s for s in pressed)
+    assert all(s.get("lcp_redone", False) == ("lcp_device" not in s) for s in pressed)
     assert max(s["lcp_residual"] for s in pressed) <= tol
     # the device's converged sweeps and the host's active set stop at different lambdas within
     # the tolerance: the paths agree to a few tolerances

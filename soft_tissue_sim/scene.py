@@ -561,8 +561,7 @@ class Simulation:
             guard, *rest = self._correct(response.dx, response.device)
             if response.device is None or response.device.finish(rest.pop(0)):
                 break
-            # the device refused W (nothing corrected) or its sweeps left a frictionless LCP above
-            # the tolerance: this step's contacts again, on the host
+            # the device refused W (nothing corrected): this step's contacts again, on the host
             self._restore_state(free)
         if reason is None:
             ke, nonfinite = float(guard[0]), float(guard[1])

@@ -405,7 +405,7 @@ class ContactSolver:
             self._device_lcp.stage(H.nodes, H.coef, d0, lam, row_start, rows, mu)
             stats.lcp_device = True
             stats.compliance_fallbacks = self.compliance_fallbacks
-            return PendingLCP(self._device_lcp, inner, body.fem.free, dt, o, m, len(row_start), finish)
+            return PendingLCP(self._device_lcp, inner, body.fem.free, dt, o, m, finish)
         W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
         W = dt * dt * 0.5 * (W0 + W0.T)
         if kind != "diagonal" and not positive_definite(W):

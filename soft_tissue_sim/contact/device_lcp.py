@@ -33,7 +33,7 @@ import warp as wp
 
 from ..transfer import Staged
 from .geometry import F64
-from .pgs import contact_update, exact_delta, move, pgs_residual
+from .pgs import pgs_sweeps
 
 
 @wp.kernel
@@ -104,27 +104,7 @@ def device_pgs_kernel(
     info[2] = F64(1.0)
     for i in range(m):
         lam[i] = lam0[i]
-    exact_delta(W, d0, lam, delta, m)
-    it = int(0)
-    res = F64(-1.0)
-    for sweep in range(max_iterations):
-        change = F64(0.0)
-        for c in range(nc):
-            r = row_start[c]
-            ln, l1, l2, ch = contact_update(W, delta, lam, r, n_rows[c], mu[c], pyramid)
-            move(W, delta, lam, r, ln, m)
-            if n_rows[c] == 3:
-                move(W, delta, lam, r + 1, l1, m)
-                move(W, delta, lam, r + 2, l2, m)
-            change = wp.max(change, ch)
-        it = sweep + 1
-        res = F64(-1.0)
-        if change <= tolerance:
-            res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid, m, nc)
-            if res <= tolerance:
-                break
-    if res < F64(0.0):
-        res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid, m, nc)
+    it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, max_iterations, tolerance, pyramid, lam, delta)
     info[0] = F64(it)
     info[1] = res
 

@@ -132,6 +132,47 @@ def pgs_residual(
     return res
 
 
+@wp.func
+def pgs_sweeps(
+    W: wp.array2d(dtype=wp.float64),
+    d0: wp.array(dtype=wp.float64),
+    row_start: wp.array(dtype=wp.int32),
+    n_rows: wp.array(dtype=wp.int32),
+    mu: wp.array(dtype=wp.float64),
+    m: int,
+    nc: int,
+    max_iterations: int,
+    tolerance: wp.float64,
+    pyramid: int,
+    lam: wp.array(dtype=wp.float64),
+    delta: wp.array(dtype=wp.float64),
+):
+    """The sweeps of :func:`pgs_kernel` from the lambda given (updated in place); returns
+    (sweeps, residual)."""
+    exact_delta(W, d0, lam, delta, m)
+    it = int(0)
+    res = F64(-1.0)
+    for sweep in range(max_iterations):
+        change = F64(0.0)
+        for c in range(nc):
+            r = row_start[c]
+            ln, l1, l2, ch = contact_update(W, delta, lam, r, n_rows[c], mu[c], pyramid)
+            move(W, delta, lam, r, ln, m)
+            if n_rows[c] == 3:
+                move(W, delta, lam, r + 1, l1, m)
+                move(W, delta, lam, r + 2, l2, m)
+            change = wp.max(change, ch)
+        it = sweep + 1
+        res = F64(-1.0)
+        if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
+            res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid, m, nc)
+            if res <= tolerance:
+                break
+    if res < F64(0.0):
+        res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid, m, nc)
+    return it, res
+
+
 @wp.kernel
 def pgs_kernel(
     W: wp.array2d(dtype=wp.float64),
@@ -159,27 +200,7 @@ def pgs_kernel(
     contacts of the arrays (which may be larger: reused buffers). One thread: launched with
     dim 1 on the CPU.
     """
-    exact_delta(W, d0, lam, delta, m)
-    it = int(0)
-    res = F64(-1.0)
-    for sweep in range(max_iterations):
-        change = F64(0.0)
-        for c in range(nc):
-            r = row_start[c]
-            ln, l1, l2, ch = contact_update(W, delta, lam, r, n_rows[c], mu[c], pyramid)
-            move(W, delta, lam, r, ln, m)
-            if n_rows[c] == 3:
-                move(W, delta, lam, r + 1, l1, m)
-                move(W, delta, lam, r + 2, l2, m)
-            change = wp.max(change, ch)
-        it = sweep + 1
-        res = F64(-1.0)
-        if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-            res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid, m, nc)
-            if res <= tolerance:
-                break
-    if res < F64(0.0):
-        res = pgs_residual(W, d0, lam, delta, row_start, n_rows, mu, pyramid, m, nc)
+    it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, max_iterations, tolerance, pyramid, lam, delta)
     info[0] = F64(it)
     info[1] = res
 

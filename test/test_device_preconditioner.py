@@ -468,13 +468,10 @@ def test_reserve_sms_confines_the_factorization_and_changes_no_result():
 @pytest.mark.parametrize("precision", ["float64", "float32"])
 def test_dense_inverse_after_chained_cuts_equals_a_fresh_factorization(precision):
     """The inverse folded after two cuts and an element removal (rank-3k updates, node numbering
-    changes) is the inverse of the modified matrix: applied in double precision to 1e-8 (on
-    the GPU: on the CPU test_cutting runs the same), in single precision to 1e-5, its copy
-    remade after each fold and regrow of eq. (5)-(10)."""
+    changes) is the inverse of the modified matrix: applied in double precision to 1e-8, in
+    single precision to 1e-5, its copy remade after each fold and regrow of eq. (5)-(10)."""
     from test_cutting import beam_scene, corrected_vs_fresh, crosswise, lengthwise
 
-    if precision == "float64" and not CUDA:
-        pytest.skip("on the CPU test_cutting runs the same with the dense backend")
     tol = 1e-8 if precision == "float64" else 1e-5
     cfg = beam_scene(rotate=False, backend="dense")
     cfg["device"] = DEVICE

@@ -35,9 +35,11 @@ def capacity_for(n: int) -> int:
     return max(MIN_CAPACITY, int(math.ceil(n * HEADROOM)))
 
 
-def _view(buffer: wp.array, offset_bytes: int, dtype, n: int) -> wp.array:
-    """A typed array of ``n`` elements at ``offset_bytes`` into ``buffer`` (keeps it alive)."""
-    a = wp.array(ptr=buffer.ptr + offset_bytes, dtype=dtype, shape=(n,), device=buffer.device,
+def typed_view(buffer: wp.array, offset_bytes: int, dtype, shape) -> wp.array:
+    """A typed array of ``shape`` (a length, or a tuple) at ``offset_bytes`` into ``buffer``
+    (keeps it alive)."""
+    shape = (int(shape),) if np.isscalar(shape) else tuple(shape)
+    a = wp.array(ptr=buffer.ptr + offset_bytes, dtype=dtype, shape=shape, device=buffer.device,
                  pinned=buffer.pinned)
     a._ref = buffer
     return a
@@ -75,7 +77,7 @@ class GrowArray:
             self.allocations += 1
             self._view = None
         if self._view is None or self._view.shape[0] != n:
-            self._view = _view(self.buffer, 0, self.dtype, n)
+            self._view = typed_view(self.buffer, 0, self.dtype, n)
         return self._view
 
 
@@ -177,15 +179,15 @@ class PackedArrays:
         if runs:
             self._sent = wp.get_stream(self.device).record_event()
 
-    def alias(self, name: str, dtype, n: int) -> wp.array:
-        """Field ``name``'s device memory as ``n`` elements of ``dtype`` (e.g. vec3i rows as a
-        flat int32 index list)."""
-        return _view(self.buffer, self.offsets[name], dtype, n)
+    def alias(self, name: str, dtype, shape) -> wp.array:
+        """Field ``name``'s device memory as an array of ``dtype`` and ``shape`` (a length or a
+        tuple: e.g. vec3i rows as a flat int32 index list)."""
+        return typed_view(self.buffer, self.offsets[name], dtype, shape)
 
     def array(self, name: str) -> wp.array:
         """The device array of field ``name`` (the same object while its count and the
         allocation hold)."""
         a = self._arrays.get(name)
         if a is None:
-            a = self._arrays[name] = _view(self.buffer, self.offsets[name], self.fields[name], self.counts[name])
+            a = self._arrays[name] = typed_view(self.buffer, self.offsets[name], self.fields[name], self.counts[name])
         return a

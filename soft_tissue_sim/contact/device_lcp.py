@@ -5,8 +5,8 @@ gathers the Delassus operator on the device (the dense inverse), the response of
 a chain of launches with no read in between, which the integrator captures with the
 correction, the penetration detection and the guard (one graph a step):
 
-1. the rows (H in node form), delta^0, the warm start and the contacts' friction go up in two
-   page-locked buffers (one copy each);
+1. the rows (H in node form), delta^0, the warm start and the contacts' friction go up in one
+   page-locked buffer (one copy);
 2. W = dt^2 H P^-1 H^T is gathered into a matrix of the buffers' capacity, the row count read
    on the device (:func:`~soft_tissue_sim.dense_inverse.delassus_matrix_kernel`), so that one
    captured graph serves every contact count;
@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..transfer import Staged
+from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
 from .pgs import pgs_sweeps
 
@@ -123,73 +123,58 @@ def rows_transpose_times_kernel(nodes: wp.array2d(dtype=wp.int32), coef: wp.arra
                 wp.atomic_add(out, i, coef[r, s] * lam[r])
 
 
-def _view(base: wp.array, offset: int, dtype, shape) -> wp.array:
-    """A typed array over ``base``'s memory from element ``offset`` of ``base``'s dtype."""
-    return wp.array(ptr=base.ptr + offset * wp.types.type_size_in_bytes(base.dtype), dtype=dtype, shape=shape,
-                    device=base.device)
-
-
 class DeviceLCP:
     """The buffers of the device solve for up to ``rows`` constraint rows (as many contacts),
     kept between steps at fixed addresses (captured graphs stay valid), and the launches.
 
-    Inputs (:meth:`stage`): an int32 buffer [m, nc | row_start | n_rows | nodes (rows, 4)] and
-    a float64 one [delta^0 | warm start | mu | coef (rows, 4, 3)], each sent in one copy.
-    Output (:attr:`out`): [sweeps, residual, W usable | lambda (rows)].
+    Inputs (:meth:`stage`): one :class:`~soft_tissue_sim.buffers.PackedArrays` of [m, nc],
+    row_start, n_rows, the rows' nodes (rows, 4), delta^0, the warm start, mu and the rows'
+    coefficients (rows, 4, 3), sent in one copy. Output (:attr:`out`): [sweeps, residual, W
+    usable | lambda (rows)]. The per-node vectors (H^T lambda, P^-1 of it, dx) are
+    :class:`~soft_tissue_sim.buffers.GrowArray` views of the body's node count.
     """
+
+    FIELDS = {"sizes": wp.int32, "row_start": wp.int32, "n_rows": wp.int32, "nodes": wp.vec4i,
+              "d0": wp.float64, "lam0": wp.float64, "mu": wp.float64, "coef": wp.types.matrix((4, 3), wp.float64)}
 
     def __init__(self, rows: int, device):
         self.rows = cap = int(rows)
         self.device = wp.get_device(device)
-        self._i = Staged(2 + 2 * cap + 4 * cap, wp.int32, self.device)
-        self._f = Staged(3 * cap + 12 * cap, wp.float64, self.device)
-        i, f = self._i.array, self._f.array
-        self.sizes = _view(i, 0, wp.int32, (2,))
-        self.row_start = _view(i, 2, wp.int32, (cap,))
-        self.n_rows = _view(i, 2 + cap, wp.int32, (cap,))
-        self.nodes = _view(i, 2 + 2 * cap, wp.int32, (cap, 4))
-        self.d0 = _view(f, 0, wp.float64, (cap,))
-        self.lam0 = _view(f, cap, wp.float64, (cap,))
-        self.mu = _view(f, 2 * cap, wp.float64, (cap,))
-        self.coef = _view(f, 3 * cap, wp.vec3d, (cap, 4))
+        self._in = PackedArrays(self.FIELDS, self.device)
+        self._in.reserve({k: 2 if k == "sizes" else cap for k in self.FIELDS})
+        a = self._in.array
+        self.sizes, self.row_start, self.n_rows = a("sizes"), a("row_start"), a("n_rows")
+        self.d0, self.lam0, self.mu = a("d0"), a("lam0"), a("mu")
+        self.nodes = self._in.alias("nodes", wp.int32, (cap, 4))
+        self.coef = self._in.alias("coef", wp.vec3d, (cap, 4))
         self.W = wp.zeros((cap, cap), dtype=wp.float64, device=self.device)
         self.L = wp.zeros((cap, cap), dtype=wp.float64, device=self.device)
         self.delta = wp.zeros(cap, dtype=wp.float64, device=self.device)
         self.out = wp.zeros(3 + cap, dtype=wp.float64, device=self.device)
-        self.info = _view(self.out, 0, wp.float64, (3,))
-        self.lam = _view(self.out, 3, wp.float64, (cap,))
-        self._n = -1
-        self.r = self.z = self.dx = None  # (n,) vec3d: H^T lambda, P^-1 of it, the correction
-
-    def fits(self, m: int) -> bool:
-        return 0 < m <= self.rows
+        self.info = typed_view(self.out, 0, wp.float64, 3)
+        self.lam = typed_view(self.out, 3 * 8, wp.float64, cap)
+        self._r, self._z, self._dx = (GrowArray(wp.vec3d, self.device) for _ in range(3))
 
     def stage(self, nodes: np.ndarray, coef: np.ndarray, d0: np.ndarray, lam0: np.ndarray,
               row_start: np.ndarray, n_rows: np.ndarray, mu: np.ndarray) -> None:
-        """The problem's m rows and nc contacts into the page-locked buffers, sent (no wait)."""
-        m, nc, cap = len(d0), len(row_start), self.rows
-        iv, fv = self._i.view(), self._f.view()
-        iv[0], iv[1] = m, nc
-        iv[2:2 + nc] = row_start
-        iv[2 + cap:2 + cap + nc] = n_rows
-        iv[2 + 2 * cap:2 + 2 * cap + 4 * m] = nodes.reshape(-1)
-        fv[:m] = d0
-        fv[cap:cap + m] = lam0
-        fv[2 * cap:2 * cap + nc] = mu
-        fv[3 * cap:3 * cap + 12 * m] = coef.reshape(-1)
-        self._i.send()
-        self._f.send()
-
-    def _body_buffers(self, n: int) -> None:
-        if n != self._n:
-            self.r, self.z, self.dx = (wp.zeros(n, dtype=wp.vec3d, device=self.device) for _ in range(3))
-            self._n = n
+        """The problem's m rows and nc contacts into the page-locked buffer, sent (no wait)."""
+        m, nc = len(d0), len(row_start)
+        h = self._in.host
+        h("sizes")[:] = (m, nc)
+        h("row_start")[:nc] = row_start
+        h("n_rows")[:nc] = n_rows
+        h("nodes")[:m] = nodes
+        h("d0")[:m] = d0
+        h("lam0")[:m] = lam0
+        h("mu")[:nc] = mu
+        h("coef")[:m] = coef
+        self._in.send(self.FIELDS)
 
     def key(self, inner, free: wp.array, dt: float, options: tuple) -> tuple:
         """What :meth:`launch`'s launches depend on (the buffers are fixed while the node count
         holds)."""
-        self._body_buffers(free.shape[0])
-        return (inner.graph_key(), inner.delassus_key(), free.ptr, self.dx.ptr, float(dt), *options)
+        return (inner.graph_key(), inner.delassus_key(), free.ptr, self._dx.view(free.shape[0]).ptr, float(dt),
+                *options)
 
     def launch(self, inner, free: wp.array, dt: float, max_iterations: int, tolerance: float,
                pyramid: bool) -> wp.array:
@@ -197,17 +182,16 @@ class DeviceLCP:
         launches only. Returns dx (a (n,) vec3d array kept between steps)."""
         d = self.device
         n = free.shape[0]
-        self._body_buffers(n)
+        r, z, dx = self._r.view(n), self._z.view(n), self._dx.view(n)
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
         wp.launch(device_pgs_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
                                          self.sizes, int(max_iterations), float(tolerance), int(bool(pyramid)),
                                          self.L, self.lam, self.delta, self.info], device=d)
-        self.r.zero_()
-        wp.launch(rows_transpose_times_kernel, self.rows, [self.nodes, self.coef, self.lam, self.sizes, self.r],
-                  device=d)
-        inner.apply(self.r, self.z)
-        wp.launch(scaled_free_kernel, n, [self.z, float(dt * dt), free, self.dx], device=d)
-        return self.dx
+        r.zero_()
+        wp.launch(rows_transpose_times_kernel, self.rows, [self.nodes, self.coef, self.lam, self.sizes, r], device=d)
+        inner.apply(r, z)
+        wp.launch(scaled_free_kernel, n, [z, float(dt * dt), free, dx], device=d)
+        return dx
 
 
 class PendingLCP:

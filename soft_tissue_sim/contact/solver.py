@@ -199,9 +199,10 @@ class ContactSolver:
 
     def launch_penetration(self, body) -> wp.array | None:
         """Launch a detection at the tissue's current positions (after the correction), with the
-        objects where this step's detection had them, and the reduction of its smallest gap; returns the device array of that gap (+inf: no contact)
-        for the caller to read with its other values (``max_penetration = max(0, -gap)``), or
-        None where the tissue has no surface."""
+        objects where this step's detection had them, and the reduction of its smallest gap;
+        returns the device array of that gap (+inf: no contact) for the caller to read with its
+        other values (``max_penetration = max(0, -gap)``), or None where the tissue has no
+        surface."""
         topo = self._topology(body.fem)
         if not len(topo.surface):
             return None

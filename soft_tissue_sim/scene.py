@@ -547,11 +547,10 @@ class Simulation:
         reason = None
         for device_lcp in (True, False):
             try:
-                # a retry on the CPU device detects again: the correction's penetration detection
-                # reused the slots that `host` views there (on a GPU they are page-locked copies)
-                again = host if device_lcp or wp.get_device(self.device).is_cuda else None
-                response = self.contact.step(self.view(), again, begin=device_lcp and not self._contact_begun,
-                                             device_lcp=device_lcp)
+                # the (rare) retry detects again: the correction's penetration detection has
+                # overwritten what `host` views on the CPU device
+                response = self.contact.step(self.view(), host if device_lcp else None,
+                                             begin=device_lcp and not self._contact_begun, device_lcp=device_lcp)
             except (FloatingPointError, np.linalg.LinAlgError, ValueError) as exc:
                 reason = f"contact solve failed: {type(exc).__name__}: {exc}"
                 break

@@ -5,8 +5,10 @@ device memory (8 n3^2 bytes: 216 MB for the 1,734-node brain), and what the meth
 its factor becomes dense linear algebra that a GPU does at memory speed:
 
 * the factor is cuSOLVER's Cholesky factorization and the inverse from it (``potrf``, then
-  cuBLAS's ``trsm`` against the identity and ``trmm``, through nvmath-python's bindings;
-  SciPy's LAPACK ``potrf`` and ``potri`` on the CPU);
+  cuBLAS's ``trsm`` against the identity and ``trmm``, through nvmath-python's bindings, by
+  column blocks so that the zeros of the triangular X = L^-1 are neither solved for nor
+  multiplied: :meth:`DenseInverse._inverse_from_factor`; SciPy's LAPACK ``potrf`` and
+  ``potri`` on the CPU);
 * an application of eq. (2), z = dR A^-1 dR^T r, is one matrix-vector product between two
   rotations (:func:`dense_apply_kernel`: a block of threads per node, its three rows against
   the rotated vector). It reads the whole matrix once, so its time is the matrix's size over
@@ -233,6 +235,7 @@ class DenseInverse:
 
     name = "dense"
     PRECISIONS = ("float64", "float32")
+    inverse_block = 2048  # GPU: the inverse by column blocks of this many DOFs (0: whole; see _inverse_from_factor)
 
     def __init__(self, device, precision: str = "float64"):
         if precision not in self.PRECISIONS:
@@ -327,17 +330,40 @@ class DenseInverse:
         cusolverDn.dpotrf(self._handle, lower, n, self.work.ptr, n, self._workspace.ptr, self._lwork, info)
         from nvmath.bindings import cublas
 
-        h, one = self._blas, self._one.ctypes.data
+        h = self._blas
         cublas.set_stream(h, stream.cuda_stream if stream is not None else 0)
-        # (side left, lower, op, non-unit diagonal): X = L^-1 I, then A^-1 = X^T X
-        cublas.dtrsm(h, 0, lower, 0, 0, n, n, one, self.work.ptr, n, self._rhs.ptr, n)
-        cublas.dtrmm(h, 0, lower, 1, 0, n, n, one, self._rhs.ptr, n, self._rhs.ptr, n, self.work.ptr, n)
+        self._inverse_from_factor(h, n, stream)
         rt = self.xp.cuda.runtime
         if stream is not None:
             rt.memcpyAsync(self._info_host.ptr, self._info.ptr, 8, rt.memcpyDeviceToHost, stream.cuda_stream)
         else:  # the legacy stream: copied before returning
             rt.memcpy(self._info_host.ptr, self._info.ptr, 8, rt.memcpyDeviceToHost)
         self._result = self.work
+
+    def _inverse_from_factor(self, h, n: int, stream) -> None:
+        """A^-1 = X^T X into the work buffer from L (the work buffer's lower triangle), X = L^-1
+        made in the second buffer (which holds the identity). With ``inverse_block`` b > 0, by
+        column blocks of b: X's block J solves L[j:, j:] X[j:, J] = I[j:, J] (rows above j stay
+        zero), and the lower triangle of A^-1 is X[j:, j:]^T X[j:, J], its upper one mirrored
+        after; else whole (``trsm`` against the identity, ``trmm``)."""
+        from nvmath.bindings import cublas
+
+        one, L, X, C = self._one.ctypes.data, self.work.ptr, self._rhs.ptr, self.work.ptr
+        b = int(self.inverse_block)
+        if b <= 0 or b >= n:  # (side left, lower, op, non-unit diagonal)
+            cublas.dtrsm(h, 0, 0, 0, 0, n, n, one, L, n, X, n)
+            cublas.dtrmm(h, 0, 0, 1, 0, n, n, one, X, n, X, n, C, n)
+            return
+
+        def at(base, i, j):  # element (i, j) of a column-major n x n matrix
+            return base + 8 * (j * n + i)
+
+        starts = range(0, n, b)
+        for j in starts:
+            cublas.dtrsm(h, 0, 0, 0, 0, n - j, min(b, n - j), one, at(L, j, j), n, at(X, j, j), n)
+        for j in starts:
+            cublas.dtrmm(h, 0, 0, 1, 0, n - j, min(b, n - j), one, at(X, j, j), n, at(X, j, j), n, at(C, j, j), n)
+        wp.launch(symmetrize_kernel, (n, n), [self.work], device=self.device, stream=stream)
 
     def install(self, stream=None) -> str | None:
         """The finished work buffer becomes the inverse in use; returns why not, or None. Call

@@ -261,6 +261,8 @@ class DenseInverse:
         self._blas = None  # cuBLAS
         self._one = np.ones(1)  # the host scalar of the cuBLAS calls
         self._W = None  # delassus: W on the device (grown to the largest m x m seen)
+        self._deferred = None  # inside changing(): its depth
+        self._stale = False  # the single-precision copy is to be made again (changing())
 
     # ----------------------------------------------------------- making one
     @property
@@ -381,11 +383,30 @@ class DenseInverse:
         self._narrow(stream)
         return None
 
+    @contextlib.contextmanager
+    def changing(self):
+        """A series of changes of the inverse in use (an install, folds, regrows) after which
+        the single-precision copy is made once, at the end, instead of after each."""
+        self._deferred = 0 if self._deferred is None else self._deferred
+        self._deferred += 1
+        try:
+            yield self
+        finally:
+            self._deferred -= 1
+            if self._deferred == 0:
+                self._deferred = None
+                if self._stale and self.inv is not None:
+                    self._narrow()
+
     def _narrow(self, stream=None) -> None:
         """precision float32: the single-precision copy := the inverse in use (same address
-        while the size holds)."""
+        while the size holds); inside :meth:`changing`, marked to be made at its end."""
         if self.precision != "float32":
             return
+        if self._deferred is not None:
+            self._stale = True
+            return
+        self._stale = False
         n = self.inv.shape[0]
         if self.inv32 is None or self.inv32.shape[0] != n:
             self.inv32 = wp.empty((n, n), dtype=wp.float32, device=self.device)

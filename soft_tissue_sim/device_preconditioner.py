@@ -30,6 +30,7 @@ Contact. W = H P^-1 H^T (eq. 4, 11-12) is gathered from the inverse by the backe
 
 from __future__ import annotations
 
+import contextlib
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -277,6 +278,17 @@ class AsyncDevicePreconditioner:
             return False
         if done is not None:
             self._main.wait_event(done)
+        with self._changing():
+            return self._install_changes(t)
+
+    def _changing(self):
+        """The backend's scope for a series of changes of its factor (see
+        :meth:`~soft_tissue_sim.dense_inverse.DenseInverse.changing`), where it has one."""
+        fn = getattr(self.backend, "changing", None)
+        return fn() if fn is not None else contextlib.nullcontext()
+
+    def _install_changes(self, t: _Ticket) -> bool:
+        """The finished factor of ``t`` in use, the modifications made since its request folded in."""
         err = self.backend.install(stream=self._main)
         if err is not None:  # keep the factor in use (if any) and say why
             self.worker_error = err
@@ -368,8 +380,9 @@ class AsyncDevicePreconditioner:
     def _modified(self, mod: Modification, current_uids: np.ndarray) -> None:
         self.mods.append(mod)
         if self.uids is not None:
-            self._fold(mod)
-            self._compact(current_uids)
+            with self._changing():
+                self._fold(mod)
+                self._compact(current_uids)
             self._upload_R_ref()
 
     def _index(self, uids: np.ndarray) -> np.ndarray:

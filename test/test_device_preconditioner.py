@@ -553,3 +553,32 @@ def test_inverse_by_column_blocks_equals_the_whole_one(block):
     assert np.array_equal(blocked, blocked.T)
     assert np.abs(blocked - whole).max() <= 1e-12 * np.abs(whole).max()
     assert np.abs(A @ blocked - np.eye(n)).max() < 1e-10
+
+
+def test_changes_in_one_scope_make_the_single_precision_copy_once():
+    """Inside ``changing()`` an install, a fold and a regrow leave the single-precision copy as
+    it was; at the scope's end it is the inverse in use rounded; outside, each change remakes it."""
+    from soft_tissue_sim import dense_inverse as DI
+
+    n = 3 * 40
+    rng = np.random.default_rng(5)
+    B = rng.standard_normal((n, n))
+    A = B @ B.T / n + 0.1 * np.eye(n)
+    D = DI.DenseInverse(DEVICE, "float32")
+    D.work = wp.array(A, dtype=wp.float64, device=DEVICE)
+    if D.device.is_cuda:
+        D._prepare_gpu(n, None)
+    D.factorize()
+    assert D.install() is None
+    first = D.inv32.numpy().copy()
+    assert np.array_equal(first, D.inv.numpy().astype(np.float32))
+    N = 0.1 * np.eye(3)
+    with D.changing():
+        D.fold(np.arange(3), N)
+        D.regrow(np.arange(n), 3)
+        assert D.inv.shape[0] == n + 3
+        assert np.array_equal(D.inv32.numpy(), first)  # not remade yet
+    assert np.array_equal(D.inv32.numpy(), D.inv.numpy().astype(np.float32))
+    D.fold(np.arange(3, 6), N)
+    assert np.array_equal(D.inv32.numpy(), D.inv.numpy().astype(np.float32))
+    D.close()

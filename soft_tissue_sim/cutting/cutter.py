@@ -337,7 +337,7 @@ class Cutter:
             work, parent, fresh = tets, np.arange(len(tets)), np.zeros(len(tets), bool)
             ea, eb, et = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
             P = pts
-            pairs, fnodes, cut = faces_cut_by_triangles(P, work, tris, tol, faces=mesh.interior_faces())
+            pairs, fnodes, cut = faces_cut_by_triangles(P, work, tris, tol, faces=mesh.interior_faces(), normals=tri_n)
         new_tets, dup = work, np.zeros(0, np.int64)
         if cut.any():
             new_tets, dup = split_along_faces(work, pairs[cut], fnodes[cut], pairs, fnodes, len(P))

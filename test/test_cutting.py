@@ -841,3 +841,48 @@ def test_the_removal_sphere_takes_the_tets_of_all_centroids_within_it():
                     assert plan.change is None
                 else:
                     assert np.array_equal(got, expect), (c, r)
+
+
+def test_the_lowest_vertex_labels_number_the_parts_as_scipy_does():
+    """lowest_in_part gives each vertex the lowest vertex of its part: the parts in scipy's
+    order, on random graphs (isolated vertices, repeated edges, loops, long paths, none)."""
+    from scipy.sparse.csgraph import connected_components
+
+    from soft_tissue_sim.cutting.topology import lowest_in_part
+
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        n = int(rng.integers(1, 200))
+        m = int(rng.integers(0, 2 * n))
+        ea, eb = rng.integers(0, n, m), rng.integers(0, n, m)
+        if trial % 5 == 0:  # a path in random order: many passes
+            perm = rng.permutation(n)
+            ea, eb = perm[:-1], perm[1:]
+        label = lowest_in_part(n, ea, eb)
+        g = sps.coo_matrix((np.ones(len(ea)), (ea, eb)), shape=(n, n))
+        ref = connected_components(g, directed=False)[1]
+        lowest = np.full(ref.max() + 1, n)
+        np.minimum.at(lowest, ref, np.arange(n))
+        np.testing.assert_array_equal(label, lowest[ref])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_split_along_faces_given_the_cut_mask_equals_the_one_matching_node_triples(seed):
+    """split_along_faces given the mask of the cut faces splits exactly as when it matches
+    the cut faces by their nodes, on random face sets of a beam."""
+    from soft_tissue_sim.cutting.topology import split_along_faces
+    from soft_tissue_sim.mesh import beam_mesh
+
+    rng = np.random.default_rng(seed)
+    mesh = beam_mesh(8, n_cross=4, spacing=0.01)
+    tets = mesh.tets.astype(np.int64)
+    pairs, fnodes, _ = mesh.interior_faces()
+    copies = 0
+    for _ in range(20):
+        cut = rng.random(len(pairs)) < rng.choice([0.0, 0.01, 0.1, 0.5])
+        a = split_along_faces(tets, pairs[cut], fnodes[cut], pairs, fnodes, mesh.n_nodes)
+        b = split_along_faces(tets, pairs[cut], fnodes[cut], pairs, fnodes, mesh.n_nodes, cut=cut)
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
+        copies += len(a[1])
+    assert copies > 0

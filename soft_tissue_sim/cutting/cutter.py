@@ -340,7 +340,7 @@ class Cutter:
             pairs, fnodes, cut = faces_cut_by_triangles(P, work, tris, tol, faces=mesh.interior_faces(), normals=tri_n)
         new_tets, dup = work, np.zeros(0, np.int64)
         if cut.any():
-            new_tets, dup = split_along_faces(work, pairs[cut], fnodes[cut], pairs, fnodes, len(P))
+            new_tets, dup = split_along_faces(work, pairs[cut], fnodes[cut], pairs, fnodes, len(P), cut=cut)
         if not len(ea) and not len(dup):
             if not cut.any():
                 return CutPlan(CutResult(False, "the blade crossed no tissue (no uncut face on its path): nothing "

@@ -9,15 +9,37 @@ copied; where the cut stops, the tets around its tip stay connected.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sps
-from scipy.sparse.csgraph import connected_components
 
 from ..mesh import unique_rows
 
 
+def lowest_in_part(n: int, ea: np.ndarray, eb: np.ndarray) -> np.ndarray:
+    """(n,) for each vertex of the undirected graph of ``n`` vertices and edges (ea[i], eb[i]),
+    the lowest vertex of its connected part: labels in the order of scipy's
+    ``connected_components`` (which numbers the parts by their lowest vertex), found by
+    propagating the lowest label along the edges and jumping to a label's label until nothing
+    changes (a few passes on the small graphs of a cut, without building a sparse matrix)."""
+    label = np.arange(n)
+    if not len(ea):
+        return label
+    while True:
+        low = np.minimum(label[ea], label[eb])
+        new = label.copy()
+        np.minimum.at(new, ea, low)
+        np.minimum.at(new, eb, low)
+        new = new[new]
+        if np.array_equal(new, label):
+            return label
+        label = new
+
+
 def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_faces: np.ndarray,
-                      all_pairs: np.ndarray, all_face_nodes: np.ndarray, n_nodes: int):
+                      all_pairs: np.ndarray, all_face_nodes: np.ndarray, n_nodes: int, cut: np.ndarray | None = None):
     """Duplicate the nodes of the cut faces so that the two sides separate.
+
+    ``cut``: where known, the mask of the cut faces among all the interior faces (the cut
+    faces are then ``all_pairs[cut]``, ``all_face_nodes[cut]``); else the cut faces are found
+    among them by their nodes.
 
     Returns (new_tets, source) where ``source`` (n_new,) gives, for each added node, the node it
     copies; new nodes are numbered from ``n_nodes`` on.
@@ -38,7 +60,9 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
     at = is_cut_node[all_face_nodes]
     near = np.flatnonzero(at[:, 0] | at[:, 1] | at[:, 2])  # the faces at a cut node
     cut_set = np.zeros(len(near), bool)
-    if len(cut_pairs):
+    if cut is not None:
+        cut_set = cut[near]
+    elif len(cut_pairs):
         # mark faces listed as cut (compare by sorted node triples)
         fn = all_face_nodes[near]
         fk = fn[:, 0] * (n_nodes ** 2) + fn[:, 1] * n_nodes + fn[:, 2]
@@ -55,9 +79,7 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
         ea.append(order[np.searchsorted(keys_sorted, ka)])
         eb.append(order[np.searchsorted(keys_sorted, kb)])
     ea, eb = np.concatenate(ea), np.concatenate(eb)
-    nv = len(keys)
-    g = sps.coo_matrix((np.ones(len(ea)), (ea, eb)), shape=(nv, nv))
-    _, label = connected_components(g, directed=False)
+    label = lowest_in_part(len(keys), ea, eb)
     # per node: its distinct groups; the first keeps the node, the others get copies
     new_tets = tets.copy()
     pair = unique_rows(np.stack([inc_node, label], axis=1))  # sorted by node then label

@@ -886,3 +886,17 @@ def test_the_split_along_faces_given_the_cut_mask_equals_the_one_matching_node_t
         np.testing.assert_array_equal(a[1], b[1])
         copies += len(a[1])
     assert copies > 0
+
+
+def test_the_planners_row_and_extent_shortcuts_equal_numpys():
+    """The cutter's equal-rows mask and bounding-box extent give np.all(a == b, axis=1) and
+    np.ptp(points, axis=0).max(), for C- and Fortran-ordered tets."""
+    from soft_tissue_sim.cutting.cutter import _extent, _same_rows
+
+    rng = np.random.default_rng(2)
+    for _ in range(10):
+        a, b = rng.integers(0, 3, (200, 4)), rng.integers(0, 3, (200, 4))
+        for x, y in ((a, b), (np.asfortranarray(a), b), (a, np.asfortranarray(b)), (a, a.copy())):
+            np.testing.assert_array_equal(_same_rows(x, y), np.all(x == y, axis=1))
+        p = rng.standard_normal((50, 3)) * rng.uniform(0.1, 10.0, 3)
+        assert _extent(p) == float(np.ptp(p, axis=0).max())

@@ -866,10 +866,31 @@ def test_the_lowest_vertex_labels_number_the_parts_as_scipy_does():
         np.testing.assert_array_equal(label, lowest[ref])
 
 
+def _reference_split(tets, cut, pairs, fnodes, n_nodes):
+    """Node splitting node by node: at each node of a cut face (ascending), its tets (ascending)
+    grouped by scipy through the uncut interior faces at the node; each group after the first
+    (groups in the order of their lowest tet) gets the next copy of the node."""
+    from scipy.sparse.csgraph import connected_components
+
+    new, source = tets.copy(), []
+    for v in np.unique(fnodes[cut]):
+        at = np.flatnonzero(np.any(tets == v, axis=1))
+        joins = np.flatnonzero(~cut & np.any(fnodes == v, axis=1))
+        a, b = np.searchsorted(at, pairs[joins, 0]), np.searchsorted(at, pairs[joins, 1])
+        g = sps.coo_matrix((np.ones(len(joins)), (a, b)), shape=(len(at), len(at)))
+        label = connected_components(g, directed=False)[1]
+        for part in range(1, label.max() + 1):
+            rows = at[label == part]
+            new[rows] = np.where(new[rows] == v, n_nodes + len(source), new[rows])
+            source.append(v)
+    return new, np.array(source, np.int64)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
-def test_the_split_along_faces_given_the_cut_mask_equals_the_one_matching_node_triples(seed):
-    """split_along_faces given the mask of the cut faces splits exactly as when it matches
-    the cut faces by their nodes, on random face sets of a beam."""
+def test_the_split_along_faces_equals_a_node_by_node_split(seed):
+    """split_along_faces (given the mask of the cut faces, or matching them by their nodes)
+    copies exactly the nodes, and relabels exactly the tets, of a plain node-by-node split
+    on random face sets of a beam."""
     from soft_tissue_sim.cutting.topology import split_along_faces
     from soft_tissue_sim.mesh import beam_mesh
 
@@ -880,11 +901,13 @@ def test_the_split_along_faces_given_the_cut_mask_equals_the_one_matching_node_t
     copies = 0
     for _ in range(20):
         cut = rng.random(len(pairs)) < rng.choice([0.0, 0.01, 0.1, 0.5])
-        a = split_along_faces(tets, pairs[cut], fnodes[cut], pairs, fnodes, mesh.n_nodes)
-        b = split_along_faces(tets, pairs[cut], fnodes[cut], pairs, fnodes, mesh.n_nodes, cut=cut)
-        np.testing.assert_array_equal(a[0], b[0])
-        np.testing.assert_array_equal(a[1], b[1])
-        copies += len(a[1])
+        expect = _reference_split(tets, cut, pairs, fnodes, mesh.n_nodes)
+        for got in (split_along_faces(tets, pairs[cut], fnodes[cut], pairs, fnodes, mesh.n_nodes),
+                    split_along_faces(tets, pairs[cut], fnodes[cut], pairs, fnodes, mesh.n_nodes, cut=cut)):
+            np.testing.assert_array_equal(got[0], expect[0])
+            np.testing.assert_array_equal(got[1], expect[1])
+            assert got[1].dtype == np.int64
+        copies += len(expect[1])
     assert copies > 0
 
 

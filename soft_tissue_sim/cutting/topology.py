@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import unique_rows
-
 
 def lowest_in_part(n: int, ea: np.ndarray, eb: np.ndarray) -> np.ndarray:
     """(n,) for each vertex of the undirected graph of ``n`` vertices and edges (ea[i], eb[i]),
@@ -50,8 +48,9 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
     is_cut_node = np.zeros(n_nodes, bool)
     is_cut_node[cut_nodes] = True
     # incidences (node, tet) at cut nodes: vertices of a graph
-    t_idx, k_idx = np.nonzero(is_cut_node[tets])
-    inc_node = tets[t_idx, k_idx].astype(np.int64)
+    flat = np.flatnonzero(is_cut_node[tets])  # 4 t + k: node k of tet t, in that order
+    t_idx, k_idx = flat >> 2, flat & 3
+    inc_node = np.take(tets, flat).astype(np.int64)
     m = len(tets)
     keys = inc_node * m + t_idx
     order = np.argsort(keys)
@@ -79,20 +78,20 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
         ea.append(order[np.searchsorted(keys_sorted, ka)])
         eb.append(order[np.searchsorted(keys_sorted, kb)])
     ea, eb = np.concatenate(ea), np.concatenate(eb)
-    label = lowest_in_part(len(keys), ea, eb)
-    # per node: its distinct groups; the first keeps the node, the others get copies
+    nv = len(keys)
+    label = lowest_in_part(nv, ea, eb)
+    # per node its groups, as (node, lowest incidence) packed and sorted: the first keeps the
+    # node, each other one gets a copy (numbered in this order)
+    group = inc_node * nv + label
+    groups = np.unique(group)
+    node = groups // nv
+    extra = groups[1:][node[1:] == node[:-1]]
+    source = extra // nv
     new_tets = tets.copy()
-    pair = unique_rows(np.stack([inc_node, label], axis=1))  # sorted by node then label
-    first_of_node = np.r_[True, pair[1:, 0] != pair[:-1, 0]]
-    extra = pair[~first_of_node]
-    source = extra[:, 0]
-    new_index = n_nodes + np.arange(len(extra))
-    # relabel incidences whose (node, label) is an extra group
-    ekey = extra[:, 0] * (label.max() + 1) + extra[:, 1]
-    ikey = inc_node * (label.max() + 1) + label
-    if not len(ekey):
+    if not len(extra):
         return new_tets, source
-    pos = np.minimum(np.searchsorted(ekey, ikey), len(ekey) - 1)
-    hit = ekey[pos] == ikey
-    new_tets[t_idx[hit], k_idx[hit]] = new_index[pos[hit]]
+    # relabel the incidences of the extra groups
+    pos = np.minimum(np.searchsorted(extra, group), len(extra) - 1)
+    hit = extra[pos] == group
+    new_tets[t_idx[hit], k_idx[hit]] = n_nodes + pos[hit]
     return new_tets, source

@@ -907,6 +907,7 @@ def test_the_split_along_faces_equals_a_node_by_node_split(seed):
             np.testing.assert_array_equal(got[0], expect[0])
             np.testing.assert_array_equal(got[1], expect[1])
             assert got[1].dtype == np.int64
+            assert (got[0] is tets) == (not len(expect[1]))  # a copy only where nodes are copied
         copies += len(expect[1])
     assert copies > 0
 

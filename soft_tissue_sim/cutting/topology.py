@@ -40,11 +40,12 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
     among them by their nodes.
 
     Returns (new_tets, source) where ``source`` (n_new,) gives, for each added node, the node it
-    copies; new nodes are numbered from ``n_nodes`` on.
+    copies; new nodes are numbered from ``n_nodes`` on. Where no node is copied (the cut faces
+    separate nothing yet), ``new_tets`` is ``tets`` itself, not a copy.
     """
     cut_nodes = np.unique(cut_nodes_of_faces)
     if not len(cut_nodes):
-        return tets.copy(), np.zeros(0, np.int64)
+        return tets, np.zeros(0, np.int64)
     is_cut_node = np.zeros(n_nodes, bool)
     is_cut_node[cut_nodes] = True
     # incidences (node, tet) at cut nodes: vertices of a graph
@@ -87,10 +88,10 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
     node = groups // nv
     extra = groups[1:][node[1:] == node[:-1]]
     source = extra // nv
-    new_tets = tets.copy()
     if not len(extra):
-        return new_tets, source
-    # relabel the incidences of the extra groups
+        return tets, source
+    # relabel the incidences of the extra groups in a copy
+    new_tets = tets.copy()
     pos = np.minimum(np.searchsorted(extra, group), len(extra) - 1)
     hit = extra[pos] == group
     new_tets[t_idx[hit], k_idx[hit]] = n_nodes + pos[hit]

@@ -171,6 +171,23 @@ def interior_faces_after_removal(faces, kept_tets: np.ndarray, kept_nodes: np.nd
             np.take(new_id, np.compress(kept_tets, tet_face, axis=0)))
 
 
+def insert_rows(a: np.ndarray, pos: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``np.insert(a, pos, rows, axis=0)`` for non-decreasing positions ``pos``: each row of
+    ``a`` (n, ...) and of ``rows`` (k, ...) moved as one item (a row of several numbers as one
+    opaque record), so the copy is a 1-D masked one rather than a row-by-row one."""
+    a = np.ascontiguousarray(a)
+    width = int(np.prod(a.shape[1:], dtype=np.int64))
+    item = np.dtype((np.void, a.dtype.itemsize * width))
+    rows = np.ascontiguousarray(rows, dtype=a.dtype).reshape(len(pos), width)
+    slots = np.asarray(pos, np.int64) + np.arange(len(pos))
+    old = np.ones(len(a) + len(pos), bool)
+    old[slots] = False
+    out = np.empty(len(old), item)
+    out[slots] = rows.view(item).ravel()
+    out[old] = a.reshape(len(a), width).view(item).ravel()
+    return out.view(a.dtype).reshape((len(old),) + a.shape[1:])
+
+
 def _edge_keys(tets: np.ndarray, base: int) -> np.ndarray:
     """(6 m,) the packed keys lo * base + hi of the 6 edges of each tet (m, 4), tet-major."""
     T = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
@@ -220,12 +237,18 @@ def edge_table_after_change(table, removed_tets: np.ndarray, added_tets: np.ndar
         return None
     counts = counts - np.bincount(pos, minlength=len(key))
     keep = counts > 0
-    e = np.take(node_id, np.compress(keep, edges, axis=0))  # rows stay sorted: the order of the nodes is kept
+    e = np.compress(keep, edges, axis=0)
     c = counts[keep]
-    if np.any(counts < 0) or len(e) and e.min() < 0:
+    if np.any(counts < 0):
         return None
-    if len(added_tets):
+    if len(node_id) == len(kept_ids) and (not len(kept_ids) or kept_ids[-1] == len(kept_ids) - 1):
+        key = key[keep]  # no node renumbered (the ids ascend from 0 without a gap): the keys stay
+    else:
+        e = np.take(node_id, e)  # rows stay sorted: the order of the nodes is kept
+        if len(e) and e.min() < 0:
+            return None
         key = e[:, 0] * base + e[:, 1]
+    if len(added_tets):
         ak, acount = np.unique(_edge_keys(added_tets, base), return_counts=True)
         pos = np.searchsorted(key, ak)
         found = pos < len(key)
@@ -234,8 +257,8 @@ def edge_table_after_change(table, removed_tets: np.ndarray, added_tets: np.ndar
         new = ~found
         if new.any():
             ak = ak[new]
-            e = np.insert(e, pos[new], np.stack([ak // base, ak % base], axis=1), axis=0)
-            c = np.insert(c, pos[new], acount[new])
+            e = insert_rows(e, pos[new], np.stack([ak // base, ak % base], axis=1))
+            c = insert_rows(c, pos[new], acount[new])
     return e, c
 
 

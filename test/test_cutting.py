@@ -673,6 +673,70 @@ def test_culled_cut_faces_equal_the_brute_force_ones(jitter):
     assert n_cut > 100 and n_hit > 100  # the blades did cut
 
 
+def _touching_blades(rng, P, tol):
+    """Blade triangles beyond a face of the box of the points P whose box, widened by ``tol``,
+    reaches that face exactly (gap tol), overlaps it (gap 0 or tol / 2) or misses it (gap 2 tol
+    or a hair over tol); every third one parallel to the face. Returns the triangles and
+    whether each one's widened box reaches the points' box. (Dyadic coordinates and ``tol``
+    keep the touching exact.)"""
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    tris, reach = [], []
+    for i in range(48):
+        ax, upper = i % 3, (i // 3) % 2 == 0
+        gap = (0.0, 0.5 * tol, tol, 2.0 * tol, None)[(i // 6) % 5]
+        tri = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (3, 3))
+        depth = np.zeros(3) if i % 3 == 0 else np.array([0.0, *rng.uniform(0.0, 0.5 * (hi - lo)[ax], 2)])
+        face = hi[ax] if upper else lo[ax]
+        beyond = face + tol if gap is None else face + gap if upper else face - gap
+        if gap is None:  # a hair more than tol away
+            beyond = np.nextafter(face + tol, np.inf) if upper else np.nextafter(face - tol, -np.inf)
+        tri[:, ax] = beyond + depth if upper else beyond - depth
+        tris.append(tri)
+        reach.append(gap is not None and gap <= tol)
+    return np.array(tris), np.array(reach)
+
+
+@pytest.mark.parametrize("tol", [0.0, 2.0**-8])
+def test_the_blades_box_cull_agrees_with_the_full_tests_on_blades_touching_a_beam(tol):
+    """The box cull of the split scheme (one pass over all tets for the whole path, then each
+    triangle's box on the tets' coordinates) keeps exactly the tets of a full bounding-box test
+    and of :func:`tets_near_box`, and the culled cut (faces, tets) equals the brute-force one:
+    on random blades around a beam and on blades whose box just touches, overlaps or misses a
+    face of the beam's box (by a hair), some lying flat against it."""
+    from soft_tissue_sim.cutting.geometry import _near_triangles, faces_cut_by_triangles, tets_near_box
+    from soft_tissue_sim.mesh import beam_mesh
+
+    rng = np.random.default_rng(5)
+    mesh = beam_mesh(8, n_cross=4, spacing=0.25)  # coordinates in quarters: exact
+    P, tets = mesh.points, mesh.tets.astype(np.int64)
+    X = P[tets]
+    touching, reached = _touching_blades(rng, P, tol)
+    n_touch = 0
+    for i in range(0, len(touching), 4):
+        for tris in (touching[i:i + 4], _random_blades(rng, P, 4)):
+            lo, hi = tris.min(axis=1) - tol, tris.max(axis=1) + tol
+            full = np.all((X.max(axis=1)[None] >= lo[:, None]) & (X.min(axis=1)[None] <= hi[:, None]), axis=2)
+            owner, j = _near_triangles(X, tris, tol)
+            np.testing.assert_array_equal(owner, np.nonzero(full)[0])
+            np.testing.assert_array_equal(j, np.nonzero(full)[1])
+            for k in range(len(tris)):
+                np.testing.assert_array_equal(tets_near_box(P, tets, lo[k], hi[k]), np.flatnonzero(full[k]))
+            pairs, fnodes, cut, hits = _reference_faces_cut(P, tets, tris, tol)
+            got = faces_cut_by_triangles(P, tets, tris, tol, faces=mesh.interior_faces())
+            np.testing.assert_array_equal(got[2], cut)
+            for tri, hit in zip(tris, hits):
+                if hit is not None:
+                    np.testing.assert_array_equal(np.sort(tets_cut_by_triangle(P, tets, tri, tol)[0]), hit)
+        lo_t, hi_t = touching[i:i + 4].min(axis=1) - tol, touching[i:i + 4].max(axis=1) + tol
+        box = np.all((lo_t <= P.max(axis=0)) & (hi_t >= P.min(axis=0)), axis=1)
+        np.testing.assert_array_equal(box, reached[i:i + 4])  # the blades touch and miss as meant
+        for k in range(4):
+            near = tets_near_box(P, tets, lo_t[k], hi_t[k])
+            assert bool(len(near)) == reached[i + k]
+            n_touch += len(near)
+    assert n_touch > 50  # the touching blades did reach tets
+
+
 def _beam_at_rest(scheme):
     """A small beam at rest as a cutter's Tissue, and a cutter of ``scheme`` keeping every fragment."""
     from soft_tissue_sim.cutting import Cutter, Tissue
@@ -777,3 +841,86 @@ def test_the_removal_sphere_takes_the_tets_of_all_centroids_within_it():
                     assert plan.change is None
                 else:
                     assert np.array_equal(got, expect), (c, r)
+
+
+def test_the_lowest_vertex_labels_number_the_parts_as_scipy_does():
+    """lowest_in_part gives each vertex the lowest vertex of its part: the parts in scipy's
+    order, on random graphs (isolated vertices, repeated edges, loops, long paths, none)."""
+    from scipy.sparse.csgraph import connected_components
+
+    from soft_tissue_sim.cutting.topology import lowest_in_part
+
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        n = int(rng.integers(1, 200))
+        m = int(rng.integers(0, 2 * n))
+        ea, eb = rng.integers(0, n, m), rng.integers(0, n, m)
+        if trial % 5 == 0:  # a path in random order: many passes
+            perm = rng.permutation(n)
+            ea, eb = perm[:-1], perm[1:]
+        label = lowest_in_part(n, ea, eb)
+        g = sps.coo_matrix((np.ones(len(ea)), (ea, eb)), shape=(n, n))
+        ref = connected_components(g, directed=False)[1]
+        lowest = np.full(ref.max() + 1, n)
+        np.minimum.at(lowest, ref, np.arange(n))
+        np.testing.assert_array_equal(label, lowest[ref])
+
+
+def _reference_split(tets, cut, pairs, fnodes, n_nodes):
+    """Node splitting node by node: at each node of a cut face (ascending), its tets (ascending)
+    grouped by scipy through the uncut interior faces at the node; each group after the first
+    (groups in the order of their lowest tet) gets the next copy of the node."""
+    from scipy.sparse.csgraph import connected_components
+
+    new, source = tets.copy(), []
+    for v in np.unique(fnodes[cut]):
+        at = np.flatnonzero(np.any(tets == v, axis=1))
+        joins = np.flatnonzero(~cut & np.any(fnodes == v, axis=1))
+        a, b = np.searchsorted(at, pairs[joins, 0]), np.searchsorted(at, pairs[joins, 1])
+        g = sps.coo_matrix((np.ones(len(joins)), (a, b)), shape=(len(at), len(at)))
+        label = connected_components(g, directed=False)[1]
+        for part in range(1, label.max() + 1):
+            rows = at[label == part]
+            new[rows] = np.where(new[rows] == v, n_nodes + len(source), new[rows])
+            source.append(v)
+    return new, np.array(source, np.int64)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_split_along_faces_equals_a_node_by_node_split(seed):
+    """split_along_faces (given the mask of the cut faces, or matching them by their nodes)
+    copies exactly the nodes, and relabels exactly the tets, of a plain node-by-node split
+    on random face sets of a beam."""
+    from soft_tissue_sim.cutting.topology import split_along_faces
+    from soft_tissue_sim.mesh import beam_mesh
+
+    rng = np.random.default_rng(seed)
+    mesh = beam_mesh(8, n_cross=4, spacing=0.01)
+    tets = mesh.tets.astype(np.int64)
+    pairs, fnodes, _ = mesh.interior_faces()
+    copies = 0
+    for _ in range(20):
+        cut = rng.random(len(pairs)) < rng.choice([0.0, 0.01, 0.1, 0.5])
+        expect = _reference_split(tets, cut, pairs, fnodes, mesh.n_nodes)
+        for got in (split_along_faces(tets, pairs[cut], fnodes[cut], pairs, fnodes, mesh.n_nodes),
+                    split_along_faces(tets, pairs[cut], fnodes[cut], pairs, fnodes, mesh.n_nodes, cut=cut)):
+            np.testing.assert_array_equal(got[0], expect[0])
+            np.testing.assert_array_equal(got[1], expect[1])
+            assert got[1].dtype == np.int64
+            assert (got[0] is tets) == (not len(expect[1]))  # a copy only where nodes are copied
+        copies += len(expect[1])
+    assert copies > 0
+
+
+def test_the_planners_row_and_extent_shortcuts_equal_numpys():
+    """The cutter's equal-rows mask and bounding-box extent give np.all(a == b, axis=1) and
+    np.ptp(points, axis=0).max(), for C- and Fortran-ordered tets."""
+    from soft_tissue_sim.cutting.cutter import _extent, _same_rows
+
+    rng = np.random.default_rng(2)
+    for _ in range(10):
+        a, b = rng.integers(0, 3, (200, 4)), rng.integers(0, 3, (200, 4))
+        for x, y in ((a, b), (np.asfortranarray(a), b), (a, np.asfortranarray(b)), (a, a.copy())):
+            np.testing.assert_array_equal(_same_rows(x, y), np.all(x == y, axis=1))
+        p = rng.standard_normal((50, 3)) * rng.uniform(0.1, 10.0, 3)
+        assert _extent(p) == float(np.ptp(p, axis=0).max())

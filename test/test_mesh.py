@@ -15,6 +15,7 @@ from soft_tissue_sim.mesh import (
     cli,
     edge_table,
     edge_table_after_change,
+    insert_rows,
     interior_faces,
     node_ring,
     interior_faces_after_removal,
@@ -513,6 +514,24 @@ def test_edge_table_derived_after_a_split_a_removal_or_new_tets_equals_the_recom
     assert edge_table_after_change(expect, T1[out] + 1, new, np.arange(n), n + 20) is None  # not its tets
     assert edge_table_after_change(expect, T1[out], new, np.arange(n)[::-1].copy(), n + 20) is None  # reorders
     assert edge_table_after_change(expect, T1[:0], new, np.where(np.arange(n) == 5, -1, np.arange(n)), n + 20) is None
+
+
+@pytest.mark.parametrize("shape, dtype", [((), np.int64), ((2,), np.int64), ((3,), np.int32), ((2, 2), np.float64)])
+def test_insert_rows_is_numpys_insert(shape, dtype):
+    """insert_rows gives np.insert's rows along the first axis for non-decreasing positions:
+    at the start, the end, several at one place, none, into an empty array."""
+    rng = np.random.default_rng(1)
+    for n in (0, 1, 7, 300):
+        for k in (0, 1, 3, 40):
+            a = rng.integers(-99, 99, (n, *shape)).astype(dtype)
+            rows = rng.integers(-99, 99, (k, *shape)).astype(dtype)
+            pos = np.sort(rng.integers(0, n + 1, k))
+            if k > 1:
+                pos[0], pos[-1] = 0, n
+            got = insert_rows(a, pos, rows)
+            expect = np.insert(a, pos, rows, axis=0)
+            np.testing.assert_array_equal(got, expect)
+            assert got.dtype == expect.dtype and got.shape == expect.shape
 
 
 def test_node_ring_is_the_sorted_adjacency_of_the_edges(brain):

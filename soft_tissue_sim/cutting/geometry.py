@@ -70,21 +70,21 @@ _OTHERS = np.array([[j for j in range(4) if j != i] for i in range(4)])  # face 
 
 def _segments_meet_tets(segments, X, tol):
     """Mask (k,): does one of the segments (p0[i], p1[i]) (pairs of (k, 3) arrays) meet the tet
-    X[i] (k, 4, 3)? (Clipping by the 4 faces, each moved out by ``tol``.)"""
+    X[i] (k, 4, 3)? (Clipping by the 4 faces, each moved out by ``tol``; all segments at once.)"""
     o = X[:, _OTHERS]  # (k, 4, 3, 3): face i's vertices
     nrm = cross(o[:, :, 1] - o[:, :, 0], o[:, :, 2] - o[:, :, 0])
     nrm *= np.sign(_dot(nrm, X - o[:, :, 0]))[..., None]  # inwards
     widen = tol * np.sqrt(_dot(nrm, nrm))
-    meet = np.zeros(len(X), bool)
-    for p0, p1 in segments:
-        h0 = _dot(nrm, p0[:, None] - o[:, :, 0]) + widen  # (k, 4): >= 0 inside (with tolerance)
-        dh = _dot(nrm, (p1 - p0)[:, None])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = -h0 / dh
-        tmin = np.maximum(np.where(dh > 0.0, t, 0.0).max(axis=1), 0.0)
-        tmax = np.minimum(np.where(dh < 0.0, t, 1.0).min(axis=1), 1.0)
-        meet |= ~np.any((dh == 0.0) & (h0 < 0.0), axis=1) & (tmin <= tmax)
-    return meet
+    p0 = np.stack([p for p, _ in segments], axis=1)  # (k, s, 3)
+    p1 = np.stack([p for _, p in segments], axis=1)
+    nrm = nrm[:, None]  # (k, 1, 4, 3) against the segments' (k, s, 1, 3)
+    h0 = _dot(nrm, p0[:, :, None] - o[:, None, :, 0]) + widen[:, None]  # (k, s, 4): >= 0 inside (with tolerance)
+    dh = _dot(nrm, (p1 - p0)[:, :, None])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -h0 / dh
+    tmin = np.maximum(np.where(dh > 0.0, t, 0.0).max(axis=2), 0.0)
+    tmax = np.minimum(np.where(dh < 0.0, t, 1.0).min(axis=2), 1.0)
+    return np.any(~np.any((dh == 0.0) & (h0 < 0.0), axis=2) & (tmin <= tmax), axis=1)
 
 
 def _sections_meet_triangles(X, tri, n, tol):
@@ -106,27 +106,44 @@ def _sections_meet_triangles(X, tri, n, tol):
     return hit | _segments_meet_tets(((a, b), (b, c), (c, a)), X, tol)
 
 
-def _tets_cut(points, tets, tris, nrm, tol):
-    """For each (non-degenerate) blade triangle with unit normal ``nrm``, the indices of the
-    tets it cuts: near it (:func:`_near_blade`), with vertices on both sides of its plane
-    (+tol), and a section that overlaps it (:func:`_sections_meet_triangles`). The exact
-    tests of all triangles run as one batch."""
-    none = [np.zeros(0, np.int64) for _ in tris]
+def _near_triangles(X, tris, tol):
+    """The pairs (triangle, tet) whose bounding boxes meet, the triangle's widened by ``tol``:
+    (triangle indices, tet indices) of the triangles (T, 3, 3) and the tets X (k, 4, 3),
+    ordered by triangle, then tet. The test of :func:`tets_near_box` (a tet is far when all its
+    nodes lie beyond the same face of the box), on the tets' coordinates."""
+    lo = (tris.min(axis=1) - tol)[:, None, None]  # (T, 1, 1, 3) against X[None]: (1, k, 4, 3)
+    hi = (tris.max(axis=1) + tol)[:, None, None]
+    far = np.any(np.all(X < lo, axis=2) | np.all(X > hi, axis=2), axis=2)  # (T, k)
+    return np.nonzero(~far)
+
+
+def _candidates(points, tets, tris, nrm, tol):
+    """The pairs (tet, triangle) that the exact test of :func:`_tets_cut` is left to decide:
+    the tets near a (non-degenerate) blade triangle with unit normal ``nrm`` (the box of the
+    whole path over all tets with :func:`_near_blade`, then each triangle's box over those,
+    :func:`_near_triangles`) that have vertices on both sides of its plane (+tol). Returns
+    (tet indices, triangle indices, the tets' vertices (k, 4, 3)), ordered by triangle, then tet."""
     near = _near_blade(points, tets, tris.reshape(-1, 3), tol)  # the box of the whole path first
     if not len(near):
-        return none
-    sub = tets[near]
-    cand = [near[_near_blade(points, sub, tri, tol)] for tri in tris]
-    owner = np.repeat(np.arange(len(tris)), [len(c) for c in cand])
-    cand = np.concatenate(cand)
-    X = points[tets[cand]]  # (k, 4, 3)
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 3))
+    Xn = points[tets[near]]  # (k, 4, 3)
+    owner, j = _near_triangles(Xn, tris, tol)
+    cand, X = near[j], Xn[j]
     d = _dot(X - tris[owner, 0][:, None], nrm[owner][:, None])
     straddle = (d.min(axis=1) <= tol) & (d.max(axis=1) >= -tol)
-    if not straddle.any():  # no tet has nodes on both sides of a blade triangle's plane
-        return none
-    cand, owner, X = cand[straddle], owner[straddle], X[straddle]
+    return cand[straddle], owner[straddle], X[straddle]
+
+
+def _tets_cut(points, tets, tris, nrm, tol):
+    """The tets that the (non-degenerate) blade triangles with unit normals ``nrm`` cut: the
+    :func:`_candidates` whose section by a triangle's plane overlaps it
+    (:func:`_sections_meet_triangles`). Returns (tet indices, triangle indices) of the pairs,
+    ordered by triangle, then tet; the exact tests of all triangles run as one batch."""
+    cand, owner, X = _candidates(points, tets, tris, nrm, tol)
+    if not len(cand):
+        return cand, owner
     hit = _sections_meet_triangles(X, tris[owner], nrm[owner], tol)
-    return [cand[hit & (owner == k)] for k in range(len(tris))]
+    return cand[hit], owner[hit]
 
 
 def tets_cut_by_triangle(points, tets, tri, tol):
@@ -154,7 +171,7 @@ def sweep_triangles(p0, p1, q0, q1):
 def _path_planes(tris):
     """Unit normals (T, 3) and first vertices (T, 3) of blade triangles; degenerate ones dropped."""
     tris = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
-    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    n = cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     area2 = np.linalg.norm(n, axis=1)
     ok = area2 > 0.0
     return tris[ok], n[ok] / area2[ok, None]
@@ -185,22 +202,33 @@ def edge_crossings(P, edges, tris, tol):
     return t_out, which
 
 
-def faces_cut_by_triangles(P, tets, tris, tol, faces=None):
+def faces_cut_by_triangles(P, tets, tris, tol, faces=None, normals=None):
     """The interior faces a blade separates (``split``): for each blade triangle, the faces
     between tets on opposite sides of its plane (the sign of their centroid's distance) of which
     at least one is intersected (its section overlaps the triangle: :func:`tets_cut_by_triangle`).
-    ``faces``: :func:`..mesh.interior_faces` of ``tets`` where known (``TetMesh.interior_faces``).
-    Only the tets near a triangle are tested, and only the faces of those it cuts are looked at.
-    Returns (pairs, face nodes, mask)."""
+    The exact test runs only on the candidate tets (:func:`_candidates`) with such a face.
+    ``faces``: :func:`..mesh.interior_faces` of ``tets`` where known (``TetMesh.interior_faces``);
+    ``normals``: the unit normals of ``tris`` where known (:func:`_path_planes`: ``tris`` are then
+    its non-degenerate triangles). Only the tets near a triangle are looked at, those of all
+    triangles in one batch. Returns (pairs, face nodes, mask)."""
     P, tets = np.asarray(P, np.float64), np.asarray(tets, np.int64)
     pairs, fnodes, tet_face = _interior_faces(tets) if faces is None else faces
     cut = np.zeros(len(pairs), bool)
-    tris, nrm = _path_planes(tris)
+    tris, nrm = _path_planes(tris) if normals is None else (tris, normals)
     if not len(tris):
         return pairs, fnodes, cut
-    for tri, n, hit in zip(tris, nrm, _tets_cut(P, tets, tris, nrm, tol)):
-        f = tet_face[hit].ravel()
-        f = f[f >= 0]
-        side = _dot(P[tets[pairs[f].ravel()]].mean(axis=1) - tri[0], n).reshape(-1, 2) >= 0.0
-        cut[f[side[:, 0] != side[:, 1]]] = True
+    cand, owner, X = _candidates(P, tets, tris, nrm, tol)
+    if not len(cand):
+        return pairs, fnodes, cut
+    F = tet_face[cand]  # (k, 4): the candidates' faces (-1: on the boundary), each with its triangle
+    inner = F >= 0
+    f, k = F[inner], np.broadcast_to(owner[:, None], F.shape)[inner]
+    k2 = np.repeat(k, 2)
+    side = _dot(P[tets[pairs[f].ravel()]].mean(axis=1) - tris[k2, 0], nrm[k2]).reshape(-1, 2) >= 0.0
+    parts = np.zeros(F.shape, bool)  # the candidate's face lies between tets on opposite sides
+    parts[inner] = side[:, 0] != side[:, 1]
+    test = np.flatnonzero(parts.any(axis=1))  # only a candidate with such a face can cut one
+    if len(test):
+        hit = test[_sections_meet_triangles(X[test], tris[owner[test]], nrm[owner[test]], tol)]
+        cut[F[hit][parts[hit]]] = True
     return pairs, fnodes, cut

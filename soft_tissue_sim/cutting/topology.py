@@ -9,27 +9,49 @@ copied; where the cut stops, the tets around its tip stay connected.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sps
-from scipy.sparse.csgraph import connected_components
 
-from ..mesh import unique_rows
+
+def lowest_in_part(n: int, ea: np.ndarray, eb: np.ndarray) -> np.ndarray:
+    """(n,) for each vertex of the undirected graph of ``n`` vertices and edges (ea[i], eb[i]),
+    the lowest vertex of its connected part: labels in the order of scipy's
+    ``connected_components`` (which numbers the parts by their lowest vertex), found by
+    propagating the lowest label along the edges and jumping to a label's label until nothing
+    changes (a few passes on the small graphs of a cut, without building a sparse matrix)."""
+    label = np.arange(n)
+    if not len(ea):
+        return label
+    while True:
+        low = np.minimum(label[ea], label[eb])
+        new = label.copy()
+        np.minimum.at(new, ea, low)
+        np.minimum.at(new, eb, low)
+        new = new[new]
+        if np.array_equal(new, label):
+            return label
+        label = new
 
 
 def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_faces: np.ndarray,
-                      all_pairs: np.ndarray, all_face_nodes: np.ndarray, n_nodes: int):
+                      all_pairs: np.ndarray, all_face_nodes: np.ndarray, n_nodes: int, cut: np.ndarray | None = None):
     """Duplicate the nodes of the cut faces so that the two sides separate.
 
+    ``cut``: where known, the mask of the cut faces among all the interior faces (the cut
+    faces are then ``all_pairs[cut]``, ``all_face_nodes[cut]``); else the cut faces are found
+    among them by their nodes.
+
     Returns (new_tets, source) where ``source`` (n_new,) gives, for each added node, the node it
-    copies; new nodes are numbered from ``n_nodes`` on.
+    copies; new nodes are numbered from ``n_nodes`` on. Where no node is copied (the cut faces
+    separate nothing yet), ``new_tets`` is ``tets`` itself, not a copy.
     """
     cut_nodes = np.unique(cut_nodes_of_faces)
     if not len(cut_nodes):
-        return tets.copy(), np.zeros(0, np.int64)
+        return tets, np.zeros(0, np.int64)
     is_cut_node = np.zeros(n_nodes, bool)
     is_cut_node[cut_nodes] = True
     # incidences (node, tet) at cut nodes: vertices of a graph
-    t_idx, k_idx = np.nonzero(is_cut_node[tets])
-    inc_node = tets[t_idx, k_idx].astype(np.int64)
+    flat = np.flatnonzero(is_cut_node[tets])  # 4 t + k: node k of tet t, in that order
+    t_idx, k_idx = flat >> 2, flat & 3
+    inc_node = np.take(tets, flat).astype(np.int64)
     m = len(tets)
     keys = inc_node * m + t_idx
     order = np.argsort(keys)
@@ -38,7 +60,9 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
     at = is_cut_node[all_face_nodes]
     near = np.flatnonzero(at[:, 0] | at[:, 1] | at[:, 2])  # the faces at a cut node
     cut_set = np.zeros(len(near), bool)
-    if len(cut_pairs):
+    if cut is not None:
+        cut_set = cut[near]
+    elif len(cut_pairs):
         # mark faces listed as cut (compare by sorted node triples)
         fn = all_face_nodes[near]
         fk = fn[:, 0] * (n_nodes ** 2) + fn[:, 1] * n_nodes + fn[:, 2]
@@ -56,21 +80,19 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
         eb.append(order[np.searchsorted(keys_sorted, kb)])
     ea, eb = np.concatenate(ea), np.concatenate(eb)
     nv = len(keys)
-    g = sps.coo_matrix((np.ones(len(ea)), (ea, eb)), shape=(nv, nv))
-    _, label = connected_components(g, directed=False)
-    # per node: its distinct groups; the first keeps the node, the others get copies
+    label = lowest_in_part(nv, ea, eb)
+    # per node its groups, as (node, lowest incidence) packed and sorted: the first keeps the
+    # node, each other one gets a copy (numbered in this order)
+    group = inc_node * nv + label
+    groups = np.unique(group)
+    node = groups // nv
+    extra = groups[1:][node[1:] == node[:-1]]
+    source = extra // nv
+    if not len(extra):
+        return tets, source
+    # relabel the incidences of the extra groups in a copy
     new_tets = tets.copy()
-    pair = unique_rows(np.stack([inc_node, label], axis=1))  # sorted by node then label
-    first_of_node = np.r_[True, pair[1:, 0] != pair[:-1, 0]]
-    extra = pair[~first_of_node]
-    source = extra[:, 0]
-    new_index = n_nodes + np.arange(len(extra))
-    # relabel incidences whose (node, label) is an extra group
-    ekey = extra[:, 0] * (label.max() + 1) + extra[:, 1]
-    ikey = inc_node * (label.max() + 1) + label
-    if not len(ekey):
-        return new_tets, source
-    pos = np.minimum(np.searchsorted(ekey, ikey), len(ekey) - 1)
-    hit = ekey[pos] == ikey
-    new_tets[t_idx[hit], k_idx[hit]] = new_index[pos[hit]]
+    pos = np.minimum(np.searchsorted(extra, group), len(extra) - 1)
+    hit = extra[pos] == group
+    new_tets[t_idx[hit], k_idx[hit]] = n_nodes + pos[hit]
     return new_tets, source

@@ -342,14 +342,22 @@ def _same_rest_shape(X, T, X_old, T_old) -> np.ndarray:
     """(k,) whether the tets T (k, 4) of points X have the rest positions of the tets T_old of
     points X_old, node for node (float equality of all 12 coordinates). A node that keeps its
     index and its position (most of them, across a topology change) is settled by comparing
-    indices; only the other corners' positions are gathered and compared."""
+    indices; only the other corners' positions are gathered and compared. The coordinates are
+    compared column by column and a tet's 4 flags read as one 32-bit word (reductions across
+    short rows are slow)."""
     n = min(len(X), len(X_old))
     kept = np.zeros(len(X), bool)
-    kept[:n] = np.all(X[:n] == X_old[:n], axis=1)  # nodes with the same index and rest position
-    same = (T == T_old) & kept[T]
+    kept[:n] = _same_points(X[:n], X_old[:n])  # nodes with the same index and rest position
+    same = np.ascontiguousarray((T == T_old) & kept[T], dtype=bool).reshape(-1, 4)
     other = ~same
-    same[other] = np.all(np.take(X, T[other], axis=0) == np.take(X_old, T_old[other], axis=0), axis=1)
-    return np.all(same, axis=1)
+    if other.any():
+        same[other] = _same_points(np.take(X, T[other], axis=0), np.take(X_old, T_old[other], axis=0))
+    return same.view(np.uint32)[:, 0] == 0x01010101
+
+
+def _same_points(P, Q) -> np.ndarray:
+    """(k,) whether the points P (k, 3) and Q (k, 3) are equal (all three coordinates)."""
+    return (P[:, 0] == Q[:, 0]) & (P[:, 1] == Q[:, 1]) & (P[:, 2] == Q[:, 2])
 
 
 class CorotationalFEM:

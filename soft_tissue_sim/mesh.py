@@ -284,6 +284,32 @@ def node_ring(edges: np.ndarray, n_nodes: int):
     return offsets.astype(np.int32), ring
 
 
+def ring_components(offsets: np.ndarray, ring: np.ndarray, n_nodes: int) -> np.ndarray:
+    """(n,) int32 connected parts of the symmetric adjacency ``offsets``, ``ring`` (compressed
+    rows, as :func:`node_ring` gives them), numbered in the order of their lowest node: the
+    labels of ``scipy.sparse.csgraph.connected_components(..., directed=False)``. The graph is
+    symmetric, so it is its own transpose: scipy's undirected traversal is run on it directly,
+    without the matrix, its validation and the transpose that the public function builds
+    (the public function where that traversal is not available)."""
+    offsets = np.ascontiguousarray(offsets, np.int32)
+    ring = np.ascontiguousarray(ring, np.int32)
+    if _undirected_traversal is None:
+        import scipy.sparse as sps
+        from scipy.sparse.csgraph import connected_components
+
+        g = sps.csr_matrix((np.ones(len(ring)), ring, offsets), shape=(n_nodes, n_nodes))
+        return connected_components(g, directed=False)[1].astype(np.int32)
+    labels = np.empty(n_nodes, np.int32)
+    _undirected_traversal(ring, offsets, ring, offsets, labels)
+    return labels
+
+
+try:  # scipy's traversal behind connected_components (undirected: each node's and its transpose's rows)
+    from scipy.sparse.csgraph._traversal import _connected_components_undirected as _undirected_traversal
+except ImportError:  # pragma: no cover - another scipy layout
+    _undirected_traversal = None
+
+
 def _list(idx, limit: int = 10) -> str:
     """'[3, 7, 9]' or '[0, 1, ..., 9] and 25 more (35 in all)'."""
     idx = [int(i) for i in np.asarray(idx).ravel()]
@@ -395,22 +421,15 @@ class TetMesh:
         in no tet is a part of its own). A tet's part is the label of any of its nodes. The
         parts are numbered in the order of their lowest node (scipy's numbering), once per
         connectivity, from the node ring (the same parts as the tets make). Read-only."""
-        def parts():
-            import scipy.sparse as sps
-            from scipy.sparse.csgraph import connected_components
-
-            offsets, ring = self.node_ring()
-            n = self.n_nodes
-            return (connected_components(sps.csr_matrix((np.ones(len(ring)), ring, offsets), shape=(n, n)),
-                                         directed=False)[1],)
-
-        return self._table("node_components", parts, np.int32)[0]
+        return self._table("node_components", lambda: (ring_components(*self.node_ring(), self.n_nodes),),
+                           np.int32)[0]
 
     def boundary_faces(self) -> np.ndarray:
         """(k, 3) int32 faces used by exactly one tet, right-hand normal pointing out of it."""
         tet_face = self.interior_faces()[2]  # cached per connectivity (cutting reads it too)
         k = np.flatnonzero(tet_face.ravel() < 0)  # 4 t + j: face j of tet t, in that order
-        return np.ascontiguousarray(self.tets[k // 4, _FACES[k % 4].T].T, dtype=np.int32)
+        j = k & 3
+        return self.tets.ravel().take((k - j)[:, None] + _FACES[j])  # entries 4 t + _FACES[j] of the flat tets
 
     def edges(self) -> np.ndarray:
         """(e, 2) unique edges, each as (i, j) with i < j, rows sorted (int32; from

@@ -237,3 +237,40 @@ def test_a_split_keeps_the_device_arrays_of_unchanged_element_data():
     fresh = CorotationalFEM(f.mesh, mat, "cpu", fixed_nodes=np.arange(9))
     for a, b in zip(_rest_arrays(f), _rest_arrays(fresh)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_same_rest_shape_equals_the_row_wise_comparison_on_random_tets():
+    """Whether each tet keeps its source's rest positions, node for node: the same flags as
+    comparing the 12 gathered coordinates of each pair of tets row by row."""
+    from soft_tissue_sim.corotational_fem import _same_rest_shape
+
+    rng = np.random.default_rng(5)
+    for n_old, n_new, k in ((20, 20, 0), (20, 26, 50), (40, 31, 200)):
+        X_old = rng.integers(0, 3, (n_old, 3)).astype(np.float64)  # repeated points: equal by value too
+        X = np.concatenate([X_old, rng.integers(0, 3, (max(n_new - n_old, 0), 3)).astype(np.float64)])[:n_new]
+        X[rng.random(n_new) < 0.2] += 0.5  # moved nodes
+        T_old = rng.integers(0, n_old, (k, 4)).astype(np.int32)
+        T = np.where(rng.random((k, 4)) < 0.3, rng.integers(0, n_new, (k, 4)), np.minimum(T_old, n_new - 1))
+        T = T.astype(np.int32)
+        ref = np.array([np.array_equal(X[T[i]], X_old[T_old[i]]) for i in range(k)], bool)
+        got = _same_rest_shape(X, T, X_old, T_old)
+        np.testing.assert_array_equal(got, ref)
+        assert got.shape == (k,) and got.dtype == bool
+        assert 0 < ref.sum() < k or k == 0
+
+
+def test_edge_ownership_equals_a_stable_sort_of_the_edges_on_random_faces():
+    """The owner of each undirected edge is its first occurrence in face-major order: the same
+    flags as a stable argsort of the edges' keys (random faces, shared and repeated edges)."""
+    from soft_tissue_sim.contact.geometry import edge_ownership
+
+    rng = np.random.default_rng(9)
+    for n, f in ((3, 1), (6, 10), (50, 400)):
+        faces = np.stack([rng.choice(n, 3, replace=False) for _ in range(f)]).astype(np.int32)
+        a, b = faces.ravel(), np.roll(faces, -1, axis=1).ravel()
+        key = np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)
+        order = np.argsort(key, kind="stable")
+        ks = key[order]
+        ref = np.zeros(3 * f, np.int32)
+        ref[order[np.concatenate(([True], ks[1:] != ks[:-1]))]] = 1
+        np.testing.assert_array_equal(edge_ownership(faces), ref.reshape(-1, 3))

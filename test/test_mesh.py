@@ -15,6 +15,7 @@ from soft_tissue_sim.mesh import (
     cli,
     edge_table,
     edge_table_after_change,
+    grid_mesh,
     insert_rows,
     interior_faces,
     node_ring,
@@ -607,3 +608,45 @@ def test_centroids_are_the_mean_of_the_gathered_nodes_bit_for_bit(brain):
         pts = brain.points + scale * rng.standard_normal(brain.points.shape)
         got = centroids(pts, brain.tets)
         assert np.array_equal(got.view(np.uint64), pts[brain.tets].mean(axis=1).view(np.uint64))
+
+
+@pytest.mark.parametrize("traversal", ["scipy's traversal", "public function"])
+def test_ring_components_equal_scipys_connected_components_on_random_graphs(monkeypatch, traversal):
+    """The parts of a node ring, by scipy's undirected traversal run on the ring directly (or
+    the public function where that is not available), are scipy's labels of the same graph."""
+    import scipy.sparse as sps
+    from scipy.sparse.csgraph import connected_components
+
+    import soft_tissue_sim.mesh as mesh_mod
+
+    if traversal == "public function":
+        monkeypatch.setattr(mesh_mod, "_undirected_traversal", None)
+    rng = np.random.default_rng(7)
+    for n, m in ((1, 0), (30, 4), (200, 40), (500, 300)):
+        T = np.stack([rng.choice(n, 4, replace=False) for _ in range(m)]) if n >= 4 and m else np.zeros((0, 4), int)
+        mesh = TetMesh(rng.random((n, 3)), T)
+        offsets, ring = mesh.node_ring()
+        ref = connected_components(sps.csr_matrix((np.ones(len(ring)), ring, offsets), shape=(n, n)),
+                                   directed=False)[1]
+        lab = mesh_mod.ring_components(offsets, ring, n)
+        np.testing.assert_array_equal(lab, ref)
+        assert lab.dtype == np.int32
+        np.testing.assert_array_equal(mesh.node_components(), ref)
+
+
+def test_boundary_faces_equal_the_gather_by_tet_and_local_face_on_random_meshes():
+    """The boundary faces gathered from the flat tets are the rows ``tets[t, _FACES[j]]`` of the
+    faces without a neighbour, in the order of 4 t + j (int32, C-ordered)."""
+    from soft_tissue_sim.mesh import _FACES
+
+    rng = np.random.default_rng(3)
+    base = grid_mesh(np.linspace(0, 1, 5), np.linspace(0, 1, 4), np.linspace(0, 1, 4))
+    for keep in (1.0, 0.7, 0.2):
+        T = base.tets[rng.random(base.n_tets) < keep]
+        m = TetMesh(base.points, T)
+        tet_face = m.interior_faces()[2]
+        k = np.flatnonzero(tet_face.ravel() < 0)
+        ref = np.array([m.tets[i // 4, _FACES[i % 4]] for i in k], np.int32).reshape(-1, 3)
+        bf = m.boundary_faces()
+        np.testing.assert_array_equal(bf, ref)
+        assert bf.dtype == np.int32 and bf.flags.c_contiguous

@@ -197,7 +197,7 @@ class SurfaceTopology:
         on[self.faces.ravel()] = True
         self.surface = np.flatnonzero(on).astype(np.int32)  # the surface nodes, ascending
         ns = max(len(self.surface), 1)
-        self.scale = float(np.ptp(mesh.points, axis=0).max()) or 1.0
+        self.scale = max(float(c.max() - c.min()) for c in mesh.points.T) or 1.0  # the bounding box's longest side
         # the tables, sent in one copy: the surface nodes; the faces, and which face owns each
         # surface edge: edge_owner[f, k] = 1 where face f owns its edge from vertex k to vertex
         # k + 1, each edge owned by exactly one of the faces sharing it, the lowest index

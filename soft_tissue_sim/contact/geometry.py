@@ -188,18 +188,23 @@ def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def edge_ownership(faces: np.ndarray) -> np.ndarray:
     """(k, 3) int32: 1 where face f owns its edge from vertex j to vertex j + 1 (mod 3). Each
     undirected edge is owned once, by the lowest-index face that has it: the first of its
-    run in a stable sort of the edges' packed keys (face-major order)."""
+    run in a sort of the edges' packed keys, each key followed by the edge's position
+    (face-major order) in one int64, so that a plain sort orders each run by position."""
     faces = np.asarray(faces).reshape(-1, 3)
     owner = np.zeros(3 * len(faces), np.int32)
     if len(faces):
         a = faces.astype(np.int64).ravel()
         b = faces[:, [1, 2, 0]].astype(np.int64).ravel()
         lo, hi = np.minimum(a, b), np.maximum(a, b)
-        base = int(hi.max()) + 1
-        if base * base < 2**62:
-            order = np.argsort(lo * base + hi, kind="stable")
-            ks = (lo * base + hi)[order]
-            first = order[np.concatenate(([True], ks[1:] != ks[:-1]))]
+        base, n = int(hi.max()) + 1, len(a)
+        if base * base * n < 2**62:
+            key = (lo * base + hi) * n + np.arange(n)
+            key.sort()
+            edge, pos = np.divmod(key, n)
+            run = np.empty(n, bool)
+            run[0] = True
+            np.not_equal(edge[1:], edge[:-1], out=run[1:])
+            first = pos[run]
         else:
             _, first = unique_rows(np.stack([lo, hi], axis=1), return_index=True)
         owner[first] = 1

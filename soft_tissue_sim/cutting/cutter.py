@@ -424,11 +424,11 @@ class Cutter:
     def _removal(self, tissue: Tissue, gone: np.ndarray, t0: float) -> CutPlan:
         if gone.all():
             return CutPlan(CutResult(False, "refused: the removal would delete every element of the body"))
-        tets = tissue.mesh.tets.astype(np.int64)
+        kept_tets = ~gone
         used = np.zeros(tissue.mesh.n_nodes, bool)
-        used[tets[~gone].ravel()] = True
+        used[np.compress(kept_tets, tissue.mesh.tets, axis=0)] = True
         return self._change(tissue, None, np.zeros(0, np.int64), np.flatnonzero(gone), np.zeros(0, np.int64),
-                            keep=np.flatnonzero(used), kept_tets=~gone, what="removal", t0=t0)
+                            keep=np.flatnonzero(used), kept_tets=kept_tets, what="removal", t0=t0)
 
     def small_fragments(self, mesh, free: np.ndarray) -> np.ndarray:
         """Mask of the tets in free fragments (no fixed node) of fewer than ``min_fragment`` tets."""
@@ -477,11 +477,11 @@ class Cutter:
         if new_tets is None:  # element removal with compaction
             remap = np.full(mesh.n_nodes, -1, np.int64)
             remap[keep] = np.arange(len(keep))
-            tets_new = remap[mesh.tets[kept_tets].astype(np.int64)]
-            pts_new, x_new, v_new = mesh.points[keep], x[keep], v[keep]
-            uids_new = old_uids[keep]
-            free_new = free_old[keep]
-            mats = mesh.material_ids[kept_tets]
+            tets_new = np.take(remap, np.compress(kept_tets, mesh.tets, axis=0))
+            pts_new, x_new, v_new = (np.take(a, keep, axis=0) for a in (mesh.points, x, v))
+            uids_new = np.take(old_uids, keep)
+            free_new = np.take(free_old, keep)
+            mats = np.compress(kept_tets, mesh.material_ids)
             created = np.zeros(0, np.int64)
             gone = np.ones(mesh.n_nodes, bool)
             gone[keep] = False

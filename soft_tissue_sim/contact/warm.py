@@ -17,11 +17,17 @@ _ROW = np.dtype((np.void, 4 * 8))  # one name: four int64 compared as bytes
 def contact_names(obj: np.ndarray, node: np.ndarray, tri: np.ndarray, uids: np.ndarray) -> np.ndarray:
     """(k, 4) int64 names of contacts with object ``obj``, tissue node ``node`` (-1: a
     triangle's contact) and triangle ``tri`` (k, 3), nodes named by ``uids``."""
-    names = np.full((len(node), 4), -1, np.int64)
+    names = np.empty((len(node), 4), np.int64)
     names[:, 0] = obj
-    on_node = node >= 0
+    on_tri = (node < 0).nonzero()[0]
+    if not len(on_tri):
+        names[:, 1] = uids[node]
+        names[:, 2:] = -1
+        return names
+    names[:, 1:] = -1
+    on_node = (node >= 0).nonzero()[0]
     names[on_node, 1] = uids[node[on_node]]
-    names[~on_node, 1:] = np.sort(uids[tri[~on_node]], axis=1)
+    names[on_tri, 1:] = np.sort(uids[tri[on_tri]], axis=1)
     return names
 
 

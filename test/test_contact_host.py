@@ -159,3 +159,49 @@ def test_contacts_take_and_responded_are_the_field_by_field_forms():
     assert same_bits(r["gap"], c.gap)
     with pytest.raises(KeyError):
         r["nope"]
+
+
+def _warm_reference(names, forces, kept, query):
+    """The warm start as a dict built in row order (the last remembered row of a name wins)."""
+    table = {tuple(n): f for n, f, k in zip(names.tolist(), forces, kept) if k}
+    found = np.array([tuple(q) in table for q in query.tolist()], bool)
+    return found, np.array([table[tuple(q)] for q, ok in zip(query.tolist(), found) if ok]).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("repeat", [False, True])
+def test_warm_start_of_the_same_contacts_is_the_search(repeat):
+    """A step whose contacts are the last step's, in order, takes their forces row by row only
+    where the names are distinct; with a repeated name it searches (the last row wins)."""
+    from soft_tissue_sim.contact.warm import WarmStart
+
+    rng = np.random.default_rng(7)
+    k = 9
+    names = np.full((k, 4), -1, np.int64)
+    names[:, 0] = rng.integers(-1, 2, k)
+    names[:, 1] = rng.permutation(100)[:k]
+    names[:3, 1:] = np.sort(rng.integers(0, 100, (3, 3)), axis=1)
+    if repeat:
+        names[6] = names[2]
+    forces = rng.standard_normal((k, 3))
+    kept = rng.random(k) < 0.6
+    kept[[2, 6]] = [True, False]
+    warm = WarmStart(names, forces, kept)
+    assert len(warm) == kept.sum()
+    for query in (names.copy(), names[::-1].copy(), names[:5].copy()):
+        found, f = warm.lookup(query)
+        ref_found, ref_f = _warm_reference(names, forces, kept, query)
+        assert same_bits(found, ref_found) and same_bits(f, ref_f)
+    # the next step's warm start, from the same contacts again: distinct names carry over
+    query = names.copy()
+    warm.lookup(query)
+    forces2 = rng.standard_normal((k, 3))
+    kept2 = ~kept
+    nxt = warm.then(query, forces2, kept2)
+    for q in (names.copy(), names[2:].copy()):
+        found, f = nxt.lookup(q)
+        ref_found, ref_f = _warm_reference(names, forces2, kept2, q)
+        assert same_bits(found, ref_found) and same_bits(f, ref_f)
+    other = warm.then(names.copy(), forces2, kept2)  # not the array looked up: distinctness not assumed
+    assert same_bits(other.lookup(names)[1], _warm_reference(names, forces2, kept2, names)[1])
+    assert not WarmStart().lookup(names)[0].any()
+    assert not WarmStart(names, forces, np.zeros(k, bool)).lookup(names)[0].any()

@@ -415,7 +415,8 @@ class ContactSolver:
         uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
         names = contact_names(c.obj, c.node, c.tri, uids)
         lam = np.zeros(m)
-        found, f = self._warm.lookup(names)
+        warm = self._warm
+        found, f = warm.lookup(names)
         if len(f):
             r = row_start[found] if friction else found  # the normal rows of the contacts found
             lam[r] = np.maximum(0.0, np.einsum("kj,kj->k", f, normal[found]))
@@ -435,7 +436,7 @@ class ContactSolver:
                 force[fr] += lam[rs + 1][:, None] * t1[fr] + lam[rs + 2][:, None] * t2[fr]
             self._set_wrenches(c, force)
             pressed = ln > 0.0
-            self._warm = WarmStart(names[pressed], force[pressed])
+            self._warm = warm.then(names, force, pressed)
             self.contacts = c.responded(ln, force)
             stats.active_contacts = int(np.count_nonzero(pressed))
             stats.contact_ms += 1000.0 * (time.perf_counter() - t0)
@@ -491,9 +492,8 @@ class ContactSolver:
             on = on.nonzero()[0]
             obj, force, point = obj[on], force[on], point[on]
         origins = np.array([o.origin for o in self.objects], dtype=np.float64).reshape(-1, 3)
-        terms = np.empty((len(obj), 6))  # per contact: the force on its object, then its torque
-        f_obj = np.negative(force, out=terms[:, :3])
-        cross(point - origins[obj], f_obj, out=terms[:, 3:])
+        f_obj = -force
+        terms = np.concatenate([f_obj, cross(point - origins[obj], f_obj)], axis=1)  # per contact: force, torque
         wrench = np.zeros((len(self.objects), 6))
         np.add.at(wrench, obj, terms)
         for oi, o in enumerate(self.objects):

@@ -205,3 +205,18 @@ def test_warm_start_of_the_same_contacts_is_the_search(repeat):
     assert same_bits(other.lookup(names)[1], _warm_reference(names, forces2, kept2, names)[1])
     assert not WarmStart().lookup(names)[0].any()
     assert not WarmStart(names, forces, np.zeros(k, bool)).lookup(names)[0].any()
+
+
+def test_tangent_basis_is_the_straightforward_one():
+    from soft_tissue_sim.contact.geometry import tangent_basis
+
+    rng = np.random.default_rng(8)
+    n = rng.standard_normal((40, 3))
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    n[:5] = [[1.0, 0.0, 0.0], [-0.9, np.sqrt(0.19), 0.0], [0.9 - 1e-12, 0.0, np.sqrt(1 - (0.9 - 1e-12) ** 2)],
+             [np.nan, 0.0, 1.0], [0.0, 0.0, -1.0]]
+    a = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(n, a)
+    t1 /= np.sqrt(np.einsum("ij,ij->i", t1, t1))[:, None]
+    got = tangent_basis(n)
+    assert same_bits(got[0], t1) and same_bits(got[1], np.cross(n, t1))

@@ -394,18 +394,19 @@ class ContactSolver:
             dirs = np.empty((m, 3))
             dirs[row_start] = normal
             # relative displacement during the step of the tissue point against the other surface
-            f_rows = np.flatnonzero(fr)
+            f_rows = fr.nonzero()[0]
             nf = np.maximum(nodes4[f_rows], 0)
             rel = np.einsum("ks,ksj->kj", ws4[f_rows], x[nf] - x_start[nf])
             f_obj = c.obj[f_rows]
             for oi, obj in enumerate(self.objects):
                 sel = f_obj == oi
-                if sel.any():
+                if np.count_nonzero(sel):
                     rel[sel] -= obj.point_displacement(c.point[f_rows[sel]], dt)
             rs = row_start[f_rows]
-            d0[rs + 1] = np.einsum("kj,kj->k", t1[f_rows], rel)
-            d0[rs + 2] = np.einsum("kj,kj->k", t2[f_rows], rel)
-            dirs[rs + 1], dirs[rs + 2] = t1[f_rows], t2[f_rows]
+            t1f, t2f = t1[f_rows], t2[f_rows]
+            d0[rs + 1] = np.einsum("kj,kj->k", t1f, rel)
+            d0[rs + 2] = np.einsum("kj,kj->k", t2f, rel)
+            dirs[rs + 1], dirs[rs + 2] = t1f, t2f
             owner = np.repeat(np.arange(k), rows)
             H = ConstraintRows(nodes4[owner], w4[owner][:, :, None] * dirs[:, None, :], n)
         # warm start from last step's forces on the same (object, node) or (object, triangle)

@@ -87,6 +87,18 @@ def _numpy_layout(dtype) -> tuple:
     return wp.dtype_to_numpy(scalar), tuple(getattr(dtype, "_shape_", ()))
 
 
+def field_runs(order: list, names) -> list[tuple]:
+    """The fields ``names`` (of the fields in layout ``order``) as runs of adjacent fields:
+    [(first, last), ...] in layout order."""
+    runs: list[list[int]] = []
+    for i in sorted(order.index(k) for k in set(names)):
+        if runs and runs[-1][-1] == i - 1:
+            runs[-1][-1] = i
+        else:
+            runs.append([i, i])
+    return [(order[a], order[b]) for a, b in runs]
+
+
 class PackedArrays:
     """Typed device arrays (``fields``: name -> Warp dtype, in layout order) in one allocation.
 
@@ -111,6 +123,7 @@ class PackedArrays:
         self._sent = None  # the event after the last copy out of the staging buffer
         self._arrays: dict[str, wp.array] = {}
         self._host: dict[str, np.ndarray] = {}
+        self._runs: dict[frozenset, list] = {}  # send's runs of adjacent fields, by the set of names
 
     def _size(self, name: str) -> int:
         return wp.types.type_size_in_bytes(self.fields[name])
@@ -161,16 +174,11 @@ class PackedArrays:
         """Copy the fields ``names`` to the device (runs of adjacent fields in one copy each)."""
         if self.staging is self.buffer:
             return
-        order = list(self.fields)
-        picked = sorted(order.index(k) for k in set(names))
-        runs: list[list[int]] = []
-        for i in picked:
-            if runs and runs[-1][-1] == i - 1:
-                runs[-1].append(i)
-            else:
-                runs.append([i])
-        for run in runs:
-            first, last = order[run[0]], order[run[-1]]
+        key = frozenset(names)
+        runs = self._runs.get(key)
+        if runs is None:
+            runs = self._runs[key] = field_runs(list(self.fields), key)
+        for first, last in runs:
             start = self.offsets[first]
             end = self.offsets[last] + self.counts[last] * self._size(last)
             if end > start:

@@ -72,11 +72,17 @@ def unique_rows(rows: np.ndarray, **kw):
     return (uniq, *rest) if rest else uniq
 
 
-def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Row-wise cross products of (..., 3) arrays: the products of ``np.cross`` without its
-    per-call overhead, which dominates on the few rows of a contact step or a blade's tets."""
-    return np.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1], u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
-                     u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1)
+_NEXT, _AFTER = np.array([1, 2, 0]), np.array([2, 0, 1])  # the components j + 1 and j + 2 (mod 3) of each j
+
+
+def cross(u: np.ndarray, v: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Row-wise cross products of (..., 3) arrays (broadcast): the products and differences of
+    ``np.cross``, u_{j+1} v_{j+2} - u_{j+2} v_{j+1}, on whole arrays of permuted components,
+    without its per-call overhead (which dominates on the few rows of a contact step or a
+    blade's tets). ``out``: where to write them (not overlapping u or v), else a new array."""
+    out = np.multiply(u.take(_NEXT, axis=-1), v.take(_AFTER, axis=-1), out=out)
+    out -= u.take(_AFTER, axis=-1) * v.take(_NEXT, axis=-1)
+    return out
 
 
 def interior_faces(tets: np.ndarray):

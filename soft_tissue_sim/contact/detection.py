@@ -119,40 +119,55 @@ _NODE, _FACE, _SELF = 0, 1, 2  # SlotMap.kind: what a slot's thread was (Section
 class SlotMap:
     """What each output slot of a detection stands for, so that its active slots are read in
     one pass: ``obj`` (its section's object), ``kind`` (0 node, 1 face, 2 self), ``node`` (the
-    surface node, -1 on a face's slot), ``face`` (the surface face of a face's slot, else 0)."""
+    surface node, -1 on a face's slot), ``face`` (the surface face of a face's slot, else 0).
 
-    def __init__(self, sections: list[Section], n_slots: int, surface: np.ndarray):
+    For :func:`collect`: ``tris`` is the surface's faces (int64) followed by a row of -1 (no
+    triangle); ``tri_row`` a slot's row of it (its face on a face's slot, the last row on a
+    node's, 0 on a self slot, whose face the kernel writes); ``no_tri`` and ``on_self`` the
+    node and self slots; ``self_slots`` whether there are any."""
+
+    def __init__(self, sections: list[Section], n_slots: int, surface: np.ndarray, faces: np.ndarray | None = None):
+        """``faces``: the surface's faces (k, 3) (none: an empty table)."""
         self.obj = np.full(n_slots, -2, np.int64)
         self.kind = np.zeros(n_slots, np.int8)
         self.node = np.full(n_slots, -1, np.int64)
         self.face = np.zeros(n_slots, np.int64)
+        faces = np.zeros((0, 3), np.int64) if faces is None else np.asarray(faces).reshape(-1, 3)
+        self.tris = np.concatenate([faces.astype(np.int64), np.full((1, 3), -1, np.int64)])
+        self.tri_row = np.full(n_slots, len(faces), np.int64)
         for sec in sections:
             sl = slice(sec.base, sec.base + sec.size)
             self.obj[sl] = sec.obj
             if sec.kind == "face":
                 self.kind[sl] = _FACE
                 self.face[sl] = np.arange(sec.size)
+                self.tri_row[sl] = np.arange(sec.size)
             else:
                 self.kind[sl] = _SELF if sec.kind == "self" else _NODE
                 self.node[sl] = surface[: sec.size]
+                if sec.kind == "self":
+                    self.tri_row[sl] = 0
+        self.no_tri = self.kind == _NODE
+        self.on_self = self.kind == _SELF
+        self.self_slots = bool(self.on_self.any())
 
 
 def collect(topo: "SurfaceTopology", host: list) -> Contacts:
     """The contacts of one detection from its outputs read to the host (``host``: the arrays of
     :attr:`Outputs.arrays`), in slot order (section by section in launch order)."""
     active, gap, normal, point, tri, bary = host
-    idx = np.flatnonzero(active)
+    idx = (active != 0).nonzero()[0]
     if not len(idx):
         return Contacts.empty()
     slots = topo.slot_map
-    kind = slots.kind[idx]
-    t = np.flatnonzero(kind != _NODE)  # rows with a triangle: its face, by slot or by the kernel
-    face = np.where(kind[t] == _FACE, slots.face[idx[t]], tri[idx[t]])
-    tris = np.full((len(idx), 3), -1, np.int64)
-    tris[t] = topo.faces[face]
-    w = np.zeros((len(idx), 3))
-    w[t] = bary[idx[t]]
-    return Contacts(slots.node[idx], slots.obj[idx], gap[idx], normal[idx], point[idx], tris, w)
+    rows = slots.tri_row[idx]  # each contact's row of slots.tris: its face, or none
+    if slots.self_slots:
+        on_self = slots.on_self[idx]
+        if np.count_nonzero(on_self):
+            rows[on_self] = tri[idx[on_self]]
+    w = bary[idx]
+    w[slots.no_tri[idx]] = 0.0
+    return Contacts(slots.node[idx], slots.obj[idx], gap[idx], normal[idx], point[idx], slots.tris[rows], w)
 
 
 _SERIALS = itertools.count()
@@ -240,7 +255,7 @@ class SurfaceTopology:
         if self.wmesh is not None:
             sections.append(Section(-1, "self", base, ns))
         self.out = Outputs(sections, dev, buffers.outputs)
-        self.slot_map = SlotMap(sections, self.out.active.shape[0], self.surface)
+        self.slot_map = SlotMap(sections, self.out.active.shape[0], self.surface, self.faces)
         # state of one detection on the device: the step's start, the reach of the free motion,
         # which instruments were through the surface at the start, the smallest gap
         self.x_start = buffers.x_start.view(n)

@@ -142,6 +142,7 @@ class DeviceLCP:
         self.device = wp.get_device(device)
         self._in = PackedArrays(self.FIELDS, self.device)
         self._in.reserve({k: 2 if k == "sizes" else cap for k in self.FIELDS})
+        self._host = {k: self._in.host(k) for k in self.FIELDS}  # the host views, fixed with the capacity
         a = self._in.array
         self.sizes, self.row_start, self.n_rows = a("sizes"), a("row_start"), a("n_rows")
         self.d0, self.lam0, self.mu = a("d0"), a("lam0"), a("mu")
@@ -159,15 +160,17 @@ class DeviceLCP:
               row_start: np.ndarray, n_rows: np.ndarray, mu: np.ndarray) -> None:
         """The problem's m rows and nc contacts into the page-locked buffer, sent (no wait)."""
         m, nc = len(d0), len(row_start)
-        h = self._in.host
-        h("sizes")[:] = (m, nc)
-        h("row_start")[:nc] = row_start
-        h("n_rows")[:nc] = n_rows
-        h("nodes")[:m] = nodes
-        h("d0")[:m] = d0
-        h("lam0")[:m] = lam0
-        h("mu")[:nc] = mu
-        h("coef")[:m] = coef
+        self._in.host("sizes")  # waits for the last copy out of the buffer to have left
+        h = self._host
+        sizes = h["sizes"]
+        sizes[0], sizes[1] = m, nc
+        h["row_start"][:nc] = row_start
+        h["n_rows"][:nc] = n_rows
+        h["nodes"][:m] = nodes
+        h["d0"][:m] = d0
+        h["lam0"][:m] = lam0
+        h["mu"][:nc] = mu
+        h["coef"][:m] = coef
         self._in.send(self.FIELDS)
 
     def key(self, inner, free: wp.array, dt: float, options: tuple) -> tuple:

@@ -176,10 +176,13 @@ def segment_triangle_closest(a: wp.vec3d, b: wp.vec3d, va: wp.vec3d, vb: wp.vec3
     return s, w, best, 0
 
 
+_AXES = np.eye(3)[:2]  # e_x, e_y
+
+
 def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit tangents (k, 3) completing the unit normals n (k, 3) to right-handed frames:
     t1 along n x e_x (n x e_y where n is within 0.9 of e_x's direction), t2 = n x t1."""
-    a = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    a = _AXES[(~(np.abs(n[:, 0]) < 0.9)).view(np.int8)]  # e_y where |n_x| < 0.9 fails (NaN too)
     t1 = cross(n, a)
     t1 /= np.sqrt(np.einsum("ij,ij->i", t1, t1))[:, None]
     return t1, cross(n, t1)

@@ -9,7 +9,7 @@ tissue is pushed; ``gap`` < 0 is a penetration; ``bary`` sums to 1 on rows with 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -50,24 +50,30 @@ class Contacts:
 
     def take(self, rows) -> Contacts:
         """The contacts selected by a boolean mask or indices."""
-        return Contacts(**{name: value[rows] for name, value in self.items()})
+        ln, f = self.lambda_n, self.force
+        return Contacts(self.node[rows], self.obj[rows], self.gap[rows], self.normal[rows], self.point[rows],
+                        self.tri[rows], self.bary[rows], None if ln is None else ln[rows],
+                        None if f is None else f[rows])
 
     def responded(self, lambda_n: np.ndarray, force: np.ndarray) -> Contacts:
-        """These contacts with the response's normal forces and forces on the tissue."""
-        return replace(self, lambda_n=lambda_n, force=force)
+        """These contacts (the same arrays) with the response's normal forces and forces on the tissue."""
+        return Contacts(self.node, self.obj, self.gap, self.normal, self.point, self.tri, self.bary, lambda_n, force)
 
     def __len__(self) -> int:
         return len(self.node)
 
     def items(self):
         """(name, array) of the fields that are set, the way the earlier dicts were read."""
-        return [(f.name, getattr(self, f.name)) for f in fields(self) if getattr(self, f.name) is not None]
+        return [(name, getattr(self, name)) for name in _FIELDS if getattr(self, name) is not None]
 
     def __getitem__(self, name: str) -> np.ndarray:
         """A field by name (read access for code written against the earlier dicts)."""
-        if name not in {f.name for f in fields(self)}:
+        if name not in _FIELDS:
             raise KeyError(name)
         return getattr(self, name)
+
+
+_FIELDS = tuple(f.name for f in fields(Contacts))
 
 
 @dataclass

@@ -13,7 +13,9 @@ point on the object's surface.
 
 from __future__ import annotations
 
+import math
 import time
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
@@ -33,6 +35,9 @@ from .options import parse_options
 from .pgs import PGS
 from .records import ContactResponse, Contacts
 from .warm import WarmStart, contact_names
+
+
+_SIGN = np.array([1.0, -1.0])  # by a row's own (self-collision) flag: the sign of its triangle's weights
 
 
 class ContactSolver:
@@ -77,6 +82,7 @@ class ContactSolver:
                 raise ParameterError(f"obstacle name {obs.name!r} used twice (names are shared with instruments)")
             self.obstacles[obs.name] = obs
         self.objects = list(self.instruments.values()) + list(self.obstacles.values())
+        self._mesh_objects = [oi for oi, obj in enumerate(self.objects) if isinstance(obj, MeshObstacle)]
         self._topo: SurfaceTopology | None = None
         self._warm = WarmStart()
         self._pgs = PGS(o["active_set"])
@@ -263,23 +269,31 @@ class ContactSolver:
             host = to_host(*self.launch_detection_of(body))
         x, x_start, free, *outputs = host
         c = collect(topo, outputs) if len(topo.surface) else Contacts.empty()
-        tri_feature = c.obj < 0
-        for oi, obj in enumerate(self.objects):
-            if isinstance(obj, MeshObstacle):
-                tri_feature |= c.obj == oi
-        if tri_feature.any():
+        own = c.obj < 0  # self-collision rows: the other surface is a tissue triangle
+        n_own = np.count_nonzero(own)
+        tri_feature, n_tri_feature = own, n_own  # rows against triangle features: self-collision, mesh obstacles
+        for oi in self._mesh_objects:
+            tri_feature = tri_feature | (c.obj == oi)
+            n_tri_feature = np.count_nonzero(tri_feature)
+        if n_tri_feature:
             # The search radius is the largest motion of any surface node, so one fast fragment
             # widens it for all. A pair can only close in by the motion of its own node and
             # triangle: farther pairs cannot touch in this step and are dropped before the LCP.
-            mv = np.linalg.norm(x - x_start, axis=1)
-            tri_mv = np.where(c.obj < 0, mv[np.clip(c.tri, 0, None)].max(axis=1), 0.0)
-            reach_row = o["distance"] + mv[np.clip(c.node, 0, None)] + tri_mv
+            k = len(c.node)
+            on_tri = own.nonzero()[0]
+            at = np.concatenate([np.maximum(c.node, 0), np.maximum(c.tri[on_tri], 0).ravel()])
+            d = x[at] - x_start[at]  # the motion of each row's node, then of its triangle's nodes
+            mv = np.sqrt(np.add.reduce(d * d, axis=1))  # |d|, as np.linalg.norm computes it
+            tri_mv = np.zeros(k)
+            tri_mv[on_tri] = mv[k:].reshape(-1, 3).max(axis=1)
+            reach_row = o["distance"] + mv[:k] + tri_mv
             near = ~tri_feature | (c.gap <= reach_row)
             if not near.all():
                 c = c.take(near)
-                tri_feature = tri_feature[near]
-            own = np.flatnonzero(c.obj < 0)  # tissue triangles move: their point follows the free motion
-            c.point[own] = np.einsum("ks,ksj->kj", c.bary[own], x[c.tri[own]])
+                tri_feature, own = tri_feature[near], own[near]
+                n_own = np.count_nonzero(own)
+            on_tri = own.nonzero()[0]  # tissue triangles move: their point follows the free motion
+            c.point[on_tri] = np.einsum("ks,ksj->kj", c.bary[on_tri], x[c.tri[on_tri]])
             c.gap[tri_feature] = np.einsum("kj,kj->k", c.normal[tri_feature],
                                            x[c.node[tri_feature]] - c.point[tri_feature])
         k = len(c.node)
@@ -288,20 +302,32 @@ class ContactSolver:
         # (instrument against a face, node -1); a self-collision triangle is the other surface,
         # -w_i. ws4 are these (the tissue point's relative displacement), w4 the same zeroed on
         # fixed nodes. Contacts whose nodes are all fixed cannot be acted on: dropped.
-        nodes4 = np.concatenate([c.node[:, None], c.tri], axis=1)
-        tri_sign = np.where(c.obj < 0, -1.0, 1.0)[:, None]
-        ws4 = np.concatenate([np.ones((k, 1)), tri_sign * c.bary], axis=1) * (nodes4 >= 0)
-        w4 = ws4 * free[np.clip(nodes4, 0, None)]
-        keep = np.einsum("ij,ij->i", w4, w4) > 0.0
-        if keep.sum() > o["max_contacts"]:
+        nodes4 = np.empty((k, 4), np.int32)
+        nodes4[:, 0] = c.node
+        nodes4[:, 1:] = c.tri
+        ws4 = np.empty((k, 4))
+        ws4[:, 0] = 1.0
+        if n_own:
+            np.multiply(_SIGN[own.view(np.int8)][:, None], c.bary, out=ws4[:, 1:])
+        else:
+            ws4[:, 1:] = c.bary
+        ws4 *= nodes4 >= 0
+        w4 = ws4 * free[np.maximum(nodes4, 0)]
+        keep = np.vecdot(w4, w4) > 0.0  # some weight on a free node (a sum of squares: any order)
+        kept = int(np.count_nonzero(keep))
+        if kept > o["max_contacts"]:
             order = np.argsort(np.where(keep, c.gap, np.inf), kind="stable")[: o["max_contacts"]]
             keep = np.zeros(k, bool)
             keep[order] = True
-        c = c.take(keep)
-        nodes4, w4, ws4 = nodes4[keep], w4[keep], ws4[keep]
-        k = len(c.node)
-        stats = ContactStats(contacts=k, self_contacts=int(np.sum(c.obj < 0)),
-                             face_contacts=int(np.sum((c.node < 0) & (c.obj >= 0))))
+            kept = o["max_contacts"]
+        if kept < k:
+            c = c.take(keep)
+            nodes4, w4, ws4, own = nodes4[keep], w4[keep], ws4[keep], own[keep]
+            k = kept
+            n_own = np.count_nonzero(own)
+        on_face = c.node < 0
+        stats = ContactStats(contacts=k, self_contacts=int(n_own),
+                             face_contacts=int(np.count_nonzero(on_face & ~own if n_own else on_face)))
         for obj in self.objects:
             obj.force, obj.torque = np.zeros(3), np.zeros(3)
         dx = None
@@ -341,35 +367,48 @@ class ContactSolver:
         n = body.fem.n_nodes
         k = len(c.node)
         normal = c.normal
-        obj_mu = np.array([o["friction"] if obj.friction is None else obj.friction for obj in self.objects] or [0.0])
-        mu = np.where(c.obj >= 0, obj_mu[np.maximum(c.obj, 0)], o["friction"])
-        rows = np.where(mu > 0.0, 3, 1).astype(np.int32)
-        row_start = (np.cumsum(rows) - rows).astype(np.int32)
-        m = int(rows.sum())
-        fr = rows == 3
-        friction = bool(fr.any())
+        fric = self._friction(c.obj)
+        if fric.uniform:  # every contact has the same coefficient: one row each, or three
+            r = 3 if fric.value > 0.0 else 1
+            mu = np.zeros(k) if fric.value == 0.0 and math.copysign(1.0, fric.value) > 0.0 else np.full(k, fric.value)
+            rows = np.ones(k, np.int32) if r == 1 else np.full(k, 3, np.int32)
+            row_start = np.arange(0, r * k, r, dtype=np.int32)
+            m = r * k
+            fr = np.zeros(k, bool) if r == 1 else np.ones(k, bool)
+        else:
+            mu = fric.per_contact
+            rows = np.where(mu > 0.0, 3, 1).astype(np.int32)
+            row_start = (np.cumsum(rows) - rows).astype(np.int32)
+            m = int(rows.sum())
+            fr = rows == 3
+        friction = m > k
         t1, t2 = tangent_basis(normal) if friction else (None, None)  # the tangent rows' directions
         # H (m x 3n) in node form and delta^0 (m): row r moves the nodes of its contact along its
         # direction (the normal, then the two tangents with friction) times their weights
-        d0 = np.zeros(m)
-        d0[row_start] = c.gap
-        dirs = np.empty((m, 3))
-        dirs[row_start] = normal
-        if friction:
+        if not friction:
+            d0 = c.gap.copy()
+            H = ConstraintRows(nodes4, w4[:, :, None] * normal[:, None, :], n)
+        else:
+            d0 = np.zeros(m)
+            d0[row_start] = c.gap
+            dirs = np.empty((m, 3))
+            dirs[row_start] = normal
             # relative displacement during the step of the tissue point against the other surface
-            f_rows = np.flatnonzero(fr)
+            f_rows = fr.nonzero()[0]
             nf = np.maximum(nodes4[f_rows], 0)
             rel = np.einsum("ks,ksj->kj", ws4[f_rows], x[nf] - x_start[nf])
+            f_obj = c.obj[f_rows]
             for oi, obj in enumerate(self.objects):
-                sel = c.obj[f_rows] == oi
-                if sel.any():
+                sel = f_obj == oi
+                if np.count_nonzero(sel):
                     rel[sel] -= obj.point_displacement(c.point[f_rows[sel]], dt)
             rs = row_start[f_rows]
-            d0[rs + 1] = np.einsum("kj,kj->k", t1[f_rows], rel)
-            d0[rs + 2] = np.einsum("kj,kj->k", t2[f_rows], rel)
-            dirs[rs + 1], dirs[rs + 2] = t1[f_rows], t2[f_rows]
-        owner = np.repeat(np.arange(k), rows)
-        H = ConstraintRows(nodes4[owner].astype(np.int32), w4[owner][:, :, None] * dirs[:, None, :], n)
+            t1f, t2f = t1[f_rows], t2[f_rows]
+            d0[rs + 1] = np.einsum("kj,kj->k", t1f, rel)
+            d0[rs + 2] = np.einsum("kj,kj->k", t2f, rel)
+            dirs[rs + 1], dirs[rs + 2] = t1f, t2f
+            owner = np.repeat(np.arange(k), rows)
+            H = ConstraintRows(nodes4[owner], w4[owner][:, :, None] * dirs[:, None, :], n)
         # warm start from last step's forces on the same (object, node) or (object, triangle)
         # pairs; nodes are named by the simulation's node uids where it keeps them (stable
         # across cuts), else by index
@@ -377,28 +416,30 @@ class ContactSolver:
         uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
         names = contact_names(c.obj, c.node, c.tri, uids)
         lam = np.zeros(m)
-        found, f = self._warm.lookup(names)
-        r = row_start[found]
-        lam[r] = np.maximum(0.0, np.einsum("kj,kj->k", f, normal[found]))
-        if friction:
-            ff = fr[found]
-            lam[r[ff] + 1] = np.einsum("kj,kj->k", f[ff], t1[found][ff])
-            lam[r[ff] + 2] = np.einsum("kj,kj->k", f[ff], t2[found][ff])
+        warm = self._warm
+        found, f = warm.lookup(names)
+        if len(f):
+            r = row_start[found] if friction else found  # the normal rows of the contacts found
+            lam[r] = np.maximum(0.0, np.einsum("kj,kj->k", f, normal[found]))
+            if friction:
+                ff = fr[found]
+                lam[r[ff] + 1] = np.einsum("kj,kj->k", f[ff], t1[found][ff])
+                lam[r[ff] + 2] = np.einsum("kj,kj->k", f[ff], t2[found][ff])
 
         def finish(lam: np.ndarray, its: int, res: float, kind: str = "preconditioner") -> None:
             """Forces on the tissue, wrenches on the objects, warm start, statistics."""
             t0 = time.perf_counter()
             stats.gs_iterations, stats.lcp_residual, stats.compliance = its, res, kind
-            ln = lam[row_start]
+            ln = lam[row_start] if friction else lam.copy()
             force = ln[:, None] * normal
             if friction:
                 rs = row_start[fr]
                 force[fr] += lam[rs + 1][:, None] * t1[fr] + lam[rs + 2][:, None] * t2[fr]
             self._set_wrenches(c, force)
             pressed = ln > 0.0
-            self._warm = WarmStart(names[pressed], force[pressed])
+            self._warm = warm.then(names, force, pressed)
             self.contacts = c.responded(ln, force)
-            stats.active_contacts = int(np.sum(pressed))
+            stats.active_contacts = int(np.count_nonzero(pressed))
             stats.contact_ms += 1000.0 * (time.perf_counter() - t0)
 
         inner = self._device_solver(body, m) if device_lcp else None
@@ -408,13 +449,15 @@ class ContactSolver:
             stats.compliance_fallbacks = self.compliance_fallbacks
             return PendingLCP(self._device_lcp, inner, body.fem.free, dt, o, m, finish)
         W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
-        W = dt * dt * 0.5 * (W0 + W0.T)
+        W = W0 + W0.T
+        W *= dt * dt * 0.5
         if kind != "diagonal" and not positive_definite(W):
             # A factor corrected by many cuts, stale, with identity-padded DOFs, can stop being
             # positive definite on the contact rows; PGS then diverges. The block diagonal of A
             # always is: use it for this step and say so.
             W0, apply_y, _ = compliance(H, "diagonal", body.preconditioner, integ, body.fem)
-            W = dt * dt * 0.5 * (W0 + W0.T)
+            W = W0 + W0.T
+            W *= dt * dt * 0.5
             kind = f"diagonal ({kind} not positive definite on the contacts)"
             self.compliance_fallbacks += 1
         stats.compliance_fallbacks = self.compliance_fallbacks
@@ -426,20 +469,42 @@ class ContactSolver:
             dx = self._dx.view(n)
             wp.launch(scaled_free_kernel, n, [y, float(dt * dt), body.fem.free, dx], device=self.device)
         else:
-            dx = (dt * dt) * np.asarray(y).reshape(n, 3) * free[:, None]
+            dx = (dt * dt) * np.asarray(y).reshape(n, 3)
+            dx *= free[:, None]
         finish(lam, its, res, kind)
         return dx
+
+    def _friction(self, obj: np.ndarray) -> Friction:
+        """The Coulomb coefficient of contacts with the objects ``obj`` (k,) (-1: the tissue
+        itself): an object's own, else the scene's."""
+        scene = self.options["friction"]
+        per_object = [scene if o.friction is None else o.friction for o in self.objects]
+        if all(v == scene and math.copysign(1.0, v) == math.copysign(1.0, scene) for v in per_object):
+            return Friction(True, scene)
+        table = np.array(per_object)
+        return Friction(False, scene, np.where(obj >= 0, table[np.maximum(obj, 0)], scene))
 
     def _set_wrenches(self, c: Contacts, force: np.ndarray) -> None:
         """Each object's wrench from the forces ``force`` (k, 3) on the tissue at the contacts
         ``c`` (see the module docstring); zero for an object without contacts."""
-        on = np.flatnonzero(c.obj >= 0)
-        obj = c.obj[on]
-        f_obj = -force[on]
+        obj, point = c.obj, c.point
+        on = obj >= 0
+        if np.count_nonzero(on) < len(on):  # self-collision rows act on no object
+            on = on.nonzero()[0]
+            obj, force, point = obj[on], force[on], point[on]
         origins = np.array([o.origin for o in self.objects], dtype=np.float64).reshape(-1, 3)
-        F = np.zeros((len(self.objects), 3))
-        T = np.zeros((len(self.objects), 3))
-        np.add.at(F, obj, f_obj)
-        np.add.at(T, obj, cross(c.point[on] - origins[obj], f_obj))
+        f_obj = -force
+        terms = np.concatenate([f_obj, cross(point - origins[obj], f_obj)], axis=1)  # per contact: force, torque
+        wrench = np.zeros((len(self.objects), 6))
+        np.add.at(wrench, obj, terms)
         for oi, o in enumerate(self.objects):
-            o.force, o.torque = F[oi], T[oi]
+            o.force, o.torque = wrench[oi, :3], wrench[oi, 3:]
+
+
+class Friction(NamedTuple):
+    """The Coulomb coefficients of a step's contacts: ``uniform`` (all ``value``) or
+    ``per_contact`` (k,)."""
+
+    uniform: bool
+    value: float
+    per_contact: np.ndarray | None = None

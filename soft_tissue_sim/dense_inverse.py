@@ -40,9 +40,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from .buffers import capacity_for
 from .cg import block_sum
-from .transfer import PINNED, Staged, to_host
+from .transfer import PINNED, to_host
 
 BLOCK = 256  # threads per node in the matrix-vector product on CUDA
 
@@ -262,7 +261,6 @@ class DenseInverse:
         self._blas = None  # cuBLAS
         self._one = np.ones(1)  # the host scalar of the cuBLAS calls
         self._W = None  # delassus: W on the device (grown to the largest m x m seen)
-        self._staged: dict = {}  # upload(): a page-locked buffer and its device array per role
         self._deferred = None  # inside changing(): its depth
         self._stale = False  # the single-precision copy is to be made again (changing())
 
@@ -385,26 +383,6 @@ class DenseInverse:
         self._narrow(stream)
         return None
 
-    def upload(self, role: str, a: np.ndarray, dtype):
-        """``a`` on the device as an ``xp`` array, sent on the current stream from a page-locked
-        buffer kept for ``role`` (grown when too small): a copy from pageable memory may wait for
-        the stream's earlier work, this one does not. The device array is the role's until its
-        next upload (which the stream orders after the work that read it). The CPU: ``a``."""
-        if self.xp is np:
-            return a
-        n = int(a.size)
-        st = self._staged.get(role)
-        if st is None or st.array.shape[0] < n:
-            st = self._staged[role] = Staged(capacity_for(max(n, 1)), dtype, self.device)
-        st.view()[:n] = a.reshape(-1)
-        return xp_view(self.xp, st.send(n))[:n].reshape(a.shape)
-
-    def _staged_array(self, role: str, a: np.ndarray, dtype) -> wp.array:
-        """:meth:`upload` as a Warp array (GPU)."""
-        self.upload(role, a, dtype)
-        st = self._staged[role]
-        return st.array[: a.size]
-
     @contextlib.contextmanager
     def changing(self):
         """A series of changes of the inverse in use (an install, folds, regrows) after which
@@ -485,9 +463,9 @@ class DenseInverse:
         xp = self.xp
         with xp_stream(xp, wp.get_stream(self.device) if self.device.is_cuda else None):
             P = self.matrix()
-            r = self.upload("rows", np.asarray(rows, np.int64), wp.int64)
+            r = xp.asarray(rows)
             U = xp.ascontiguousarray(P[r].T)  # columns of the symmetric P: rows are contiguous
-            Q = woodbury_q(self.upload("N", np.asarray(N, np.float64), wp.float64), U[r], xp)
+            Q = woodbury_q(xp.asarray(N), U[r], xp)
             V = U @ Q
             if xp is np:
                 P -= U @ V.T
@@ -503,9 +481,7 @@ class DenseInverse:
         simulation's stream."""
         n = int(len(keep)) + int(added)
         new = wp.empty((n, n), dtype=wp.float64, device=self.device)
-        keep = np.ascontiguousarray(keep, dtype=np.int32)
-        idx = (wp.array(keep, dtype=wp.int32, device=self.device) if self.xp is np
-               else self._staged_array("keep", keep, wp.int32))
+        idx = wp.array(np.ascontiguousarray(keep, dtype=np.int32), dtype=wp.int32, device=self.device)
         wp.launch(regrow_kernel, (n, n), [self.inv, idx, new], device=self.device)
         self.inv = new
         self._s = wp.zeros(n, dtype=wp.float64, device=self.device)

@@ -40,7 +40,6 @@ import scipy.sparse as sps
 import warp as wp
 
 from . import graphs
-from .buffers import capacity_for
 from .sherman_morrison import Modification, perturbation
 from .sm_partition import partitioned_stream
 from .transfer import Staged
@@ -174,7 +173,6 @@ class AsyncDevicePreconditioner:
         else:
             self._side = wp.Stream(self.device) if self.device.is_cuda else None
         self._vec = None  # apply_vector: (r staged from the host, z)
-        self._R_ref_staged = None  # GPU: the page-locked buffer R_ref is sent from after a fold
         self._rows = None  # delassus_rows: the constraint rows (nodes, coef), staged from the host
         self.correction: FoldedCorrection | None = None
         self.mods: list[Modification] = []
@@ -442,15 +440,8 @@ class AsyncDevicePreconditioner:
             self.R_ref = wp.empty(n, dtype=wp.mat33d, device=self.device)
         if src is not None:
             wp.copy(self.R_ref, src)
-        elif not self.device.is_cuda:
+        else:
             self.R_ref.assign(np.ascontiguousarray(self._R_ref_np))
-        else:  # from page-locked memory: a pageable copy may wait for the stream's earlier work
-            st = self._R_ref_staged
-            if st is None or st.array.shape[0] < n:
-                st = self._R_ref_staged = Staged(capacity_for(n), wp.mat33d, self.device)
-            st.view()[:n] = self._R_ref_np
-            st.send(n)
-            wp.copy(self.R_ref, st.array, count=n)
 
     # ----------------------------------------------------------------- apply
     def apply(self, r: wp.array, z: wp.array) -> None:

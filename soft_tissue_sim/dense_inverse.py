@@ -283,9 +283,9 @@ class DenseInverse:
 
     def _prepare_gpu(self, n: int, stream) -> None:
         """What the GPU factorization needs, made on the caller's thread and stream before it is
-        enqueued (possibly by another thread, which then allocates and launches nothing): the
-        cuSOLVER and cuBLAS handles, the workspace, and the identity as the right-hand side of
-        ``trsm``."""
+        enqueued (possibly by another thread, which then allocates nothing and loads no
+        module): the cuSOLVER and cuBLAS handles, the workspace, and the identity as the
+        right-hand side of ``trsm``."""
         from nvmath.bindings import cusolverDn
 
         if self._handle is None:
@@ -304,11 +304,13 @@ class DenseInverse:
             self._blas = cublas.create()
 
     def factorize(self, stream=None) -> None:
-        """Work buffer A -> A^-1, on ``stream``; only cuSOLVER and cuBLAS calls (see
-        :meth:`assemble`). GPU: Cholesky A = L L^T (``potrf``), then X = L^-1 against the
-        identity in the second buffer (``trsm``: X's upper triangle comes out exactly zero) and
-        A^-1 = X^T X into the work buffer (``trmm``, X read as triangular on the left and whole
-        on the right): one triangular solve fewer than ``potrs`` against the identity.
+        """Work buffer A -> A^-1, on ``stream``: cuSOLVER and cuBLAS calls and, by column
+        blocks, one launch of this module's :func:`symmetrize_kernel` (loaded at construction;
+        nothing is allocated: see :meth:`assemble`). GPU: Cholesky A = L L^T (``potrf``), then
+        X = L^-1 against the identity in the second buffer (``trsm``: X's upper triangle comes
+        out exactly zero) and A^-1 = X^T X into the work buffer (``trmm``), by column blocks
+        (:meth:`_inverse_from_factor`): one triangular solve fewer than ``potrs`` against the
+        identity.
         CPU: LAPACK's ``potrf`` and ``potri`` in place, the missing triangle mirrored."""
         n = self.work.shape[0]
         if self.xp is np:

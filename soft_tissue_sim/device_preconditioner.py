@@ -214,8 +214,10 @@ class AsyncDevicePreconditioner:
     # ------------------------------------------------------------ schedule
     def _enqueue(self, side, ready, start, done):
         """The factorization on ``side`` behind the event ``ready``, timed by the events
-        ``start`` and ``done`` (made by the caller): (start, done). Allocates and launches
-        nothing of Warp's, so that a background thread may run it."""
+        ``start`` and ``done`` (made by the caller): (start, done). Allocates nothing and
+        loads no module (its launches go to ``side``, their modules loaded before), so that a
+        background thread may run it while the simulation's thread captures graphs on its own
+        stream."""
         if ready is not None:
             side.wait_event(ready)
         side.record_event(start)

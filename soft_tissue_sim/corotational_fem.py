@@ -32,7 +32,7 @@ import warp as wp
 from .buffers import GrowArray, PackedArrays
 from .host_assembly import AssemblyState
 from .material import MaterialTable
-from .mesh import TetMesh
+from .mesh import TetMesh, all_four
 from .transfer import to_host
 
 _F64 = wp.float64
@@ -343,8 +343,7 @@ def _same_rest_shape(X, T, X_old, T_old) -> np.ndarray:
     points X_old, node for node (float equality of all 12 coordinates). A node that keeps its
     index and its position (most of them, across a topology change) is settled by comparing
     indices; only the other corners' positions are gathered and compared. The coordinates are
-    compared column by column and a tet's 4 flags read as one 32-bit word (reductions across
-    short rows are slow)."""
+    compared column by column and a tet's 4 flags read together (:func:`..mesh.all_four`)."""
     n = min(len(X), len(X_old))
     kept = np.zeros(len(X), bool)
     kept[:n] = _same_points(X[:n], X_old[:n])  # nodes with the same index and rest position
@@ -352,7 +351,7 @@ def _same_rest_shape(X, T, X_old, T_old) -> np.ndarray:
     other = ~same
     if other.any():
         same[other] = _same_points(np.take(X, T[other], axis=0), np.take(X_old, T_old[other], axis=0))
-    return same.view(np.uint32)[:, 0] == 0x01010101
+    return all_four(same)
 
 
 def _same_points(P, Q) -> np.ndarray:

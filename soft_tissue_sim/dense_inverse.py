@@ -261,7 +261,7 @@ class DenseInverse:
         self._blas = None  # cuBLAS
         self._one = np.ones(1)  # the host scalar of the cuBLAS calls
         self._W = None  # delassus: W on the device (grown to the largest m x m seen)
-        self._deferred = None  # inside changing(): its depth
+        self._deferred = 0  # the depth of changing() scopes open
         self._stale = False  # the single-precision copy is to be made again (changing())
 
     # ----------------------------------------------------------- making one
@@ -389,23 +389,20 @@ class DenseInverse:
     def changing(self):
         """A series of changes of the inverse in use (an install, folds, regrows) after which
         the single-precision copy is made once, at the end, instead of after each."""
-        self._deferred = 0 if self._deferred is None else self._deferred
         self._deferred += 1
         try:
             yield self
         finally:
             self._deferred -= 1
-            if self._deferred == 0:
-                self._deferred = None
-                if self._stale and self.inv is not None:
-                    self._narrow()
+            if not self._deferred and self._stale and self.inv is not None:
+                self._narrow()
 
     def _narrow(self, stream=None) -> None:
         """precision float32: the single-precision copy := the inverse in use (same address
         while the size holds); inside :meth:`changing`, marked to be made at its end."""
         if self.precision != "float32":
             return
-        if self._deferred is not None:
+        if self._deferred:
             self._stale = True
             return
         self._stale = False

@@ -177,6 +177,18 @@ def interior_faces_after_removal(faces, kept_tets: np.ndarray, kept_nodes: np.nd
             np.take(new_id, np.compress(kept_tets, tet_face, axis=0)))
 
 
+def extent(points: np.ndarray) -> float:
+    """The longest side of the points' bounding box, ``np.ptp(points, axis=0).max()``, reduced
+    one coordinate column at a time (a reduction across the short rows is many times slower)."""
+    return max(float(c.max() - c.min()) for c in np.asarray(points).T)
+
+
+def all_four(mask: np.ndarray) -> np.ndarray:
+    """(k,) whether each row of the boolean ``mask`` (k, 4) is all True: a row's 4 flags (made
+    C-ordered) read as one 32-bit word, cheaper than a reduction across short rows."""
+    return np.ascontiguousarray(mask, dtype=bool).reshape(-1, 4).view(np.uint32)[:, 0] == 0x01010101
+
+
 def insert_rows(a: np.ndarray, pos: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """``np.insert(a, pos, rows, axis=0)`` for non-decreasing positions ``pos``: each row of
     ``a`` (n, ...) and of ``rows`` (k, ...) moved as one item (a row of several numbers as one
@@ -308,6 +320,18 @@ def ring_components(offsets: np.ndarray, ring: np.ndarray, n_nodes: int) -> np.n
     labels = np.empty(n_nodes, np.int32)
     _undirected_traversal(ring, offsets, ring, offsets, labels)
     return labels
+
+
+def edge_components(n: int, ea: np.ndarray, eb: np.ndarray) -> np.ndarray:
+    """(n,) int32 connected parts of the undirected graph of ``n`` vertices and edges (ea[i],
+    eb[i]), numbered in the order of their lowest vertex (scipy's labels): the symmetric
+    adjacency in compressed rows, then :func:`ring_components`."""
+    ea, eb = np.asarray(ea, np.int64), np.asarray(eb, np.int64)
+    src, dst = np.concatenate([ea, eb]), np.concatenate([eb, ea])
+    order = np.argsort(src, kind="stable")
+    offsets = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(src, minlength=n), out=offsets[1:])
+    return ring_components(offsets, dst[order], n)
 
 
 try:  # scipy's traversal behind connected_components (undirected: each node's and its transpose's rows)

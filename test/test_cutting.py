@@ -843,27 +843,26 @@ def test_the_removal_sphere_takes_the_tets_of_all_centroids_within_it():
                     assert np.array_equal(got, expect), (c, r)
 
 
-def test_the_lowest_vertex_labels_number_the_parts_as_scipy_does():
-    """lowest_in_part gives each vertex the lowest vertex of its part: the parts in scipy's
-    order, on random graphs (isolated vertices, repeated edges, loops, long paths, none)."""
+def test_the_edge_list_parts_are_scipys_labels():
+    """edge_components gives scipy's connected_components labels of an undirected edge list
+    (the parts numbered by their lowest vertex), on random graphs (isolated vertices, repeated
+    edges, loops, long paths, none)."""
     from scipy.sparse.csgraph import connected_components
 
-    from soft_tissue_sim.cutting.topology import lowest_in_part
+    from soft_tissue_sim.mesh import edge_components
 
     rng = np.random.default_rng(3)
     for trial in range(60):
         n = int(rng.integers(1, 200))
         m = int(rng.integers(0, 2 * n))
         ea, eb = rng.integers(0, n, m), rng.integers(0, n, m)
-        if trial % 5 == 0:  # a path in random order: many passes
+        if trial % 5 == 0:  # a path in random order
             perm = rng.permutation(n)
             ea, eb = perm[:-1], perm[1:]
-        label = lowest_in_part(n, ea, eb)
+        label = edge_components(n, ea, eb)
         g = sps.coo_matrix((np.ones(len(ea)), (ea, eb)), shape=(n, n))
         ref = connected_components(g, directed=False)[1]
-        lowest = np.full(ref.max() + 1, n)
-        np.minimum.at(lowest, ref, np.arange(n))
-        np.testing.assert_array_equal(label, lowest[ref])
+        np.testing.assert_array_equal(label, ref)
 
 
 def _reference_split(tets, cut, pairs, fnodes, n_nodes):
@@ -913,14 +912,14 @@ def test_the_split_along_faces_equals_a_node_by_node_split(seed):
 
 
 def test_the_planners_row_and_extent_shortcuts_equal_numpys():
-    """The cutter's equal-rows mask and bounding-box extent give np.all(a == b, axis=1) and
+    """The planner's equal-rows mask and bounding-box extent give np.all(a == b, axis=1) and
     np.ptp(points, axis=0).max(), for C- and Fortran-ordered tets."""
-    from soft_tissue_sim.cutting.cutter import _extent, _same_rows
+    from soft_tissue_sim.mesh import all_four, extent
 
     rng = np.random.default_rng(2)
     for _ in range(10):
         a, b = rng.integers(0, 3, (200, 4)), rng.integers(0, 3, (200, 4))
         for x, y in ((a, b), (np.asfortranarray(a), b), (a, np.asfortranarray(b)), (a, a.copy())):
-            np.testing.assert_array_equal(_same_rows(x, y), np.all(x == y, axis=1))
+            np.testing.assert_array_equal(all_four(np.equal(x, y)), np.all(x == y, axis=1))
         p = rng.standard_normal((50, 3)) * rng.uniform(0.1, 10.0, 3)
-        assert _extent(p) == float(np.ptp(p, axis=0).max())
+        assert extent(p) == float(np.ptp(p, axis=0).max())

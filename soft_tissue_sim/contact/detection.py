@@ -29,6 +29,7 @@ import warp as wp
 from .. import graphs
 from ..buffers import GrowArray, PackedArrays
 from ..instrument import Instrument, MeshObstacle, PlaneObstacle
+from ..mesh import extent
 from ..transfer import Staged
 from .detection_kernels import (
     Slots,
@@ -212,7 +213,7 @@ class SurfaceTopology:
         on[self.faces.ravel()] = True
         self.surface = np.flatnonzero(on).astype(np.int32)  # the surface nodes, ascending
         ns = max(len(self.surface), 1)
-        self.scale = max(float(c.max() - c.min()) for c in mesh.points.T) or 1.0  # the bounding box's longest side
+        self.scale = extent(mesh.points) or 1.0
         # the tables, sent in one copy: the surface nodes; the faces, and which face owns each
         # surface edge: edge_owner[f, k] = 1 where face f owns its edge from vertex k to vertex
         # k + 1, each edge owned by exactly one of the faces sharing it, the lowest index

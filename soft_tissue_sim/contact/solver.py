@@ -370,11 +370,11 @@ class ContactSolver:
         fric = self._friction(c.obj)
         if fric.uniform:  # every contact has the same coefficient: one row each, or three
             r = 3 if fric.value > 0.0 else 1
-            mu = np.zeros(k) if fric.value == 0.0 and math.copysign(1.0, fric.value) > 0.0 else np.full(k, fric.value)
-            rows = np.ones(k, np.int32) if r == 1 else np.full(k, 3, np.int32)
+            mu = np.full(k, fric.value)
+            rows = np.full(k, r, np.int32)
             row_start = np.arange(0, r * k, r, dtype=np.int32)
             m = r * k
-            fr = np.zeros(k, bool) if r == 1 else np.ones(k, bool)
+            fr = np.full(k, r == 3)
         else:
             mu = fric.per_contact
             rows = np.where(mu > 0.0, 3, 1).astype(np.int32)

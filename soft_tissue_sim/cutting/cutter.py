@@ -13,8 +13,8 @@ from functools import partial
 import numpy as np
 
 from ..material import ParameterError
-from ..mesh import (TetMesh, centroids, edge_table_after_change, interior_faces_after_removal, interior_faces_after_split,
-                    tet_quality)
+from ..mesh import (TetMesh, all_four, centroids, edge_table_after_change, extent, interior_faces_after_removal,
+                    interior_faces_after_split, tet_quality)
 from ..sherman_morrison import Modification
 from ..stats import CutStats
 from .geometry import _path_planes, faces_cut_by_triangles, sweep_triangles, tets_near_box
@@ -42,18 +42,6 @@ def _vec3(v, what):
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise ParameterError(f"{what} must be 3 finite numbers, got {v!r}")
     return a
-
-
-def _extent(points: np.ndarray) -> float:
-    """The longest side of the points' bounding box, ``np.ptp(points, axis=0).max()``, reduced
-    one coordinate column at a time (a reduction across the short rows is many times slower)."""
-    return max(float(c.max() - c.min()) for c in np.asarray(points).T)
-
-
-def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Mask (m,): whether the rows of the tets ``a`` and ``b`` (m, 4) are equal, each row's 4
-    comparison flags (a C-ordered row of 4 bytes) read as one 32-bit word."""
-    return np.not_equal(a, b, order="C").view(np.uint32)[:, 0] == 0
 
 
 def _carry_tables(mesh: TetMesh, new_mesh: TetMesh, removed_tets, added_tets, node_id, kept=None,
@@ -330,7 +318,7 @@ class Cutter:
         n = mesh.n_nodes
         pts = tissue.x if frame == "world" else mesh.points
         tets = mesh.tets.astype(np.int64)
-        tol = self.tolerance + 1e-9 * _extent(mesh.points)
+        tol = self.tolerance + 1e-9 * extent(mesh.points)
         if self.scheme == "subdivide":
             st = self._strokes.get(stroke) if stroke is not None else None
             ref = st.last if st is not None else (tri_n[0] if len(tri_n) else None)
@@ -364,7 +352,7 @@ class Cutter:
         ext_t = np.concatenate([np.zeros(n), et])
         a, b, t = (np.concatenate([ea, ext_a[dup]]), np.concatenate([eb, ext_b[dup]]),
                    np.concatenate([et, ext_t[dup]]))
-        same = ~fresh & _same_rows(new_tets, tets if self.scheme == "split" else tets[parent])
+        same = ~fresh & all_four(np.equal(new_tets, tets if self.scheme == "split" else tets[parent]))
         kept = np.zeros(len(tets), bool)
         kept[parent[same]] = True
         removed_ids = np.flatnonzero(~kept)

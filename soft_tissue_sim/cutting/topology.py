@@ -10,25 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def lowest_in_part(n: int, ea: np.ndarray, eb: np.ndarray) -> np.ndarray:
-    """(n,) for each vertex of the undirected graph of ``n`` vertices and edges (ea[i], eb[i]),
-    the lowest vertex of its connected part: labels in the order of scipy's
-    ``connected_components`` (which numbers the parts by their lowest vertex), found by
-    propagating the lowest label along the edges and jumping to a label's label until nothing
-    changes (a few passes on the small graphs of a cut, without building a sparse matrix)."""
-    label = np.arange(n)
-    if not len(ea):
-        return label
-    while True:
-        low = np.minimum(label[ea], label[eb])
-        new = label.copy()
-        np.minimum.at(new, ea, low)
-        np.minimum.at(new, eb, low)
-        new = new[new]
-        if np.array_equal(new, label):
-            return label
-        label = new
+from ..mesh import edge_components
 
 
 def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_faces: np.ndarray,
@@ -80,9 +62,10 @@ def split_along_faces(tets: np.ndarray, cut_pairs: np.ndarray, cut_nodes_of_face
         eb.append(order[np.searchsorted(keys_sorted, kb)])
     ea, eb = np.concatenate(ea), np.concatenate(eb)
     nv = len(keys)
-    label = lowest_in_part(nv, ea, eb)
-    # per node its groups, as (node, lowest incidence) packed and sorted: the first keeps the
-    # node, each other one gets a copy (numbered in this order)
+    label = edge_components(nv, ea, eb)
+    # per node its groups, as (node, part) packed and sorted (parts numbered in the order of
+    # their lowest incidence): the first keeps the node, each other one gets a copy (numbered
+    # in this order)
     group = inc_node * nv + label
     groups = np.unique(group)
     node = groups // nv

@@ -157,11 +157,17 @@ class PackedArrays:
                 self._host.pop(k, None)
         return grow
 
-    def host(self, name: str) -> np.ndarray:
-        """The host side of field ``name`` (its current count), to fill before :meth:`send`."""
+    def writable(self) -> None:
+        """Wait until the last :meth:`send` has left the staging buffer (its host views may then
+        be filled again)."""
         if self._sent is not None:
             wp.synchronize_event(self._sent)
             self._sent = None
+
+    def host(self, name: str) -> np.ndarray:
+        """The host side of field ``name`` (its current count), to fill before :meth:`send`
+        (:meth:`writable` first)."""
+        self.writable()
         h = self._host.get(name)
         if h is None:
             scalar, shape = _numpy_layout(self.fields[name])

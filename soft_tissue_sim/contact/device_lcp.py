@@ -160,7 +160,7 @@ class DeviceLCP:
               row_start: np.ndarray, n_rows: np.ndarray, mu: np.ndarray) -> None:
         """The problem's m rows and nc contacts into the page-locked buffer, sent (no wait)."""
         m, nc = len(d0), len(row_start)
-        self._in.host("sizes")  # waits for the last copy out of the buffer to have left
+        self._in.writable()
         h = self._host
         sizes = h["sizes"]
         sizes[0], sizes[1] = m, nc

@@ -518,11 +518,20 @@ class Simulation:
         self._contact_begun = True
         return key, lambda: self.contact.launch_detection_of(view)
 
+    def _measures_penetration(self) -> bool:
+        """Whether this step's correction is followed by a detection that measures the deepest
+        penetration left (the contact option ``penetration_every``)."""
+        every = self.contact.options["penetration_every"]
+        return every > 0 and self.integrator.step_index % every == 0
+
     def _correct(self, dx, solve=None) -> list:
         """x += dx, v += dx / dt (``dx`` None: no correction; ``solve``: a device LCP that makes
-        dx), then the guard's values and the smallest gap of a detection at the corrected
-        positions, read in one wait: [guard, *solve's output, gap] (no gap where the tissue has
-        no surface); see :meth:`BackwardEuler.correct_and_read`."""
+        dx), then the guard's values and, on a step that measures it, the smallest gap of a
+        detection at the corrected positions, read in one wait: [guard, *solve's output, gap]
+        (no gap where the tissue has no surface or the step does not measure it); see
+        :meth:`BackwardEuler.correct_and_read`."""
+        if not self._measures_penetration():
+            return self.integrator.correct_and_read(dx, ((), None), solve)
         view = self.view()
 
         def penetration():
@@ -564,7 +573,9 @@ class Simulation:
             self._restore_state(free)
         if reason is None:
             ke, nonfinite = float(guard[0]), float(guard[1])
-            if rest and np.isfinite(rest[0][0]):
+            if not self._measures_penetration():
+                stats.contact.max_penetration = None
+            elif rest and np.isfinite(rest[0][0]):
                 stats.contact.max_penetration = float(max(0.0, -rest[0][0]))
             if nonfinite != 0.0 or not np.isfinite(ke):
                 reason = "non-finite state after the contact correction"

@@ -34,7 +34,8 @@ class ContactStats:
     active_contacts: int = 0  # with a positive normal force
     gs_iterations: int = 0  # Gauss-Seidel sweeps plus active-set steps (contact.pgs)
     lcp_residual: float = 0.0  # [m] largest change one more sweep would make
-    max_penetration: float = 0.0  # [m] deepest penetration left after the correction
+    max_penetration: float | None = 0.0  # [m] deepest penetration left after the correction (None: not
+    # measured this step, see the contact option penetration_every)
     contact_ms: float = 0.0
     compliance: str | None = None  # the compliance W was built with (when there were contacts)
     compliance_fallbacks: int | None = None  # running total of fallbacks to the diagonal (idem)

@@ -134,6 +134,30 @@ def test_exact_compliance_with_the_jacobi_preconditioner_gives_the_weight():
         assert s.extra["max_penetration"] <= 1e-8
 
 
+def test_the_penetration_is_measured_on_the_steps_asked_and_measuring_it_changes_nothing(monkeypatch):
+    """contact.penetration_every: 3 detects at the corrected positions on every third step only
+    (the others report None) and leaves the trajectory as every step's measurement does."""
+    floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
+    runs = {}
+    for every in (1, 3, 0):
+        with load_scene(scene(obstacles=[floor], contact={"tolerance": 1e-8, "penetration_every": every})) as sim:
+            calls = []
+            launch = sim.contact.launch_penetration
+            monkeypatch.setattr(sim.contact, "launch_penetration", lambda body: calls.append(1) or launch(body))
+            pens = []
+            for _ in range(30):
+                s = sim.step()
+                pens.append(s.contact.max_penetration)
+            runs[every] = sim.positions()
+        measured = [p is not None for p in pens]
+        assert measured == [every > 0 and k % every == 0 for k in range(1, 31)], every
+        assert len(calls) == sum(measured)
+        assert all(p <= 1e-8 for p in pens if p is not None)
+        assert ("max_penetration" in s.extra) == measured[-1]
+    np.testing.assert_array_equal(runs[3], runs[1])
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
 def test_diagonal_compliance_keeps_the_block_out_of_the_floor():
     """The block-Jacobi compliance (the default with the jacobi preconditioner) is only
     approximate (the body does not settle properly, see the contact module's docstring),
@@ -761,6 +785,8 @@ BAD_SCENES = [
     ({"obstacles": [{"type": "mesh", "vertices": [[0, 0, 0], [1, 0, 0], [2, 0, 0]], "triangles": [[0, 1, 2]]}]},
      "degenerate"),
     ({"obstacles": [{"type": "plane"}], "instruments": [{"name": "plane0", "radius": 0.01}]}, "twice"),
+    ({"obstacles": [{"type": "plane"}], "contact": {"penetration_every": -1}}, "penetration_every"),
+    ({"obstacles": [{"type": "plane"}], "contact": {"penetration_every": 2.5}}, "penetration_every"),
 ]
 
 

@@ -96,7 +96,7 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
             rows.append({"step": sim.step_count, "wall_ms": wall, "total_ms": d["total_ms"] + d.get("cut_ms", 0.0)
                          + d.get("contact_ms", 0.0) + extra_ms, "iterations": d["iterations"],
                          "residual": d["residual"], "converged": d["converged"], "contacts": d.get("contacts", 0),
-                         "max_penetration": d.get("max_penetration", 0.0), "lcp_residual": d.get("lcp_residual", 0.0),
+                         "max_penetration": d.get("max_penetration"), "lcp_residual": d.get("lcp_residual", 0.0),
                          "factor_age": d["factor_age"], "refresh_interval": d["refresh_interval"],
                          "rolled_back": bool(d.get("rolled_back", False)),
                          # the host cost of this step's modifications: the step's cutting phase and
@@ -218,7 +218,8 @@ def main(argv=None) -> int:
         "surface_ms_median": float(np.median([r["surface_ms"] for r in rows if r["modified"]])) if len(cut) else 0.0,
         "correction_ms_median": float(np.median([r["smf_ms"] for r in rows if r["modified"]])) if len(cut) else 0.0,
         "contacts_mean": float(np.mean([r["contacts"] for r in rows])),
-        "max_penetration": float(max(r["max_penetration"] for r in rows)),
+        "max_penetration": max((r["max_penetration"] for r in rows if r["max_penetration"] is not None),
+                               default=None),  # over the steps that measured it (contact penetration_every)
         "refresh_interval": rows[-1]["refresh_interval"], "rollbacks": int(sum(r["rolled_back"] for r in rows)),
         "tumour_freed": bool(freed), "freed_by_plan": info["freed_by_plan"],
         "tumour_tets_intact": info["tumour_tets_intact"], "cut_sizes": info["cut_sizes"],

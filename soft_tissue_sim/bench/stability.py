@@ -131,7 +131,7 @@ def run_case(name, case, solver, steps, device, rng, newton=3):
             res.append(s.residual)
             conv.append(s.converged)
             floor.append(s.tolerance_unreachable)
-            if s.contact is not None:
+            if s.contact is not None and s.contact.max_penetration is not None:
                 pen.append(s.contact.max_penetration)
             if k % 5 == 0 or k == n_steps - 1:
                 e = sim.energy()["total"]

@@ -18,6 +18,9 @@ Scene options (all optional)::
       max_contacts: 2048     # keep the deepest ones beyond this
       device_lcp_rows: 32    # with a dense factor: solve an LCP of up to this many rows on the
                              # device, with the correction (0: always on the host)
+      penetration_every: 1   # measure the deepest penetration left after the correction (a
+                             # detection at the corrected positions) every this many steps
+                             # (0: never); unmeasured steps report max_penetration None
 
 Invariant: :func:`parse_options` returns every key of :data:`DEFAULTS`, validated, or raises
 :class:`~soft_tissue_sim.material.ParameterError` with a message.
@@ -42,6 +45,7 @@ DEFAULTS = {
     "compliance": "preconditioner",
     "max_contacts": 2048,
     "device_lcp_rows": 32,
+    "penetration_every": 1,
 }
 
 
@@ -61,6 +65,9 @@ def parse_options(cfg) -> dict:
         raise ParameterError(f"contact facing is a cosine in [-1, 1], got {o['facing']}")
     o["self_depth"] = (2.0 * o["distance"] if o["self_depth"] is None
                        else finite_number("contact self_depth", o["self_depth"], minimum=0.0, strict=True))
+    every = o["penetration_every"]
+    if isinstance(every, bool) or not isinstance(every, int) or every < 0:
+        raise ParameterError(f"contact penetration_every must be an integer >= 0, got {every!r}")
     for key in ("max_iterations", "max_contacts"):
         if isinstance(o[key], bool) or not isinstance(o[key], int) or o[key] < 1:
             raise ParameterError(f"contact {key} must be an integer >= 1, got {o[key]!r}")

@@ -269,11 +269,13 @@ class Simulation:
         # Optional components: built only when the scene names them.
         self.contact = None
         self.cutting = None
+        self._penetration_every = 1  # the contact option (see _measures_penetration)
         if self._has_contact(config):
             from .contact import ContactSolver
 
             self.contact = ContactSolver(config.get("contact") or {}, config.get("instruments") or [],
                                          config.get("obstacles") or [], self.device, self.mesh.points)
+            self._penetration_every = self.contact.options["penetration_every"]
         if config.get("cutting"):
             from .cutting import Cutter
 
@@ -521,7 +523,7 @@ class Simulation:
     def _measures_penetration(self) -> bool:
         """Whether this step's correction is followed by a detection that measures the deepest
         penetration left (the contact option ``penetration_every``)."""
-        every = self.contact.options["penetration_every"]
+        every = self._penetration_every
         return every > 0 and self.integrator.step_index % every == 0
 
     def _correct(self, dx, solve=None) -> list:

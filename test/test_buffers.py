@@ -138,7 +138,7 @@ def test_after_changes_every_array_equals_a_fresh_build():
             assert topo.matches(fem)  # rebuilt by the change, not left to the next step
             new = SurfaceTopology(fem, True, sim.contact.objects)
             for name in ("nodes", "faces_wp", "edge_owner", "node_comp", "face_comp", "ring_offsets", "ring_nodes",
-                         "points32", "x_start"):
+                         "lowers", "uppers", "x_start"):
                 assert np.array_equal(getattr(topo, name).numpy(), getattr(new, name).numpy()), name
             assert [s.__dict__ for s in topo.out.sections] == [s.__dict__ for s in new.out.sections]
             got = sim.contact.detect(sim)

@@ -4,8 +4,9 @@ collected into :class:`~soft_tissue_sim.contact.records.Contacts`.
 
 What is tested where: planes and instruments at the positions given (the free motion), at any
 depth; triangle features (self-collision, mesh obstacles) at the positions given for them
-(the step's start) within ``distance`` plus a reach, their gap then linearised to the free
-motion by the solver. Instruments against tissue triangles: per surface triangle, the closest
+(the step's start) within ``distance`` plus a reach (for self-collision how far the node and
+the triangle moved in the step, pair by pair), their gap then linearised to the free motion by
+the solver. Instruments against tissue triangles: per surface triangle, the closest
 points of the capsule's axis and the triangle; a row only where that point of the triangle is
 inside it or on an edge the triangle owns (each surface edge is owned by one of its faces, the
 lowest index), vertices being the node contacts' (nothing is counted twice). Where the axis
@@ -36,7 +37,7 @@ from .detection_kernels import (
     capsule_contacts_kernel,
     capsule_crossings_kernel,
     capsule_faces_kernel,
-    copy_points_f32_kernel,
+    face_bounds_kernel,
     face_normals_kernel,
     min_gap_kernel,
     plane_contacts_kernel,
@@ -185,9 +186,11 @@ class SurfaceBuffers:
         dev = wp.get_device(device)
         self.tables = PackedArrays({"nodes": wp.int32, "faces": wp.vec3i, "edge_owner": wp.vec3i,
                                     "node_comp": wp.int32, "face_comp": wp.int32, "ring_offsets": wp.int32,
-                                    "ring_nodes": wp.int32, "points32": wp.vec3}, dev)
+                                    "ring_nodes": wp.int32}, dev)
         self.outputs = {name: GrowArray(dtype, dev) for name, dtype in _OUTPUTS}
         self.x_start, self.node_normal = GrowArray(wp.vec3d, dev), GrowArray(wp.vec3d, dev)
+        self.motion = GrowArray(wp.float64, dev)
+        self.lowers, self.uppers = GrowArray(wp.vec3, dev), GrowArray(wp.vec3, dev)
         self.reach = wp.zeros(1, dtype=wp.float64, device=dev)
         self.inside = wp.zeros(max(n_objects, 1), dtype=wp.int32, device=dev)
         self.min_gap = wp.zeros(1, dtype=wp.float64, device=dev)
@@ -228,8 +231,7 @@ class SurfaceTopology:
             offsets, ring = mesh.node_ring()  # the neighbours through the edges (per connectivity)
             comp = mesh.node_components()  # the same parts as the edges make
             self.n_components = int(comp.max()) + 1
-            data.update(node_comp=comp, face_comp=comp[self.faces[:, 0]], ring_offsets=offsets, ring_nodes=ring,
-                        points32=mesh.points.astype(np.float32))
+            data.update(node_comp=comp, face_comp=comp[self.faces[:, 0]], ring_offsets=offsets, ring_nodes=ring)
         tables = buffers.tables
         tables.reserve({k: len(data[k]) if k in data else 0 for k in tables.fields})
         for k, v in data.items():
@@ -237,13 +239,19 @@ class SurfaceTopology:
             h[...] = v.reshape(h.shape)
         tables.send(data)
         self.nodes, self.faces_wp, self.edge_owner = (tables.array(k) for k in ("nodes", "faces", "edge_owner"))
-        self.wmesh = None
+        self.bvh = None
         if collide:
-            self.node_comp, self.face_comp, self.ring_offsets, self.ring_nodes, self.points32 = (
-                tables.array(k) for k in ("node_comp", "face_comp", "ring_offsets", "ring_nodes", "points32"))
+            self.node_comp, self.face_comp, self.ring_offsets, self.ring_nodes = (
+                tables.array(k) for k in ("node_comp", "face_comp", "ring_offsets", "ring_nodes"))
             self.node_normal = buffers.node_normal.view(n)
             self.node_normal.zero_()
-            self.wmesh = wp.Mesh(points=self.points32, indices=tables.alias("faces", wp.int32, 3 * nf))
+            # the triangles' boxes (each detection widens them by their vertices' motion and
+            # refits), first at the rest positions
+            P = mesh.points[self.faces]
+            self.lowers, self.uppers = buffers.lowers.view(nf), buffers.uppers.view(nf)
+            self.lowers.assign(P.min(axis=1).astype(np.float32))
+            self.uppers.assign(P.max(axis=1).astype(np.float32))
+            self.bvh = wp.Bvh(self.lowers, self.uppers)
         # output slots: per object, one per surface node and, for an instrument, one per surface
         # face; then one per surface node for self-collision
         sections, base = [], 0
@@ -253,15 +261,15 @@ class SurfaceTopology:
             if isinstance(obj, Instrument):
                 sections.append(Section(oi, "face", base, nf))
                 base += nf
-        if self.wmesh is not None:
+        if self.bvh is not None:
             sections.append(Section(-1, "self", base, ns))
         self.out = Outputs(sections, dev, buffers.outputs)
         self.slot_map = SlotMap(sections, self.out.active.shape[0], self.surface, self.faces)
         # state of one detection on the device: the step's start, the reach of the free motion,
         # which instruments were through the surface at the start, the smallest gap
-        self.x_start = buffers.x_start.view(n)
+        self.x_start, self.motion = buffers.x_start.view(n), buffers.motion.view(n)
         self.reach, self.inside, self.min_gap = buffers.reach, buffers.inside, buffers.min_gap
-        for a in (self.x_start, self.reach, self.inside, self.min_gap):
+        for a in (self.x_start, self.motion, self.reach, self.inside, self.min_gap):
             a.zero_()
         # the objects' geometry of the step, on the device (see upload_objects)
         self.geom_in, self.params_in = buffers.geom_in, buffers.params_in
@@ -345,21 +353,23 @@ def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, reach, x_st
             wp.launch(trimesh_contacts_kernel, ns,
                       [x_features, topo.nodes, wmesh.id, verts, tris, dist, reach, topo.scale],
                       outputs=[sec], device=device)
-    if topo.wmesh is not None:
-        wp.launch(copy_points_f32_kernel, topo.n_nodes, [x_features, topo.points32], device=device)
-        topo.wmesh.refit()
+    if topo.bvh is not None:
+        wp.launch(face_bounds_kernel, nf, [x_features, topo.faces_wp, topo.motion, topo.scale],
+                  outputs=[topo.lowers, topo.uppers], device=device)
+        topo.bvh.refit()
         topo.node_normal.zero_()
         wp.launch(face_normals_kernel, nf, [x_features, topo.faces_wp, topo.node_normal], device=device)
         wp.launch(self_contacts_kernel, ns,
-                  [x_features, topo.nodes, topo.wmesh.id, topo.faces_wp, topo.face_comp, topo.node_comp,
-                   topo.node_normal, topo.ring_offsets, topo.ring_nodes, dist, reach, topo.scale, facing, depth],
+                  [x_features, topo.nodes, topo.bvh.id, topo.faces_wp, topo.face_comp, topo.node_comp,
+                   topo.node_normal, topo.ring_offsets, topo.ring_nodes, dist, topo.motion, topo.scale, facing, depth],
                   outputs=[out.slots(out.section(-1, "self"))], device=device)
 
 
 def launch_start(topo: SurfaceTopology, x: wp.array, v: wp.array, dt: float, device) -> None:
-    """``topo.x_start`` = x - dt v (the step's start from the free motion) and ``topo.reach`` =
-    twice the largest motion of a surface node during the step, on the device."""
-    wp.launch(step_start_kernel, topo.n_nodes, [x, v, float(dt), topo.x_start], device=device)
+    """``topo.x_start`` = x - dt v (the step's start from the free motion), ``topo.motion`` = how
+    far each node moved in it (the self-collision's reach, pair by pair) and ``topo.reach`` =
+    twice the largest motion of a surface node (a mesh obstacle's), on the device."""
+    wp.launch(step_start_kernel, topo.n_nodes, [x, v, float(dt), topo.x_start, topo.motion], device=device)
     topo.reach.zero_()
     if len(topo.surface):
         wp.launch(surface_reach_kernel, len(topo.surface), [x, topo.x_start, topo.nodes, topo.reach], device=device)

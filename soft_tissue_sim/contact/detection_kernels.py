@@ -326,16 +326,35 @@ def face_normals_kernel(
 
 
 @wp.kernel
-def copy_points_f32_kernel(x: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3)):
-    i = wp.tid()
-    out[i] = to_vec3f(x[i])
+def face_bounds_kernel(
+    x: wp.array(dtype=wp.vec3d),
+    faces: wp.array(dtype=wp.vec3i),
+    motion: wp.array(dtype=wp.float64),
+    scale: wp.float64,
+    lowers: wp.array(dtype=wp.vec3),
+    uppers: wp.array(dtype=wp.vec3),
+):
+    """The self-collision BVH's box of surface triangle f: its vertices at x, widened by how far
+    its vertices moved in the step (the largest ``motion``), in float32 with a margin
+    (:func:`search_margin`) so that the float64 tests decide."""
+    f = wp.tid()
+    t = faces[f]
+    a = x[t[0]]
+    b = x[t[1]]
+    c = x[t[2]]
+    m = wp.max(motion[t[0]], wp.max(motion[t[1]], motion[t[2]]))
+    lo = wp.vec3d(wp.min(a[0], wp.min(b[0], c[0])), wp.min(a[1], wp.min(b[1], c[1])), wp.min(a[2], wp.min(b[2], c[2])))
+    hi = wp.vec3d(wp.max(a[0], wp.max(b[0], c[0])), wp.max(a[1], wp.max(b[1], c[1])), wp.max(a[2], wp.max(b[2], c[2])))
+    w = search_margin(m, scale)
+    lowers[f] = to_vec3f(lo) - wp.vec3(w, w, w)
+    uppers[f] = to_vec3f(hi) + wp.vec3(w, w, w)
 
 
 @wp.kernel
 def self_contacts_kernel(
     x: wp.array(dtype=wp.vec3d),
     nodes: wp.array(dtype=wp.int32),
-    mesh_id: wp.uint64,
+    bvh_id: wp.uint64,
     faces: wp.array(dtype=wp.vec3i),
     face_comp: wp.array(dtype=wp.int32),
     node_comp: wp.array(dtype=wp.int32),
@@ -343,13 +362,16 @@ def self_contacts_kernel(
     ring_offsets: wp.array(dtype=wp.int32),
     ring_nodes: wp.array(dtype=wp.int32),
     distance: wp.float64,
-    reach: wp.array(dtype=wp.float64),
+    motion: wp.array(dtype=wp.float64),
     scale: wp.float64,
     facing: wp.float64,
     depth: wp.float64,
     out: Slots,
 ):
-    """Surface node k against the tissue's surface triangles within ``distance + reach[0]``.
+    """Surface node k against the tissue's surface triangles within ``distance`` plus how far
+    the node and the triangle can close in on each other during the step: ``motion`` of the
+    node plus the largest of the triangle's vertices (``bvh_id``: a BVH of the triangles' boxes
+    widened by their motion, :func:`face_bounds_kernel`).
 
     Skipped: triangles incident to the node or to its tet neighbours (the node's own
     neighbourhood), and triangles of the same connected component unless they face the node
@@ -367,22 +389,23 @@ def self_contacts_kernel(
     xp = x[p]
     clear(out, k)
     xf = to_vec3f(xp)
-    far = distance + reach[0]
-    margin = search_margin(far, scale)
+    near = distance + motion[p]  # the node's share of the reach; the triangle's is added below
+    margin = search_margin(near, scale)
     lo = wp.vec3(xf[0] - margin, xf[1] - margin, xf[2] - margin)
     hi = wp.vec3(xf[0] + margin, xf[1] + margin, xf[2] + margin)
     nn = node_normal[p]
     nlen = wp.length(nn)
     if nlen > F64(0.0):
         nn = nn / nlen
-    best = far
+    best = F64(1.0e300)
     best_face = int(-1)
     best_w = wp.vec3d()
     best_g = F64(0.0)
     best_n = wp.vec3d()
     best_q = wp.vec3d()
-    query = wp.mesh_query_aabb(mesh_id, lo, hi)
-    for f in query:
+    query = wp.bvh_query_aabb(bvh_id, lo, hi)
+    f = int(0)
+    while wp.bvh_query_next(query, f):
         t = faces[f]
         ok = t[0] != p and t[1] != p and t[2] != p
         va = x[t[0]]
@@ -419,6 +442,8 @@ def self_contacts_kernel(
                     q = w[0] * va + w[1] * vb + w[2] * vc
                     g = s
                     valid = True
+            if valid and wp.abs(g) >= near + wp.max(motion[t[0]], wp.max(motion[t[1]], motion[t[2]])):
+                valid = False  # farther than the pair can close in on each other in the step
             if valid and wp.abs(g) < best:  # the node's own neighbourhood last: the costliest test
                 for j in range(ring_offsets[p], ring_offsets[p + 1]):
                     r = ring_nodes[j]
@@ -442,10 +467,14 @@ def step_start_kernel(
     v: wp.array(dtype=wp.vec3d),
     dt: wp.float64,
     x_start: wp.array(dtype=wp.vec3d),
+    motion: wp.array(dtype=wp.float64),
 ):
-    """The tissue at the step's start from the free motion: x_start = x - dt v."""
+    """The tissue at the step's start from the free motion: x_start = x - dt v, and how far each
+    node moved in it: motion = |dt v|."""
     i = wp.tid()
-    x_start[i] = x[i] - dt * v[i]
+    d = dt * v[i]
+    x_start[i] = x[i] - d
+    motion[i] = wp.length(d)
 
 
 @wp.kernel

@@ -186,6 +186,7 @@ class ContactSolver:
         if not len(topo.surface):
             return Contacts.empty()
         topo.reach.fill_(float(reach))
+        topo.motion.fill_(0.5 * float(reach))  # a pair of self-collision closes in by both its motions
         upload_objects(topo, self.objects)
         self._launch(topo, x, x if x_features is None else x_features, x_start)
         return collect(topo, to_host(*topo.out.arrays))
@@ -213,6 +214,7 @@ class ContactSolver:
         if not len(topo.surface):
             return None
         topo.reach.zero_()
+        topo.motion.zero_()
         x = body.integrator.x
         self._launch(topo, x, x, topo.x_start)
         return launch_min_gap(topo, self.device)

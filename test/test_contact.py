@@ -582,6 +582,38 @@ def test_two_blocks_pushed_together_do_not_interpenetrate(tmp_path, self_collisi
         assert F_B[0] == pytest.approx(mB * G, rel=0.01)
 
 
+@pytest.mark.parametrize("closing", [0.0, 0.2])
+def test_the_self_collision_search_reaches_as_far_as_each_pair_moves(tmp_path, closing):
+    """Blocks A and C 2 mm apart (contact distance 1 mm), block B 10 cm away moving 3 mm a step
+    past them. A pair is searched within the distance plus the motions of its own node and
+    triangle: A and C at rest find nothing (a radius of twice the fastest node, B's, would
+    reach them); C closing in on A at 2 mm a step is found. The raw slots of the free
+    motion's detection are read (no penetration detection after it)."""
+    blocks = [beam_mesh(4, 3, spacing=0.01) for _ in range(3)]
+    shifts = [[0.0, 0.0, 0.0], [0.032, 0.0, 0.0], [0.0, 0.1, 0.0]]  # A, C, B
+    pts = np.vstack([b.points + sh for b, sh in zip(blocks, shifts)])
+    n = blocks[0].n_nodes
+    path = tmp_path / "three_blocks.vtu"
+    save_mesh(validate_mesh(pts, np.vstack([b.tets + k * n for k, b in enumerate(blocks)])), path)
+    cfg = scene(mesh={"file": str(path)}, gravity=[0.0, 0.0, 0.0],
+                contact={"self_collision": True, "distance": 0.001, "penetration_every": 0})
+    with load_scene(cfg) as sim:
+        v = np.zeros((3 * n, 3))
+        v[2 * n:] = [0.0, 0.0, 0.3]  # B: 3 mm a step, sideways
+        v[n:2 * n] = [-closing, 0.0, 0.0]  # C towards A
+        sim.set_state(sim.positions(), v)
+        sim.step()
+        topo = sim.contact._topo
+        sec = topo.out.section(-1, "self")
+        active = topo.out.active.numpy()[sec.base:sec.base + sec.size] != 0
+        node = topo.surface[active]
+        tri_nodes = topo.faces[topo.out.tri.numpy()[sec.base:sec.base + sec.size][active]]
+    between = ((node < n) & (tri_nodes >= n).all(axis=1) & (tri_nodes < 2 * n).all(axis=1)) | (
+        (node >= n) & (node < 2 * n) & (tri_nodes < n).all(axis=1))
+    assert not (node >= 2 * n).any()  # B is far from everything
+    assert between.any() == (closing > 0.0)
+
+
 @pytest.mark.parametrize("self_depth", [None, 1.0])
 def test_a_thin_body_moving_fast_makes_no_self_contact_with_its_far_side(self_depth):
     """A 1 cm slab falling 3 cm per step: the search radius grows past its thickness, so its top

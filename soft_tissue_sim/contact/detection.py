@@ -246,11 +246,12 @@ class SurfaceTopology:
             self.node_normal = buffers.node_normal.view(n)
             self.node_normal.zero_()
             # the triangles' boxes (each detection widens them by their vertices' motion and
-            # refits), first at the rest positions
-            P = mesh.points[self.faces]
+            # refits), first at the rest positions, made on the device
             self.lowers, self.uppers = buffers.lowers.view(nf), buffers.uppers.view(nf)
-            self.lowers.assign(P.min(axis=1).astype(np.float32))
-            self.uppers.assign(P.max(axis=1).astype(np.float32))
+            still = buffers.motion.view(n)
+            still.zero_()
+            wp.launch(face_bounds_kernel, nf, [fem.rest, self.faces_wp, still, self.scale],
+                      outputs=[self.lowers, self.uppers], device=dev)
             self.bvh = wp.Bvh(self.lowers, self.uppers)
         # output slots: per object, one per surface node and, for an instrument, one per surface
         # face; then one per surface node for self-collision

@@ -269,7 +269,7 @@ class Simulation:
         # Optional components: built only when the scene names them.
         self.contact = None
         self.cutting = None
-        self._penetration_every = 1  # the contact option (see _measures_penetration)
+        self._penetration_every = 1  # the contact option penetration_every (see _contact_response)
         if self._has_contact(config):
             from .contact import ContactSolver
 
@@ -520,19 +520,13 @@ class Simulation:
         self._contact_begun = True
         return key, lambda: self.contact.launch_detection_of(view)
 
-    def _measures_penetration(self) -> bool:
-        """Whether this step's correction is followed by a detection that measures the deepest
-        penetration left (the contact option ``penetration_every``)."""
-        every = self._penetration_every
-        return every > 0 and self.integrator.step_index % every == 0
-
-    def _correct(self, dx, solve=None) -> list:
+    def _correct(self, dx, solve=None, measure: bool = True) -> list:
         """x += dx, v += dx / dt (``dx`` None: no correction; ``solve``: a device LCP that makes
-        dx), then the guard's values and, on a step that measures it, the smallest gap of a
-        detection at the corrected positions, read in one wait: [guard, *solve's output, gap]
-        (no gap where the tissue has no surface or the step does not measure it); see
+        dx), then the guard's values and, with ``measure``, the smallest gap of a detection at
+        the corrected positions, read in one wait: [guard, *solve's output, gap] (no gap where
+        the tissue has no surface or nothing is measured); see
         :meth:`BackwardEuler.correct_and_read`."""
-        if not self._measures_penetration():
+        if not measure:
             return self.integrator.correct_and_read(dx, ((), None), solve)
         view = self.view()
 
@@ -555,6 +549,8 @@ class Simulation:
             ke_free = self._known_kinetic_energy()
         read = integ.after_solve_reading  # the detection read with the free motion, if of this state
         host = read[1] if read is not None and read[0] == self._state_key() else None
+        every = self._penetration_every  # the contact option: measure the penetration left on every n-th step
+        measure = every > 0 and integ.step_index % every == 0
         reason = None
         for device_lcp in (True, False):
             try:
@@ -568,14 +564,14 @@ class Simulation:
             stats.contact = response.stats
             if not device_lcp:
                 stats.contact.lcp_redone = True
-            guard, *rest = self._correct(response.dx, response.device)
+            guard, *rest = self._correct(response.dx, response.device, measure)
             if response.device is None or response.device.finish(rest.pop(0)):
                 break
             # the device refused W (nothing corrected): this step's contacts again, on the host
             self._restore_state(free)
         if reason is None:
             ke, nonfinite = float(guard[0]), float(guard[1])
-            if not self._measures_penetration():
+            if not measure:
                 stats.contact.max_penetration = None
             elif rest and np.isfinite(rest[0][0]):
                 stats.contact.max_penetration = float(max(0.0, -rest[0][0]))

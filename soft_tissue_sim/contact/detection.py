@@ -239,6 +239,13 @@ class SurfaceTopology:
             h[...] = v.reshape(h.shape)
         tables.send(data)
         self.nodes, self.faces_wp, self.edge_owner = (tables.array(k) for k in ("nodes", "faces", "edge_owner"))
+        # state of one detection on the device: the step's start, each node's motion in the free
+        # motion and the largest (the reach), which instruments were through the surface at the
+        # start, the smallest gap
+        self.x_start, self.motion = buffers.x_start.view(n), buffers.motion.view(n)
+        self.reach, self.inside, self.min_gap = buffers.reach, buffers.inside, buffers.min_gap
+        for a in (self.x_start, self.motion, self.reach, self.inside, self.min_gap):
+            a.zero_()
         self.bvh = None
         if collide:
             self.node_comp, self.face_comp, self.ring_offsets, self.ring_nodes = (
@@ -248,9 +255,7 @@ class SurfaceTopology:
             # the triangles' boxes (each detection widens them by their vertices' motion and
             # refits), first at the rest positions, made on the device
             self.lowers, self.uppers = buffers.lowers.view(nf), buffers.uppers.view(nf)
-            still = buffers.motion.view(n)
-            still.zero_()
-            wp.launch(face_bounds_kernel, nf, [fem.rest, self.faces_wp, still, self.scale],
+            wp.launch(face_bounds_kernel, nf, [fem.rest, self.faces_wp, self.motion, self.scale],
                       outputs=[self.lowers, self.uppers], device=dev)
             self.bvh = wp.Bvh(self.lowers, self.uppers)
         # output slots: per object, one per surface node and, for an instrument, one per surface
@@ -266,12 +271,6 @@ class SurfaceTopology:
             sections.append(Section(-1, "self", base, ns))
         self.out = Outputs(sections, dev, buffers.outputs)
         self.slot_map = SlotMap(sections, self.out.active.shape[0], self.surface, self.faces)
-        # state of one detection on the device: the step's start, the reach of the free motion,
-        # which instruments were through the surface at the start, the smallest gap
-        self.x_start, self.motion = buffers.x_start.view(n), buffers.motion.view(n)
-        self.reach, self.inside, self.min_gap = buffers.reach, buffers.inside, buffers.min_gap
-        for a in (self.x_start, self.motion, self.reach, self.inside, self.min_gap):
-            a.zero_()
         # the objects' geometry of the step, on the device (see upload_objects)
         self.geom_in, self.params_in = buffers.geom_in, buffers.params_in
         self.geom, self.params = self.geom_in.array, self.params_in.array
@@ -373,7 +372,7 @@ def launch_start(topo: SurfaceTopology, x: wp.array, v: wp.array, dt: float, dev
     wp.launch(step_start_kernel, topo.n_nodes, [x, v, float(dt), topo.x_start, topo.motion], device=device)
     topo.reach.zero_()
     if len(topo.surface):
-        wp.launch(surface_reach_kernel, len(topo.surface), [x, topo.x_start, topo.nodes, topo.reach], device=device)
+        wp.launch(surface_reach_kernel, len(topo.surface), [topo.motion, topo.nodes, topo.reach], device=device)
 
 
 def launch_min_gap(topo: SurfaceTopology, device) -> wp.array:

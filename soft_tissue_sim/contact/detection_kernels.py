@@ -343,8 +343,8 @@ def face_bounds_kernel(
     b = x[t[1]]
     c = x[t[2]]
     m = wp.max(motion[t[0]], wp.max(motion[t[1]], motion[t[2]]))
-    lo = wp.vec3d(wp.min(a[0], wp.min(b[0], c[0])), wp.min(a[1], wp.min(b[1], c[1])), wp.min(a[2], wp.min(b[2], c[2])))
-    hi = wp.vec3d(wp.max(a[0], wp.max(b[0], c[0])), wp.max(a[1], wp.max(b[1], c[1])), wp.max(a[2], wp.max(b[2], c[2])))
+    lo = wp.min(a, wp.min(b, c))  # componentwise
+    hi = wp.max(a, wp.max(b, c))
     w = search_margin(m, scale)
     lowers[f] = to_vec3f(lo) - wp.vec3(w, w, w)
     uppers[f] = to_vec3f(hi) + wp.vec3(w, w, w)
@@ -479,16 +479,14 @@ def step_start_kernel(
 
 @wp.kernel
 def surface_reach_kernel(
-    x: wp.array(dtype=wp.vec3d),
-    x_start: wp.array(dtype=wp.vec3d),
+    motion: wp.array(dtype=wp.float64),
     nodes: wp.array(dtype=wp.int32),
     reach: wp.array(dtype=wp.float64),
 ):
-    """reach[0] = max(reach[0], 2 |x - x_start|) over the surface nodes (zeroed before): how far a
+    """reach[0] = max(reach[0], 2 motion) over the surface nodes (zeroed before): how far a
     node and a triangle of the surface can close in on each other during the step."""
     k = wp.tid()
-    p = nodes[k]
-    wp.atomic_max(reach, 0, F64(2.0) * wp.length(x[p] - x_start[p]))
+    wp.atomic_max(reach, 0, F64(2.0) * motion[nodes[k]])
 
 
 @wp.kernel

@@ -271,29 +271,26 @@ class ContactSolver:
             host = to_host(*self.launch_detection_of(body))
         x, x_start, free, *outputs = host
         c = collect(topo, outputs) if len(topo.surface) else Contacts.empty()
-        own = c.obj < 0  # self-collision rows: the other surface is a tissue triangle
+        # self-collision rows: the other surface is a tissue triangle (searched pair by pair on the
+        # device, within the distance plus the node's and the triangle's motion in the step)
+        own = c.obj < 0
         n_own = np.count_nonzero(own)
-        tri_feature, n_tri_feature = own, n_own  # rows against triangle features: self-collision, mesh obstacles
-        for oi in self._mesh_objects:
-            tri_feature = tri_feature | (c.obj == oi)
-            n_tri_feature = np.count_nonzero(tri_feature)
-        if n_tri_feature:
-            # The search radius is the largest motion of any surface node, so one fast fragment
-            # widens it for all. A pair can only close in by the motion of its own node and
-            # triangle: farther pairs cannot touch in this step and are dropped before the LCP.
-            k = len(c.node)
-            on_tri = own.nonzero()[0]
-            at = np.concatenate([np.maximum(c.node, 0), np.maximum(c.tri[on_tri], 0).ravel()])
-            d = x[at] - x_start[at]  # the motion of each row's node, then of its triangle's nodes
-            mv = np.sqrt(np.add.reduce(d * d, axis=1))  # |d|, as np.linalg.norm computes it
-            tri_mv = np.zeros(k)
-            tri_mv[on_tri] = mv[k:].reshape(-1, 3).max(axis=1)
-            reach_row = o["distance"] + mv[:k] + tri_mv
-            near = ~tri_feature | (c.gap <= reach_row)
-            if not near.all():
-                c = c.take(near)
-                tri_feature, own = tri_feature[near], own[near]
-                n_own = np.count_nonzero(own)
+        tri_feature = own  # rows against triangle features: self-collision, mesh obstacles
+        if self._mesh_objects:
+            on_mesh = np.isin(c.obj, self._mesh_objects)
+            if np.count_nonzero(on_mesh):
+                # A mesh obstacle is searched within twice the largest motion of any surface node
+                # (one fast fragment widens it for all); a node closes in on the static obstacle by
+                # its own motion only: farther rows cannot touch in this step and are dropped.
+                rows = on_mesh.nonzero()[0]
+                d = x[c.node[rows]] - x_start[c.node[rows]]
+                near = np.ones(len(c.node), bool)
+                near[rows] = c.gap[rows] <= o["distance"] + np.sqrt(np.add.reduce(d * d, axis=1))
+                if not near.all():
+                    c = c.take(near)
+                    own, on_mesh = own[near], on_mesh[near]
+                tri_feature = own | on_mesh
+        if np.count_nonzero(tri_feature):
             on_tri = own.nonzero()[0]  # tissue triangles move: their point follows the free motion
             c.point[on_tri] = np.einsum("ks,ksj->kj", c.bary[on_tri], x[c.tri[on_tri]])
             c.gap[tri_feature] = np.einsum("kj,kj->k", c.normal[tri_feature],

@@ -347,32 +347,50 @@ def _pcg_init_kernel(s: wp.array(dtype=wp.float64), flag: wp.array(dtype=wp.int3
 
 
 @wp.kernel
-def _pcg_alpha_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64)):
-    t = wp.tid()
-    pAp = _sum_partials(partials, t, wp.block_dim())
-    if t == 0:
-        s[_PAP] = pAp
-        if pAp > wp.float64(0.0):
-            s[_ALPHA] = s[_RZ] / pAp
-        else:  # breakdown: A not SPD along p, b = 0, or NaN
-            s[_ALPHA] = wp.float64(0.0)
-            s[_BROKE] = wp.float64(1.0)
-            if not wp.isfinite(pAp):
-                s[_REL] = wp.float64(wp.nan)
-
-
-@wp.kernel
-def _pcg_axpy2_kernel(
+def _pcg_alpha_axpy2_kernel(
+    partials: wp.array(dtype=wp.float64),
     s: wp.array(dtype=wp.float64),
     p: wp.array(dtype=wp.vec3d),
     Ap: wp.array(dtype=wp.vec3d),
     x: wp.array(dtype=wp.vec3d),
     r: wp.array(dtype=wp.vec3d),
+    n: int,
+    rr_partials: wp.array(dtype=wp.float64),
 ):
-    i = wp.tid()
-    alpha = s[_ALPHA]
-    x[i] = x[i] + alpha * p[i]
-    r[i] = r[i] - alpha * Ap[i]
+    """alpha = r.z / p.Ap (p.Ap the sum of ``partials``, added up by every block), x += alpha p,
+    r -= alpha A p and each block's share of the new r.r into ``rr_partials`` (grid-stride over
+    ``rr_partials.shape[0]`` blocks, the order of :func:`_dot_partial_kernel`). r.z is read from
+    the slot RZN, where the first iteration and the beta kernel put it; block 0 records p.Ap,
+    alpha and r.z (RZ, the denominator of the next beta). A breakdown (p.Ap <= 0: A not SPD
+    along p, b = 0, or NaN) leaves x and r as they are and stops the loop (the check)."""
+    t = wp.tid()
+    nt = wp.block_dim()
+    lane = t % nt
+    pAp = _sum_partials(partials, lane, nt)
+    rz = s[_RZN]
+    alpha = wp.float64(0.0)
+    if pAp > wp.float64(0.0):
+        alpha = rz / pAp
+    if t == 0:
+        s[_PAP] = pAp
+        s[_ALPHA] = alpha
+        s[_RZ] = rz
+        if not (pAp > wp.float64(0.0)):
+            s[_BROKE] = wp.float64(1.0)
+            if not wp.isfinite(pAp):
+                s[_REL] = wp.float64(wp.nan)
+    total = rr_partials.shape[0] * nt
+    acc = wp.float64(0.0)
+    for i in range(t, n, total):
+        x[i] = x[i] + alpha * p[i]
+        ri = r[i] - alpha * Ap[i]
+        r[i] = ri
+        acc += ri[0] * ri[0]
+        acc += ri[1] * ri[1]
+        acc += ri[2] * ri[2]
+    acc = block_sum(acc)
+    if lane == 0:
+        rr_partials[t // nt] = acc
 
 
 @wp.kernel
@@ -396,19 +414,20 @@ def _pcg_check_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp
 
 
 @wp.kernel
-def _pcg_beta_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64)):
+def _pcg_beta_xpby_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64),
+                          z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d), n: int, blocks: int):
+    """beta = r.z (the sum of ``partials``, added up by every block) / the previous r.z (slot RZ,
+    left as it is here), p = z + beta p (grid-stride over ``blocks`` blocks); block 0 records
+    the new r.z (slot RZN, read by the alpha kernel) and beta."""
     t = wp.tid()
-    rzn = _sum_partials(partials, t, wp.block_dim())
+    nt = wp.block_dim()
+    rzn = _sum_partials(partials, t % nt, nt)
+    beta = rzn / s[_RZ]
     if t == 0:
         s[_RZN] = rzn
-        s[_BETA] = rzn / s[_RZ]
-        s[_RZ] = rzn
-
-
-@wp.kernel
-def _pcg_xpby_kernel(s: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d)):
-    i = wp.tid()
-    p[i] = z[i] + s[_BETA] * p[i]
+        s[_BETA] = beta
+    for i in range(t, n, blocks * nt):
+        p[i] = z[i] + beta * p[i]
 
 
 MAX_CAPTURE_FAILURES = 3
@@ -462,12 +481,14 @@ class DevicePCG(PCG):
             self._s = wp.zeros(_NSCAL, dtype=wp.float64, device=d)
             self._flag = wp.zeros(1, dtype=wp.int32, device=d)
             self._partials_buf = GrowArray(wp.float64, d)
+            self._rr_partials_buf = GrowArray(wp.float64, d)
         # dot products: a block per chunk, then one block adds the partial sums (no allocation,
         # deterministic; Warp's array_inner allocates scratch, which a conditional graph body forbids)
         self._block = _RED_BLOCK if d.is_cuda else 1
         nb = min(128, max(1, -(-n // (2 * _RED_BLOCK)))) if d.is_cuda else 1
         self._partials = self._partials_buf.view(nb)
-        for a in (self._s, self._flag, self._partials):
+        self._rr_partials = self._rr_partials_buf.view(nb)  # r.r by the alpha kernel, while others read _partials
+        for a in (self._s, self._flag, self._partials, self._rr_partials):
             a.zero_()
         self.replay.clear()  # a graph of the old size is released where no factorization runs
 
@@ -485,10 +506,13 @@ class DevicePCG(PCG):
         dev, n = self.device, self.n
         matvec(self.p, self.Ap)
         self._ddot(self.p, self.Ap)
-        self._scalar(_pcg_alpha_kernel, [self._s])
-        wp.launch(_pcg_axpy2_kernel, n, [self._s, self.p, self.Ap, x, self.r], device=dev)
-        self._ddot(self.r, self.r)
-        self._scalar(_pcg_check_kernel, [self._s, self._flag, self.tolerance, float(self.max_iterations)])
+        nb = self._partials.shape[0]
+        wp.launch(_pcg_alpha_axpy2_kernel, nb * self._block,
+                  [self._partials, self._s, self.p, self.Ap, x, self.r, n, self._rr_partials], device=dev,
+                  block_dim=self._block)
+        wp.launch(_pcg_check_kernel, self._block,
+                  [self._rr_partials, self._s, self._flag, self.tolerance, float(self.max_iterations)],
+                  device=dev, block_dim=self._block)
 
     def _run(self, matvec, b, x, preconditioner):
         dev, n = self.device, self.n
@@ -500,14 +524,15 @@ class DevicePCG(PCG):
         preconditioner.apply(self.r, self.z)
         wp.copy(self.p, self.z)
         self._ddot(self.r, self.z)
-        self._scalar(_pcg_store_kernel, [self._s, _RZ])
+        self._scalar(_pcg_store_kernel, [self._s, _RZN])
         self._tail(matvec, x)
 
         def body():
             preconditioner.apply(self.r, self.z)
             self._ddot(self.r, self.z)
-            self._scalar(_pcg_beta_kernel, [self._s])
-            wp.launch(_pcg_xpby_kernel, n, [self._s, self.z, self.p], device=dev)
+            nb = self._partials.shape[0]
+            wp.launch(_pcg_beta_xpby_kernel, nb * self._block, [self._partials, self._s, self.z, self.p, n, nb],
+                      device=dev, block_dim=self._block)
             self._tail(matvec, x)
 
         wp.capture_while(self._flag, body)

@@ -185,6 +185,24 @@ def delassus_matrix_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dt
                                              + delassus_entry(P, nodes, coef, dR, b, a))
 
 
+def fold_into(xp, P, rows, N) -> None:
+    """P <- P - U Q U^T in place (``xp`` arrays), U = P[:, rows], Q = (I + N S)^-1 N with
+    S = U[rows] (:func:`~soft_tissue_sim.sherman_morrison.woodbury_q`): :meth:`DenseInverse.fold`'s
+    arithmetic."""
+    from .sherman_morrison import woodbury_q
+
+    r = xp.asarray(rows)
+    U = xp.ascontiguousarray(P[r].T)  # columns of the symmetric P: rows are contiguous
+    Q = woodbury_q(xp.asarray(N), U[r], xp)
+    V = U @ Q
+    if xp is np:
+        P -= U @ V.T
+    else:
+        import cupy.cublas
+
+        cupy.cublas.gemm("N", "T", U, V, out=P, alpha=-1.0, beta=1.0)
+
+
 def array_module(device):
     """CuPy for a CUDA device, NumPy for the CPU: the array library the backends call."""
     if wp.get_device(device).is_cuda:
@@ -263,6 +281,7 @@ class DenseInverse:
         self._W = None  # delassus: W on the device (grown to the largest m x m seen)
         self._deferred = 0  # the depth of changing() scopes open
         self._stale = False  # the single-precision copy is to be made again (changing())
+        self._fold_ready = False  # GPU: the fold's library calls made once (_prepare_gpu)
 
     # ----------------------------------------------------------- making one
     @property
@@ -302,6 +321,10 @@ class DenseInverse:
             from nvmath.bindings import cublas
 
             self._blas = cublas.create()
+        if not self._fold_ready:  # the fold's first library calls (CuPy's kernels and handles) made now, not at the first cut
+            with xp_stream(self.xp, stream):
+                fold_into(self.xp, self.xp.eye(6), np.arange(3), 0.5 * np.eye(3))
+            self._fold_ready = True
 
     def factorize(self, stream=None) -> None:
         """Work buffer A -> A^-1, on ``stream``: cuSOLVER and cuBLAS calls and, by column
@@ -457,21 +480,9 @@ class DenseInverse:
         S = G^T P^-1 G (:func:`~soft_tissue_sim.sherman_morrison.woodbury_q`): the exact
         corrected inverse of eq. (5)-(7) for the perturbation N (host). Runs on the
         simulation's stream, Q included: nothing is read back."""
-        from .sherman_morrison import woodbury_q
-
         xp = self.xp
         with xp_stream(xp, wp.get_stream(self.device) if self.device.is_cuda else None):
-            P = self.matrix()
-            r = xp.asarray(rows)
-            U = xp.ascontiguousarray(P[r].T)  # columns of the symmetric P: rows are contiguous
-            Q = woodbury_q(xp.asarray(N), U[r], xp)
-            V = U @ Q
-            if xp is np:
-                P -= U @ V.T
-            else:
-                import cupy.cublas
-
-                cupy.cublas.gemm("N", "T", U, V, out=P, alpha=-1.0, beta=1.0)
+            fold_into(xp, self.matrix(), rows, N)
         self._narrow()
 
     def regrow(self, keep: np.ndarray, added: int) -> None:

@@ -5,6 +5,7 @@ Small meshes and a deterministic LDL^T refreshed every step (P = A) so that the 
 checks are exact up to the solver tolerances.
 """
 
+import os
 import sys
 
 import numpy as np
@@ -612,6 +613,39 @@ def test_the_self_collision_search_reaches_as_far_as_each_pair_moves(tmp_path, c
         (node >= n) & (node < 2 * n) & (tri_nodes < n).all(axis=1))
     assert not (node >= 2 * n).any()  # B is far from everything
     assert between.any() == (closing > 0.0)
+
+
+@pytest.mark.parametrize("falling", [0.0, 0.2])
+def test_a_mesh_obstacle_is_searched_as_far_as_each_node_moves(tmp_path, falling):
+    """Block A 2 mm over a triangle-mesh floor (contact distance 1 mm), block B 10 cm away moving
+    3 mm a step sideways over the same floor, 5 cm above it. A node is searched within the
+    distance plus its own motion: A at rest finds the floor nowhere (a radius of twice the
+    fastest node, B's, would reach it); A falling at 2 mm a step finds it. The raw slots of the
+    free motion's detection are read. ``STS_TEST_DEVICE=cuda:0`` runs it on a GPU."""
+    blocks = [beam_mesh(4, 3, spacing=0.01) for _ in range(2)]
+    shifts = [[0.0, 0.0, 0.0], [0.0, 0.1, 0.05]]  # A, B
+    pts = np.vstack([b.points + sh for b, sh in zip(blocks, shifts)])
+    n = blocks[0].n_nodes
+    path = tmp_path / "two_blocks.vtu"
+    save_mesh(validate_mesh(pts, np.vstack([b.tets + k * n for k, b in enumerate(blocks)])), path)
+    z = float(pts[:n, 2].min()) - 0.002
+    floor = {"type": "mesh", "name": "floor", "triangles": [[0, 1, 2], [0, 2, 3]],
+             "vertices": [[-1, -1, z], [1, -1, z], [1, 1, z], [-1, 1, z]]}
+    cfg = scene(mesh={"file": str(path)}, gravity=[0.0, 0.0, 0.0], obstacles=[floor],
+                contact={"distance": 0.001, "penetration_every": 0})
+    cfg["device"] = os.environ.get("STS_TEST_DEVICE", "cpu")
+    with load_scene(cfg) as sim:
+        v = np.zeros((2 * n, 3))
+        v[n:] = [0.3, 0.0, 0.0]  # B: 3 mm a step, sideways
+        v[:n] = [0.0, 0.0, -falling]  # A towards the floor
+        sim.set_state(sim.positions(), v)
+        sim.step()
+        topo = sim.contact._topo
+        sec = topo.out.section(0, "node")
+        active = topo.out.active.numpy()[sec.base:sec.base + sec.size] != 0
+        node = topo.surface[active]
+    assert not (node >= n).any()  # B is far from the floor
+    assert (len(node) > 0) == (falling > 0.0)
 
 
 @pytest.mark.parametrize("self_depth", [None, 1.0])

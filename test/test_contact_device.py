@@ -1,5 +1,5 @@
 """One detection, one read: every object's contacts from one set of output slots, the step's
-start and reach computed on the device, the smallest gap reduced there
+start and each node's motion computed on the device, the smallest gap reduced there
 (soft_tissue_sim.contact.detection). Warp's CPU backend by default; ``STS_TEST_DEVICE=cuda:0``
 runs the same checks on a GPU and compares its contact steps with the CPU's."""
 

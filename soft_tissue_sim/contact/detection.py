@@ -4,9 +4,9 @@ collected into :class:`~soft_tissue_sim.contact.records.Contacts`.
 
 What is tested where: planes and instruments at the positions given (the free motion), at any
 depth; triangle features (self-collision, mesh obstacles) at the positions given for them
-(the step's start) within ``distance`` plus a reach (for self-collision how far the node and
-the triangle moved in the step, pair by pair), their gap then linearised to the free motion by
-the solver. Instruments against tissue triangles: per surface triangle, the closest
+(the step's start) within ``distance`` plus how far they can close in during the step (a
+mesh obstacle: the node's own motion; self-collision: the node's and the triangle's, pair by
+pair), their gap then linearised to the free motion by the solver. Instruments against tissue triangles: per surface triangle, the closest
 points of the capsule's axis and the triangle; a row only where that point of the triangle is
 inside it or on an edge the triangle owns (each surface edge is owned by one of its faces, the
 lowest index), vertices being the node contacts' (nothing is counted twice). Where the axis
@@ -43,7 +43,6 @@ from .detection_kernels import (
     plane_contacts_kernel,
     self_contacts_kernel,
     step_start_kernel,
-    surface_reach_kernel,
     trimesh_contacts_kernel,
 )
 from .geometry import edge_ownership
@@ -191,7 +190,6 @@ class SurfaceBuffers:
         self.x_start, self.node_normal = GrowArray(wp.vec3d, dev), GrowArray(wp.vec3d, dev)
         self.motion = GrowArray(wp.float64, dev)
         self.lowers, self.uppers = GrowArray(wp.vec3, dev), GrowArray(wp.vec3, dev)
-        self.reach = wp.zeros(1, dtype=wp.float64, device=dev)
         self.inside = wp.zeros(max(n_objects, 1), dtype=wp.int32, device=dev)
         self.min_gap = wp.zeros(1, dtype=wp.float64, device=dev)
         self.geom_in = Staged(4 * max(n_objects, 1), wp.vec3d, dev)
@@ -240,11 +238,10 @@ class SurfaceTopology:
         tables.send(data)
         self.nodes, self.faces_wp, self.edge_owner = (tables.array(k) for k in ("nodes", "faces", "edge_owner"))
         # state of one detection on the device: the step's start, each node's motion in the free
-        # motion and the largest (the reach), which instruments were through the surface at the
-        # start, the smallest gap
+        # motion, which instruments were through the surface at the start, the smallest gap
         self.x_start, self.motion = buffers.x_start.view(n), buffers.motion.view(n)
-        self.reach, self.inside, self.min_gap = buffers.reach, buffers.inside, buffers.min_gap
-        for a in (self.x_start, self.motion, self.reach, self.inside, self.min_gap):
+        self.inside, self.min_gap = buffers.inside, buffers.min_gap
+        for a in (self.x_start, self.motion, self.inside, self.min_gap):
             a.zero_()
         self.bvh = None
         if collide:
@@ -303,13 +300,13 @@ def upload_objects(topo: SurfaceTopology, objects: list) -> None:
 
 
 def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_features: wp.array, distance: float,
-                     reach: wp.array, x_start: wp.array | None, facing: float, depth: float, device,
-                     faces: bool = True) -> None:
+                     x_start: wp.array | None, facing: float, depth: float, device, faces: bool = True) -> None:
     """Launch every detection kernel of one detection into ``topo.out`` (nothing is read back:
     :func:`collect` after a read of ``topo.out.arrays``), for the objects' geometry last given
     to :func:`upload_objects`. Planes and instruments are tested at ``x`` within ``distance``;
-    triangle features (mesh obstacles, self-collision) at ``x_features`` within ``distance +
-    reach[0]`` (``reach``: a device array, so that it can come from the state without a read).
+    triangle features (mesh obstacles, self-collision) at ``x_features`` within ``distance`` plus
+    how far the node (and, for self-collision, the triangle's nodes) may move: ``topo.motion``, a
+    device array, so that it comes from the state without a read.
     With ``x_start`` (the tissue at the step's start), an instrument whose axis then, at its
     previous pose, went through the surface is inside: its piercings of triangles are not
     contacts (:mod:`soft_tissue_sim.contact.detection`). ``faces`` False leaves out the
@@ -319,14 +316,14 @@ def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_featur
     (nothing in them depends on the host but the arrays' addresses: ``topo.replay``)."""
     if not len(topo.surface):
         return
-    args = (x, x_features, reach, x_start, float(distance), float(facing), float(depth), bool(faces))
+    args = (x, x_features, x_start, float(distance), float(facing), float(depth), bool(faces))
     dev = wp.get_device(device)
-    key = (x.ptr, x_features.ptr, reach.ptr, None if x_start is None else x_start.ptr) + args[4:] if dev.is_cuda \
+    key = (x.ptr, x_features.ptr, None if x_start is None else x_start.ptr) + args[3:] if dev.is_cuda \
         else None  # on the CPU: plain launches
     topo.replay.run(key, lambda: _launch_all(topo, objects, *args, dev))
 
 
-def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, reach, x_start, dist, facing, depth, faces,
+def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, x_start, dist, facing, depth, faces,
                 device) -> None:
     """The launches of :func:`launch_detection`."""
     out = topo.out
@@ -351,7 +348,7 @@ def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, reach, x_st
         elif isinstance(obj, MeshObstacle):
             wmesh, verts, tris = obj.warp_mesh(device)
             wp.launch(trimesh_contacts_kernel, ns,
-                      [x_features, topo.nodes, wmesh.id, verts, tris, dist, reach, topo.scale],
+                      [x_features, topo.nodes, wmesh.id, verts, tris, dist, topo.motion, topo.scale],
                       outputs=[sec], device=device)
     if topo.bvh is not None:
         wp.launch(face_bounds_kernel, nf, [x_features, topo.faces_wp, topo.motion, topo.scale],
@@ -366,13 +363,9 @@ def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, reach, x_st
 
 
 def launch_start(topo: SurfaceTopology, x: wp.array, v: wp.array, dt: float, device) -> None:
-    """``topo.x_start`` = x - dt v (the step's start from the free motion), ``topo.motion`` = how
-    far each node moved in it (the self-collision's reach, pair by pair) and ``topo.reach`` =
-    twice the largest motion of a surface node (a mesh obstacle's), on the device."""
+    """``topo.x_start`` = x - dt v (the step's start from the free motion) and ``topo.motion`` =
+    how far each node moved in it (the triangle features' search, node by node), on the device."""
     wp.launch(step_start_kernel, topo.n_nodes, [x, v, float(dt), topo.x_start, topo.motion], device=device)
-    topo.reach.zero_()
-    if len(topo.surface):
-        wp.launch(surface_reach_kernel, len(topo.surface), [topo.motion, topo.nodes, topo.reach], device=device)
 
 
 def launch_min_gap(topo: SurfaceTopology, device) -> wp.array:

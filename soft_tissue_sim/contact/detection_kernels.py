@@ -7,7 +7,8 @@ the launches of one detection (``active`` = 1 with gap, normal and point where i
 contact within ``distance``, 0 elsewhere), so that one read brings every object's contacts to
 the host: the normal is a unit vector pointing the way the tissue is pushed, the gap is < 0
 for a penetration, the point lies on the other surface. Search radii that depend on the state
-(the reach of the free motion) are read from a device array, not passed from the host.
+(how far each node moved in the free motion) are read from a device array, not passed from the
+host.
 """
 
 from __future__ import annotations
@@ -271,17 +272,19 @@ def trimesh_contacts_kernel(
     verts: wp.array(dtype=wp.vec3d),
     tris: wp.array(dtype=wp.vec3i),
     distance: wp.float64,
-    reach: wp.array(dtype=wp.float64),
+    motion: wp.array(dtype=wp.float64),
     scale: wp.float64,
     out: Slots,
 ):
-    """Surface node k against a static triangle mesh within distance + reach[0]: the closest
-    face from the float32 BVH (inside/outside from the angle-weighted pseudo normal), then the
-    float64 closest point."""
+    """Surface node k against a static triangle mesh within distance + the node's own motion
+    (the obstacle does not move: the node closes in on it by its motion only): the closest face
+    from the float32 BVH (inside/outside from the angle-weighted pseudo normal), then the float64
+    closest point."""
     k = wp.tid()
-    xp = x[nodes[k]]
+    i = nodes[k]
+    xp = x[i]
     clear(out, k)
-    far = distance + reach[0]
+    far = distance + motion[i]
     q = wp.mesh_query_point_sign_normal(mesh_id, to_vec3f(xp), search_margin(far, scale))
     if q.result:
         t = tris[q.face]
@@ -475,18 +478,6 @@ def step_start_kernel(
     d = dt * v[i]
     x_start[i] = x[i] - d
     motion[i] = wp.length(d)
-
-
-@wp.kernel
-def surface_reach_kernel(
-    motion: wp.array(dtype=wp.float64),
-    nodes: wp.array(dtype=wp.int32),
-    reach: wp.array(dtype=wp.float64),
-):
-    """reach[0] = max(reach[0], 2 motion) over the surface nodes (zeroed before): how far a
-    node and a triangle of the surface can close in on each other during the step."""
-    k = wp.tid()
-    wp.atomic_max(reach, 0, F64(2.0) * motion[nodes[k]])
 
 
 @wp.kernel

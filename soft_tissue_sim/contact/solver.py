@@ -169,7 +169,7 @@ class ContactSolver:
 
     def _launch(self, topo: SurfaceTopology, x: wp.array, x_features: wp.array, x_start: wp.array | None) -> None:
         o = self.options
-        launch_detection(topo, self.objects, x, x_features, o["distance"], topo.reach, x_start, o["facing"],
+        launch_detection(topo, self.objects, x, x_features, o["distance"], x_start, o["facing"],
                          o["self_depth"], self.device, self.faces)
 
     def detect(self, body, x: wp.array | None = None, x_features: wp.array | None = None, reach: float = 0.0,
@@ -178,15 +178,16 @@ class ContactSolver:
         simulation) against the objects and itself, object by object. Planes and instruments
         are tested at positions ``x`` (default ``body.integrator.x``) within ``distance``,
         triangle features (self-collision, mesh obstacles) at ``x_features`` (default ``x``)
-        within ``distance + reach``. ``x_start``: the tissue at the step's start, where the
-        instruments' previous poses tell which tools were already through the surface (their
-        piercings of triangles are then not contacts); without it every piercing is one."""
+        within ``distance`` plus how far the tissue may move, ``reach`` for every node (a
+        self-collision pair: by both of its sides, ``2 reach``). ``x_start``: the tissue at the
+        step's start, where the instruments' previous poses tell which tools were already
+        through the surface (their piercings of triangles are then not contacts); without it
+        every piercing is one."""
         topo = self._topology(body.fem)
         x = body.integrator.x if x is None else x
         if not len(topo.surface):
             return Contacts.empty()
-        topo.reach.fill_(float(reach))
-        topo.motion.fill_(0.5 * float(reach))  # a pair of self-collision closes in by both its motions
+        topo.motion.fill_(float(reach))
         upload_objects(topo, self.objects)
         self._launch(topo, x, x if x_features is None else x_features, x_start)
         return collect(topo, to_host(*topo.out.arrays))
@@ -196,8 +197,7 @@ class ContactSolver:
         (the surface, by its serial, the positions' and the detection's arrays, the options);
         the surface is brought up to date here, outside any capture."""
         topo = self._topology(body.fem)
-        return (topo.serial, len(topo.surface), body.integrator.x.ptr, topo.x_start.ptr, topo.reach.ptr,
-                topo.min_gap.ptr, *self._detection_options())
+        return (topo.serial, len(topo.surface), body.integrator.x.ptr, topo.x_start.ptr, topo.min_gap.ptr, *self._detection_options())
 
     def _detection_options(self) -> tuple:
         """The options a detection's launches take by value (part of their graphs' keys)."""
@@ -213,7 +213,6 @@ class ContactSolver:
         topo = self._topology(body.fem)
         if not len(topo.surface):
             return None
-        topo.reach.zero_()
         topo.motion.zero_()
         x = body.integrator.x
         self._launch(topo, x, x, topo.x_start)
@@ -241,8 +240,8 @@ class ContactSolver:
         # Planes and instruments (exact half-spaces / the tool's new pose) are tested at the
         # free-motion positions, at any depth. Triangle features are found at the step's start
         # and their gap is linearised to the free motion; the search reaches `distance` plus
-        # how far surface nodes moved in the free motion (twice: node and triangle may close
-        # in on each other), so that nothing tunnels through a triangle in one step.
+        # how far the node moved in the free motion (and, for self-collision, the triangle's
+        # nodes: both may close in), so that nothing tunnels through a triangle in one step.
         launch_start(topo, integ.x, integ.v, integ.dt, self.device)
         self._launch(topo, integ.x, topo.x_start, topo.x_start)
         return [integ.x, topo.x_start, body.fem.free, *topo.out.arrays]
@@ -276,20 +275,8 @@ class ContactSolver:
         own = c.obj < 0
         n_own = np.count_nonzero(own)
         tri_feature = own  # rows against triangle features: self-collision, mesh obstacles
-        if self._mesh_objects:
-            on_mesh = np.isin(c.obj, self._mesh_objects)
-            if np.count_nonzero(on_mesh):
-                # A mesh obstacle is searched within twice the largest motion of any surface node
-                # (one fast fragment widens it for all); a node closes in on the static obstacle by
-                # its own motion only: farther rows cannot touch in this step and are dropped.
-                rows = on_mesh.nonzero()[0]
-                d = x[c.node[rows]] - x_start[c.node[rows]]
-                near = np.ones(len(c.node), bool)
-                near[rows] = c.gap[rows] <= o["distance"] + np.sqrt(np.add.reduce(d * d, axis=1))
-                if not near.all():
-                    c = c.take(near)
-                    own, on_mesh = own[near], on_mesh[near]
-                tri_feature = own | on_mesh
+        if self._mesh_objects:  # (searched node by node within the distance plus the node's motion)
+            tri_feature = own | np.isin(c.obj, self._mesh_objects)
         if np.count_nonzero(tri_feature):
             on_tri = own.nonzero()[0]  # tissue triangles move: their point follows the free motion
             c.point[on_tri] = np.einsum("ks,ksj->kj", c.bary[on_tri], x[c.tri[on_tri]])

@@ -277,47 +277,28 @@ _NSCAL = 12
 _RED_BLOCK = 256  # threads per block of the dot-product kernels on CUDA
 
 
-# block_sum(v): the sum of v over a thread block, in thread 0 (on the CPU, a block is one thread: v)
+# block_sum(v): the sum of v over a thread block, in every thread of it (on the CPU, a block is
+# one thread: v); the warps' sums added in warp order by thread 0, then shared
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-__shared__ double red[32];
+__shared__ double red[33];
 for (int o = 16; o > 0; o >>= 1) v += __shfl_down_sync(0xffffffff, v, o);
 int w = threadIdx.x >> 5;
 if ((threadIdx.x & 31) == 0) red[w] = v;
 __syncthreads();
 if (threadIdx.x == 0) {
-    v = 0.0;
+    double s = 0.0;
     int nw = (blockDim.x + 31) >> 5;
-    for (int k = 0; k < nw; ++k) v += red[k];
+    for (int k = 0; k < nw; ++k) s += red[k];
+    red[32] = s;
 }
+__syncthreads();
+v = red[32];
 __syncthreads();
 #endif
 return v;
 """)
 def block_sum(v: wp.float64) -> wp.float64: ...
-
-
-# block_sum_all(v): block_sum's total (the same additions in the same order), in every thread
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-__shared__ double red_all[33];
-for (int o = 16; o > 0; o >>= 1) v += __shfl_down_sync(0xffffffff, v, o);
-int w = threadIdx.x >> 5;
-if ((threadIdx.x & 31) == 0) red_all[w] = v;
-__syncthreads();
-if (threadIdx.x == 0) {
-    double s = 0.0;
-    int nw = (blockDim.x + 31) >> 5;
-    for (int k = 0; k < nw; ++k) s += red_all[k];
-    red_all[32] = s;
-}
-__syncthreads();
-v = red_all[32];
-__syncthreads();
-#endif
-return v;
-""")
-def block_sum_all(v: wp.float64) -> wp.float64: ...
 
 
 @wp.kernel
@@ -345,15 +326,6 @@ def _sum_partials(partials: wp.array(dtype=wp.float64), t: int, nt: int):
     for k in range(t, partials.shape[0], nt):
         acc += partials[k]
     return block_sum(acc)
-
-
-@wp.func
-def _sum_partials_all(partials: wp.array(dtype=wp.float64), lane: int, nt: int):
-    """:func:`_sum_partials`'s total in every thread of the block (``lane``: the thread's index in it)."""
-    acc = wp.float64(0.0)
-    for k in range(lane, partials.shape[0], nt):
-        acc += partials[k]
-    return block_sum_all(acc)
 
 
 @wp.kernel
@@ -398,7 +370,7 @@ def _pcg_alpha_axpy2_kernel(
     t = wp.tid()
     nt = wp.block_dim()
     lane = t % nt
-    pAp = _sum_partials_all(partials, lane, nt)
+    pAp = _sum_partials(partials, lane, nt)
     rz = s[_RZN]
     alpha = wp.float64(0.0)
     if pAp > wp.float64(0.0):
@@ -453,7 +425,7 @@ def _pcg_beta_xpby_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtyp
     the new r.z (slot RZN, read by the alpha kernel) and beta."""
     t = wp.tid()
     nt = wp.block_dim()
-    rzn = _sum_partials_all(partials, t % nt, nt)
+    rzn = _sum_partials(partials, t % nt, nt)
     beta = rzn / s[_RZ]
     if t == 0:
         s[_RZN] = rzn

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from .buffers import GrowArray, PackedArrays, typed_view
 from .cg import block_sum
 from .transfer import PINNED, to_host
 
@@ -261,7 +262,15 @@ class DenseInverse:
         self.device = wp.get_device(device)
         self.precision = precision
         self.xp = array_module(self.device)
-        self.inv: wp.array | None = None  # (n3, n3) the inverse in use
+        self.inv: wp.array | None = None  # (n3, n3) the inverse in use: a view of one of the stores
+        # the inverse in use and a regrow's target, alternately (kept across node-count changes:
+        # a cut allocates nothing), and the regrows' and folds' indices, sent without a wait
+        self._store = (GrowArray(wp.float64, self.device), GrowArray(wp.float64, self.device))
+        self._in_store = 0  # the store holding self.inv
+        self._s_buf = GrowArray(wp.float64, self.device)
+        self._keep_in = [PackedArrays({"keep": wp.int32}, self.device) for _ in range(2)]
+        self._regrows = 0
+        self._fold_in = PackedArrays({"rows": wp.int32, "N": wp.float64}, self.device)
         self.inv32: wp.array | None = None  # precision float32: its single-precision copy
         self.work: wp.array | None = None  # (n3, n3) the next one
         self._s: wp.array | None = None
@@ -402,11 +411,16 @@ class DenseInverse:
                     "A is not positive definite")
         n = self.work.shape[0]
         if self.inv is None or self.inv.shape[0] != n:
-            self.inv = wp.empty((n, n), dtype=wp.float64, device=self.device)
-            self._s = wp.zeros(n, dtype=wp.float64, device=self.device)
+            self.inv = self._square(self._in_store, n)
+            self._s = self._s_buf.view(n)  # written whole by each apply before it is read
         wp.copy(self.inv, self._result, stream=stream)
         self._narrow(stream)
         return None
+
+    def _square(self, k: int, n: int) -> wp.array:
+        """An (n, n) view of store ``k`` (its first n^2 values; reallocated, contents lost, only
+        when it outgrows the store)."""
+        return typed_view(self._store[k].view(n * n), 0, wp.float64, (n, n))
 
     @contextlib.contextmanager
     def changing(self):
@@ -481,20 +495,33 @@ class DenseInverse:
         corrected inverse of eq. (5)-(7) for the perturbation N (host). Runs on the
         simulation's stream, Q included: nothing is read back."""
         xp = self.xp
+        N = np.asarray(N, dtype=np.float64)
+        staged = self._fold_in  # rows and N sent from page-locked memory: no wait for the stream
+        staged.reserve({"rows": len(rows), "N": N.size})
+        staged.host("rows")[...] = rows
+        staged.host("N")[...] = N.ravel()
+        staged.send(("rows", "N"))
         with xp_stream(xp, wp.get_stream(self.device) if self.device.is_cuda else None):
-            fold_into(xp, self.matrix(), rows, N)
+            fold_into(xp, self.matrix(), xp_view(xp, staged.array("rows")),
+                      xp_view(xp, staged.array("N")).reshape(N.shape))
         self._narrow()
 
     def regrow(self, keep: np.ndarray, added: int) -> None:
         """Change the node set of the inverse in use: keep the DOFs ``keep`` (in that order),
         then append ``added`` DOFs as identity rows (eq. 10's padding). One gather on the
-        simulation's stream."""
+        simulation's stream, into the other store (nothing allocated while the stores hold;
+        the indices sent from page-locked memory, alternately from two buffers)."""
         n = int(len(keep)) + int(added)
-        new = wp.empty((n, n), dtype=wp.float64, device=self.device)
-        idx = wp.array(np.ascontiguousarray(keep, dtype=np.int32), dtype=wp.int32, device=self.device)
-        wp.launch(regrow_kernel, (n, n), [self.inv, idx, new], device=self.device)
-        self.inv = new
-        self._s = wp.zeros(n, dtype=wp.float64, device=self.device)
+        target = 1 - self._in_store
+        new = self._square(target, n)
+        staged = self._keep_in[self._regrows % 2]
+        self._regrows += 1
+        staged.reserve({"keep": len(keep)})
+        staged.host("keep")[...] = keep
+        staged.send(("keep",))
+        wp.launch(regrow_kernel, (n, n), [self.inv, staged.array("keep"), new], device=self.device)
+        self.inv, self._in_store = new, target
+        self._s = self._s_buf.view(n)
         self._narrow()
 
     def reset(self) -> None:
@@ -513,3 +540,4 @@ class DenseInverse:
             cublas.destroy(self._blas)
             self._blas = None
         self.inv = self.inv32 = self.work = self._workspace = self._rhs = self._result = None
+        self._store = (GrowArray(wp.float64, self.device), GrowArray(wp.float64, self.device))

@@ -330,8 +330,8 @@ class DenseInverse:
             from nvmath.bindings import cublas
 
             self._blas = cublas.create()
-        if not self._fold_ready:  # the fold's first library calls (CuPy's kernels and handles) made now, not at the first cut
-            with xp_stream(self.xp, stream):
+        if not self._fold_ready:  # the fold's library calls made once now (CuPy's kernels and
+            with xp_stream(self.xp, stream):  # handles), not at the first cut
                 fold_into(self.xp, self.xp.eye(6), np.arange(3), 0.5 * np.eye(3))
             self._fold_ready = True
 

@@ -6,8 +6,9 @@ What is tested where: planes and instruments at the positions given (the free mo
 depth; triangle features (self-collision, mesh obstacles) at the positions given for them
 (the step's start) within ``distance`` plus how far they can close in during the step (a
 mesh obstacle: the node's own motion; self-collision: the node's and the triangle's, pair by
-pair), their gap then linearised to the free motion by the solver. Instruments against tissue triangles: per surface triangle, the closest
-points of the capsule's axis and the triangle; a row only where that point of the triangle is
+pair), their gap then linearised to the free motion by the solver. Instruments against
+tissue triangles: per surface triangle, the closest points of the capsule's axis and the
+triangle; a row only where that point of the triangle is
 inside it or on an edge the triangle owns (each surface edge is owned by one of its faces, the
 lowest index), vertices being the node contacts' (nothing is counted twice). Where the axis
 pierces a triangle, the triangle is pushed inwards until the part of the axis over it is a

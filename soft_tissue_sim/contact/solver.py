@@ -197,7 +197,8 @@ class ContactSolver:
         (the surface, by its serial, the positions' and the detection's arrays, the options);
         the surface is brought up to date here, outside any capture."""
         topo = self._topology(body.fem)
-        return (topo.serial, len(topo.surface), body.integrator.x.ptr, topo.x_start.ptr, topo.min_gap.ptr, *self._detection_options())
+        return (topo.serial, len(topo.surface), body.integrator.x.ptr, topo.x_start.ptr, topo.min_gap.ptr,
+                *self._detection_options())
 
     def _detection_options(self) -> tuple:
         """The options a detection's launches take by value (part of their graphs' keys)."""

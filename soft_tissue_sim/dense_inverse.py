@@ -264,13 +264,11 @@ class DenseInverse:
         self.xp = array_module(self.device)
         self.inv: wp.array | None = None  # (n3, n3) the inverse in use: a view of one of the stores
         # the inverse in use and a regrow's target, alternately (kept across node-count changes:
-        # a cut allocates nothing), and the regrows' and folds' indices, sent without a wait
-        self._store = (GrowArray(wp.float64, self.device), GrowArray(wp.float64, self.device))
+        # a cut allocates nothing), and a regrow's indices, sent from page-locked memory
+        self._store = self._empty_stores()
         self._in_store = 0  # the store holding self.inv
         self._s_buf = GrowArray(wp.float64, self.device)
-        self._keep_in = [PackedArrays({"keep": wp.int32}, self.device) for _ in range(2)]
-        self._regrows = 0
-        self._fold_in = PackedArrays({"rows": wp.int32, "N": wp.float64}, self.device)
+        self._keep_in = PackedArrays({"keep": wp.int32}, self.device)
         self.inv32: wp.array | None = None  # precision float32: its single-precision copy
         self.work: wp.array | None = None  # (n3, n3) the next one
         self._s: wp.array | None = None
@@ -417,6 +415,9 @@ class DenseInverse:
         self._narrow(stream)
         return None
 
+    def _empty_stores(self) -> tuple:
+        return GrowArray(wp.float64, self.device), GrowArray(wp.float64, self.device)
+
     def _square(self, k: int, n: int) -> wp.array:
         """An (n, n) view of store ``k`` (its first n^2 values; reallocated, contents lost, only
         when it outgrows the store)."""
@@ -495,27 +496,19 @@ class DenseInverse:
         corrected inverse of eq. (5)-(7) for the perturbation N (host). Runs on the
         simulation's stream, Q included: nothing is read back."""
         xp = self.xp
-        N = np.asarray(N, dtype=np.float64)
-        staged = self._fold_in  # rows and N sent from page-locked memory: no wait for the stream
-        staged.reserve({"rows": len(rows), "N": N.size})
-        staged.host("rows")[...] = rows
-        staged.host("N")[...] = N.ravel()
-        staged.send(("rows", "N"))
         with xp_stream(xp, wp.get_stream(self.device) if self.device.is_cuda else None):
-            fold_into(xp, self.matrix(), xp_view(xp, staged.array("rows")),
-                      xp_view(xp, staged.array("N")).reshape(N.shape))
+            fold_into(xp, self.matrix(), rows, N)
         self._narrow()
 
     def regrow(self, keep: np.ndarray, added: int) -> None:
         """Change the node set of the inverse in use: keep the DOFs ``keep`` (in that order),
         then append ``added`` DOFs as identity rows (eq. 10's padding). One gather on the
         simulation's stream, into the other store (nothing allocated while the stores hold;
-        the indices sent from page-locked memory, alternately from two buffers)."""
+        the indices sent from page-locked memory)."""
         n = int(len(keep)) + int(added)
         target = 1 - self._in_store
         new = self._square(target, n)
-        staged = self._keep_in[self._regrows % 2]
-        self._regrows += 1
+        staged = self._keep_in
         staged.reserve({"keep": len(keep)})
         staged.host("keep")[...] = keep
         staged.send(("keep",))
@@ -540,4 +533,4 @@ class DenseInverse:
             cublas.destroy(self._blas)
             self._blas = None
         self.inv = self.inv32 = self.work = self._workspace = self._rhs = self._result = None
-        self._store = (GrowArray(wp.float64, self.device), GrowArray(wp.float64, self.device))
+        self._store = self._empty_stores()

@@ -3,18 +3,17 @@ detection kernels (:mod:`soft_tissue_sim.contact.detection_kernels`), whose outp
 collected into :class:`~soft_tissue_sim.contact.records.Contacts`.
 
 What is tested where: planes and instruments at the positions given (the free motion), at any
-depth; triangle features (self-collision, mesh obstacles) at the positions given for them
-(the step's start) within ``distance`` plus how far they can close in during the step (a
-mesh obstacle: the node's own motion; self-collision: the node's and the triangle's, pair by
-pair), their gap then linearised to the free motion by the solver. Instruments against
-tissue triangles: per surface triangle, the closest points of the capsule's axis and the
-triangle; a row only where that point of the triangle is
-inside it or on an edge the triangle owns (each surface edge is owned by one of its faces, the
-lowest index), vertices being the node contacts' (nothing is counted twice). Where the axis
-pierces a triangle, the triangle is pushed inwards until the part of the axis over it is a
-radius above it; not a contact: a piercing along an instrument's blade (a cut), and any
-piercing by a tool that was already through the surface at the step's start (inside a cut or
-a hole).
+depth; triangle features (self-collision, mesh obstacles) at the positions given for them (the
+step's start) within ``distance`` plus how far they can close in during the step (a mesh
+obstacle: the node's own motion; self-collision: the node's and the triangle's, pair by pair),
+their gap then linearised to the free motion by the solver. Instruments against tissue
+triangles: per surface triangle, the closest points of the capsule's axis and the triangle; a
+row only where that point of the triangle is inside it or on an edge the triangle owns (each
+surface edge is owned by one of its faces, the lowest index), vertices being the node
+contacts' (nothing is counted twice). Where the axis pierces a triangle, the triangle is
+pushed inwards until the part of the axis over it is a radius above it; not a contact: a
+piercing along an instrument's blade (a cut), and any piercing by a tool that was already
+through the surface at the step's start (inside a cut or a hole).
 
 Invariant: a :class:`SurfaceTopology` belongs to one mesh; it is rebuilt when cutting changes
 the mesh (:meth:`SurfaceTopology.matches`), never reused across a change.

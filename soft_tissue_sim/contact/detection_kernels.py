@@ -328,6 +328,12 @@ def face_normals_kernel(
         wp.atomic_add(node_normal, t[j], n)
 
 
+@wp.func
+def triangle_motion(motion: wp.array(dtype=wp.float64), t: wp.vec3i):
+    """How far a triangle's vertices moved in the step: the largest of their ``motion``."""
+    return wp.max(motion[t[0]], wp.max(motion[t[1]], motion[t[2]]))
+
+
 @wp.kernel
 def face_bounds_kernel(
     x: wp.array(dtype=wp.vec3d),
@@ -345,7 +351,7 @@ def face_bounds_kernel(
     a = x[t[0]]
     b = x[t[1]]
     c = x[t[2]]
-    m = wp.max(motion[t[0]], wp.max(motion[t[1]], motion[t[2]]))
+    m = triangle_motion(motion, t)
     lo = wp.min(a, wp.min(b, c))  # componentwise
     hi = wp.max(a, wp.max(b, c))
     w = search_margin(m, scale)
@@ -445,7 +451,7 @@ def self_contacts_kernel(
                     q = w[0] * va + w[1] * vb + w[2] * vc
                     g = s
                     valid = True
-            if valid and wp.abs(g) >= near + wp.max(motion[t[0]], wp.max(motion[t[1]], motion[t[2]])):
+            if valid and wp.abs(g) >= near + triangle_motion(motion, t):
                 valid = False  # farther than the pair can close in on each other in the step
             if valid and wp.abs(g) < best:  # the node's own neighbourhood last: the costliest test
                 for j in range(ring_offsets[p], ring_offsets[p + 1]):

@@ -28,6 +28,13 @@ and scipy's ``spsolve_triangular`` takes dense right-hand sides. On a GPU the de
 gathers W from its inverse instead (:mod:`soft_tissue_sim.dense_inverse`).
 
 The displacement correction dx = P^-1 H^T lambda needs one full solve, of one column.
+
+A block of many columns solved in full (the Sherman-Morrison columns U = A^-1 G of a cut,
+eq. 6, one column per DOF of its nodes) takes the same way up, D^-1, then the backward solve
+L^-T down all n rows by the same supernodes: BLAS for the large ones (a product with the rows
+above them, then a triangular solve), :func:`backward_kernel` for the columns between them,
+GROUP right-hand sides a thread (:meth:`LowerFactor.solve_block`). CHOLMOD's simplicial solve
+takes a block one column after the other.
 """
 
 from __future__ import annotations
@@ -114,6 +121,22 @@ def forward_reach_kernel(
         for t in range(s):
             Y[k + t, g] = scale[k + t] * Y[k + t, g]
         k += s
+
+
+@wp.kernel
+def backward_kernel(Lp: wp.array(dtype=wp.int32), Li: wp.array(dtype=wp.int32), Lx: wp.array(dtype=wp.float64),
+                    begin: wp.int32, end: wp.int32, X: wp.array2d(dtype=vec_group)):
+    """X[:, g] <- L^-T X[:, g] on rows end-1 down to begin, for each group g of GROUP columns
+    (rows from end on final): row j takes column j's entries of the strict L (CSC, permuted
+    numbering) times the final rows they name, L unit lower triangular."""
+    g = wp.tid()
+    j = end - 1
+    while j >= begin:
+        acc = X[j, g]
+        for p in range(Lp[j], Lp[j + 1]):
+            acc = acc - Lx[p] * X[Li[p], g]
+        X[j, g] = acc
+        j -= 1
 
 
 SNODE_BLAS = 24  # supernodes of at least this many columns are solved by BLAS, all columns at once
@@ -313,6 +336,40 @@ class LowerFactor:
         out = np.zeros((B.shape[1], self.n))
         out[:, reach] = Y[:, slot].T
         return out
+
+    def solve_block(self, B) -> np.ndarray:
+        """A^-1 B (n, c) for B (n, c) dense or sparse, original numbering: Y = L^-1 P B on the
+        union of the columns' reaches (:meth:`_solve_reach`), then D^-1 Y and the backward
+        solve L^-T on all rows, from the last: a large supernode by BLAS (its rows take the
+        product of its rows below with the final rows there, then the triangular solve), the
+        columns between two of them by :func:`backward_kernel`."""
+        n, c = B.shape
+        if c == 0 or n != self.n:
+            if n != self.n:
+                raise ValueError(f"factor is for {self.n} DOFs, got a block of shape {B.shape}")
+            return np.zeros((n, 0))
+        groups = -(-c // GROUP)
+        with one_thread():
+            Y, reach, slot, _ = self._solve_reach(B, gram=False)
+            Z = np.zeros((n, groups * GROUP))
+            Z[reach[:, None], np.arange(c)] = Y[:, slot] * self.dinv[reach, None]
+            Zw = wp.array(Z.reshape(n, groups, GROUP), dtype=vec_group, device=_HOST, copy=False)
+            done = n  # rows from here on are final
+            for sn in reversed(self.snodes):
+                s = sn.size
+                k0, k1 = sn.j0, sn.j0 + s
+                if k1 < done:
+                    wp.launch(backward_kernel, groups, [self.Lp, self.Li, self.Lx, k1, done, Zw], device=_HOST)
+                Zs = Z[k0:k1, :c]
+                if len(sn.rows):
+                    Zs -= sn.block[:, s:] @ Z[sn.rows, :c]
+                Zs[:] = dtrsm(1.0, sn.block[:, :s], Zs, side=0, lower=0, trans_a=0, diag=1)  # T^T: upper, unit
+                done = k0
+            if done > 0:
+                wp.launch(backward_kernel, groups, [self.Lp, self.Li, self.Lx, 0, done, Zw], device=_HOST)
+        X = np.empty((n, c))
+        X[self.perm] = Z[:, :c]
+        return X
 
     def quadratic(self, B) -> np.ndarray:
         """B^T A^-1 B (c, c), symmetric, for B (n, c) dense or sparse: Y^T D^-1 Y, Y = L^-1 P B

@@ -140,6 +140,24 @@ def _factorize(state, A):
     return f
 
 
+BLOCK_COLUMNS = 16  # a block of at least this many columns goes to the lower factor's block solve
+
+
+def block_solver(factor, lower):
+    """B -> A^-1 B with ``factor``, where ``lower`` (its :class:`soft_tissue_sim.delassus.
+    LowerFactor`, or None) solves a block of at least BLOCK_COLUMNS columns instead
+    (:meth:`~soft_tissue_sim.delassus.LowerFactor.solve_block`: by supernodes, where CHOLMOD's
+    simplicial solve takes one column after the other)."""
+    block = getattr(lower, "solve_block", None)
+    if block is None:
+        return factor
+
+    def solve(B):
+        return block(B) if np.ndim(B) == 2 and B.shape[1] >= BLOCK_COLUMNS else factor(B)
+
+    return solve
+
+
 def _lower(state, factor):
     """The factor's L and D for the forward solves of the Delassus operator, when asked for."""
     if not state.get("lower_factor"):
@@ -247,11 +265,12 @@ def _serve(conn, mode, ordering, want_lower):
                     from .delassus import LowerFactor
 
                     lower = LowerFactor.from_cholmod(factor)
+                solve = block_solver(factor, lower)
                 conn.send(("factored", _ms_since(t0), state["analyses"]))
             elif factor is None:
                 raise RuntimeError("this process holds no factor")
             elif msg[0] == "solve":
-                conn.send(("solved", factor(msg[1])))
+                conn.send(("solved", solve(msg[1])))
             else:  # ("quadratic", B sparse)
                 conn.send(("quadratic", lower.quadratic(msg[1])))
         except Exception as exc:  # noqa: BLE001 - sent back, the caller reports it
@@ -477,7 +496,7 @@ class AsyncLDLTPreconditioner:
             self._workers.installed = res["factor"].worker
         self.factor, self.R_tu, self.factor_step = res["factor"], res["R"], res["step"]
         self.lower = res.get("lower")
-        self.factor_solve = self.factor
+        self.factor_solve = block_solver(self.factor, self.lower)
         self.factorization_ms = res["ms"]
         self.factor_count += 1
         self.swaps.append(self.step)

@@ -8,7 +8,7 @@ from sksparse.cholmod import analyze
 from soft_tissue_sim import blas_threads, delassus, load_scene
 from soft_tissue_sim.delassus import GROUP, LowerFactor, rotate_columns
 from soft_tissue_sim.device_preconditioner import constraint_rows
-from soft_tissue_sim.ldlt_preconditioner import _drop_decoupled, rotate_nodes
+from soft_tissue_sim.ldlt_preconditioner import BLOCK_COLUMNS, _drop_decoupled, block_solver, rotate_nodes
 
 from test_cutting import beam_scene, crosswise, lengthwise
 
@@ -178,6 +178,74 @@ def test_kernel_and_blas_supernodes_give_the_dense_inverse(monkeypatch, blas_fro
         np.testing.assert_array_equal(W, W.T)
 
 
+@pytest.mark.parametrize("blas_from", [2, delassus.SNODE_BLAS, 10**9])
+def test_block_solve_equals_the_factors_solve(monkeypatch, blas_from):
+    """solve_block(B) = A^-1 B as CHOLMOD solves it, by the kernel alone, with the default
+    supernodes by BLAS and with BLAS on nearly every supernode: unit columns (a cut's G, one
+    node's three DOFs after another, the last group padded), constraint columns with a column
+    given twice and an empty one, dense and sparse."""
+    monkeypatch.setattr(delassus, "SNODE_BLAS", blas_from)
+    rng = np.random.default_rng(5)
+    A, n = beam_matrix()
+    f = analyze(A, mode="simplicial")
+    f.cholesky_inplace(A)
+    lower = LowerFactor.from_cholmod(f)
+    for c in (1, GROUP, 2 * GROUP + 5):
+        dofs = (3 * rng.choice(n, -(-c // 3), replace=False)[:, None] + np.arange(3)).ravel()[:c]
+        G = np.zeros((3 * n, c))
+        G[dofs, np.arange(c)] = 1.0
+        B = constraint_columns(rng, n, c)
+        if c > 3:
+            B[:, 1] = B[:, 0]
+            B[:, 2] = 0.0
+        for M in (G, B, sps.csc_matrix(B)):
+            ref = f(M.toarray() if sps.issparse(M) else M)
+            X = lower.solve_block(M)
+            assert X.shape == (3 * n, c)
+            assert np.abs(X - ref).max() <= 1e-12 * np.abs(ref).max()
+    assert lower.solve_block(np.zeros((3 * n, 0))).shape == (3 * n, 0)
+    with pytest.raises(ValueError, match="DOFs"):
+        lower.solve_block(np.zeros((3 * n - 3, 2)))
+
+
+def test_a_block_goes_to_the_lower_factor_and_a_few_columns_to_the_factor():
+    """The installed factor's solve: a block of BLOCK_COLUMNS columns or more by the lower
+    factor's block solve, fewer (and single vectors) by the factor itself; without a lower
+    factor, always the factor."""
+    calls = []
+    factor = lambda B: calls.append(("factor", np.shape(B))) or np.asarray(B)  # noqa: E731
+
+    class Lower:
+        def solve_block(self, B):
+            calls.append(("block", B.shape))
+            return B
+
+    solve = block_solver(factor, Lower())
+    k = BLOCK_COLUMNS
+    for shape in ((30,), (30, 1), (30, k - 1), (30, k), (30, 3 * k)):
+        solve(np.zeros(shape))
+    assert [c[0] for c in calls] == ["factor", "factor", "factor", "block", "block"]
+    assert block_solver(factor, None) is factor
+
+
+def test_a_cuts_columns_come_from_the_block_solve(monkeypatch):
+    """After a cut of a body with contact (the lower factor kept), the Sherman-Morrison
+    columns U = P^-1 G of eq. (6) are solved as one block by the lower factor."""
+    blocks = []
+    solve_block = LowerFactor.solve_block
+    monkeypatch.setattr(LowerFactor, "solve_block", lambda self, B: blocks.append(B.shape[1]) or solve_block(self, B))
+    cfg = beam_scene(n_long=10, n_cross=3, rotate=False)
+    cfg["obstacles"] = [{"type": "plane", "point": [0, 0, -1.0], "normal": [0, 0, 1]}]
+    with load_scene(cfg) as sim:
+        for _ in range(3):
+            sim.step()
+        sim.preconditioner.refresh(sim.integrator)
+        blocks.clear()
+        res = lengthwise(sim, 0.035, 0.08)
+        assert res.changed and res.affected_nodes * 3 >= BLOCK_COLUMNS
+        assert blocks == [3 * res.affected_nodes]
+
+
 def test_a_factor_with_negative_pivots_gives_its_own_inverse():
     """An LDL^T with some D < 0 (an indefinite matrix): no D^-1/2, the signed D^-1 instead;
     W is still B^T (P^T L D L^T P)^-1 B."""
@@ -207,6 +275,8 @@ def test_a_factor_with_negative_pivots_gives_its_own_inverse():
     ref = dense_reference(A_neg, B)
     W = lower.quadratic(B)
     assert np.abs(W - ref).max() <= 1e-10 * np.abs(ref).max()
+    X_ref = np.linalg.solve(A_neg, B)
+    assert np.abs(lower.solve_block(B) - X_ref).max() <= 1e-10 * np.abs(X_ref).max()
 
 
 def test_rotate_columns_equals_the_dense_rotation():

@@ -64,16 +64,23 @@ class Replayer:
     arguments). Up to ``slots`` keys keep a graph (for a component that alternates between
     argument sets); beyond that the least recently used is retired (:func:`retire`), as are all
     on :meth:`clear`. ``eager``: once a capture has succeeded (the kernels are loaded), a new key
-    is captured at its first use (for launches whose key changes every few calls). A capture
-    that fails runs the launches plainly and forgets the key; ``max_failures`` failures in a row
+    is captured at its first use (for launches whose key changes every few calls, or after every
+    cut: a plain first run and a capture at the second would pay for the launches twice); if that
+    capture fails, the launches run plainly and the key is captured at its next use, as without
+    ``eager`` (the failure is not counted). Another capture that fails runs the launches plainly
+    and forgets the key; ``max_failures`` failures in a row
     turn capturing off for this replayer, with a warning. ``None`` as a key, ``enabled`` False,
-    or a capture already under way (a replayer's launches inside another's): plain launches."""
+    or a capture already under way (a replayer's launches inside another's): plain launches.
+    ``loaded``: the launches' kernels are known to be loaded (a replayer that takes over from
+    another one, for a new surface say): with ``eager``, the first key is captured at once too."""
 
-    def __init__(self, device, name: str, slots: int = 1, eager: bool = False, max_failures: int = 1):
+    def __init__(self, device, name: str, slots: int = 1, eager: bool = False, max_failures: int = 1,
+                 loaded: bool = False):
         self.device = wp.get_device(device)
         self.name = name
         self.slots = int(slots)
         self.eager = bool(eager)
+        self.loaded = bool(loaded)
         self.max_failures = int(max_failures)
         self.enabled = True
         self.error: str | None = None
@@ -98,18 +105,23 @@ class Replayer:
             return False
         graph = self._graphs.get(key)
         if graph is None:
-            if key not in self._seen and not (self.eager and self.captures > 0):
+            if key not in self._seen and not (self.eager and (self.loaded or self.captures > 0)):
                 self._seen[key] = True
                 while len(self._seen) > 2 * self.slots:
                     self._seen.popitem(last=False)
                 launches()
                 return False
+            first = key not in self._seen  # an eager capture at the key's first use
             try:
                 with wp.ScopedCapture(device=self.device) as cap:
                     launches()
             except Exception as exc:  # noqa: BLE001 - these launches run plainly; captured again later
-                self.failures += 1
                 self.error = f"{type(exc).__name__}: {exc}"
+                if first:  # (it may have met what a first run does: an allocation) as if not eager
+                    self._seen[key] = True
+                    launches()
+                    return False
+                self.failures += 1
                 self._seen.pop(key, None)
                 if self.failures >= self.max_failures:
                     self.enabled = False

@@ -249,18 +249,18 @@ class BackwardEuler:
         self.after_solve = None
         self.after_solve_reading = None
         self._readback = Readback()
-        self._after_replay = graphs.Replayer(self.device, "BackwardEuler after the solve", slots=2)
+        self._after_replay = graphs.Replayer(self.device, "BackwardEuler after the solve", slots=2, eager=True)
         # the correction's read-back, one per layout (with a solve's output or without), so that a
         # replayed graph writes into the buffers of the layout it was captured with
         self._correction_reads = {False: Readback(), True: Readback()}
-        self._correction_replay = graphs.Replayer(self.device, "BackwardEuler correction", slots=2)
+        self._correction_replay = graphs.Replayer(self.device, "BackwardEuler correction", slots=2, eager=True)
         # the node rotations of eq. (2) launched by build() where the preconditioner takes them
         # from there (its begin_step reads fem's node rotations as build left them)
         self.node_rotations_in_build = bool(getattr(preconditioner, "uses_build_rotations", False))
         # graph_steps: the step's launches between its reads (build, after the solve, and the
         # caller's, e.g. the contact correction) captured as graphs and replayed while their keys hold
         self.graph_steps = False
-        self._build_replay = graphs.Replayer(self.device, "BackwardEuler.build")
+        self._build_replay = graphs.Replayer(self.device, "BackwardEuler.build", eager=True)
         self.state_version = 0  # counts set_state calls: with step_index, names the state (x, v)
         # the work vectors and the state: views into allocations kept across node-count changes
         self._work = {name: GrowArray(wp.float64 if name in ("_energy", "_guard") else wp.vec3d, self.device)

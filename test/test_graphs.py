@@ -6,6 +6,7 @@ same on Warp's CPU backend, where the PCG is captured as a Warp graph too.
 """
 
 import os
+import warnings
 
 import numpy as np
 import pytest
@@ -173,7 +174,68 @@ def test_a_replayer_launches_plainly_then_captures_then_replays_and_retires_beyo
     assert rep.graph(("two",)) is None and graphs.parked() == 2
 
 
-def _pressed_block(graph: bool):
+def test_an_eager_replayer_captures_new_keys_at_their_first_use():
+    """eager: the first key as any (plain, then captured), later keys captured at once;
+    eager and loaded: the first key captured at once too; neither: every key plain first."""
+    a = wp.zeros(4, dtype=wp.float64, device=DEVICE)
+    plain = graphs.Replayer(DEVICE, "test")
+    eager = graphs.Replayer(DEVICE, "test", eager=True)
+    loaded = graphs.Replayer(DEVICE, "test", eager=True, loaded=True)
+    seen = {}
+    for rep in (plain, eager, loaded):
+        captured = []
+        for key in ("one", "one", "two", "three"):
+            c = rep.captures
+            rep.run((key,), lambda: a.fill_(1.0))
+            captured.append(rep.captures > c)
+        seen[rep] = captured
+    assert seen[plain] == [False, True, False, False]
+    assert seen[eager] == [False, True, True, True]
+    assert seen[loaded] == [True, False, True, True]
+    for rep in (plain, eager, loaded):
+        rep.clear()
+    # a capture at a key's first use that fails (as an allocation in a capture does): plain
+    # launches, the key captured at its next use, capturing left on and nothing warned
+    runs = []
+
+    def allocating():
+        if wp.get_device(DEVICE).is_capturing and not runs:
+            raise RuntimeError("cannot allocate during a capture")
+        runs.append(1)
+        a.fill_(2.0)
+
+    rep = graphs.Replayer(DEVICE, "test", eager=True, loaded=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rep.run(("new",), allocating)
+        assert runs == [1] and rep.captures == 0 and rep.enabled and rep.failures == 0
+        rep.run(("new",), allocating)
+    assert rep.captures == 1 and rep.replays == 1
+    np.testing.assert_array_equal(a.numpy(), 2.0)
+    rep.clear()
+
+
+def test_after_a_mesh_change_the_steps_launches_are_captured_at_their_first_use():
+    """A removal changes the arrays' sizes: the next step's build and launches after the solve
+    are captured at once (their replayers have captured before), not launched plainly first, and
+    the new surface's detection replayer is made knowing its kernels loaded."""
+    with _pressed_block(True, cutting=True) as sim:
+        top = float(sim.mesh.points[:, 2].max())
+        for k in range(4):
+            sim.set_instrument_pose("probe", [0.021, 0.011, top + 0.004 - 0.0005 * k], [0, 0, 0, 1])
+            sim.step()
+        integ = sim.integrator
+        build, after = integ._build_replay, integ._after_replay
+        assert build.captures >= 1 and after.captures >= 1
+        counts = (build.captures, after.captures)
+        old = sim.contact._topo
+        assert sim.remove_elements(sim.positions()[-1], 0.012).changed
+        sim.step()
+        assert (build.captures, after.captures) == (counts[0] + 1, counts[1] + 1)
+        assert sim.contact._topo is not old and sim.contact._topo.replay.loaded == (old.replay.captures > 0)
+
+
+def _pressed_block(graph: bool, cutting: bool = False):
     cfg = {"name": "pressed", "device": DEVICE,
            "mesh": {"generator": "beam", "n_long": 8, "n_cross": 3, "spacing": 0.01},
            "materials": [{"id": 0, "young": 2.0e4, "poisson": 0.4, "density": 1000.0}],
@@ -182,6 +244,8 @@ def _pressed_block(graph: bool):
                       "ldlt": {"backend": "dense", "deterministic": True}},
            "instruments": [{"name": "probe", "shape": "capsule", "radius": 0.004, "length": 0.05}],
            "contact": {"distance": 0.001, "friction": 0.3, "self_collision": True}}
+    if cutting:
+        cfg["cutting"] = {"correction": "sherman_morrison", "scheme": "split"}
     return load_scene(cfg)
 
 

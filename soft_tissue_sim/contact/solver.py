@@ -155,8 +155,10 @@ class ContactSolver:
     def _topology(self, fem) -> SurfaceTopology:
         if self._topo is None or not self._topo.matches(fem):
             self._retire_topology()
+            old = self._topo
             self._topo = SurfaceTopology(fem, self.options["self_collision"], self.objects,
-                                         None if self._topo is None else self._topo.buffers)  # its arrays, kept
+                                         None if old is None else old.buffers,  # its arrays, kept
+                                         loaded=old is not None and old.replay.captures > 0)
         return self._topo
 
     def refresh_surface(self, fem) -> float:

@@ -249,11 +249,11 @@ class BackwardEuler:
         self.after_solve = None
         self.after_solve_reading = None
         self._readback = Readback()
-        self._after_replay = graphs.Replayer(self.device, "BackwardEuler after the solve", slots=2, eager=True)
+        self._after_replay = graphs.Replayer(self.device, "BackwardEuler after the solve", slots=2)
         # the correction's read-back, one per layout (with a solve's output or without), so that a
         # replayed graph writes into the buffers of the layout it was captured with
         self._correction_reads = {False: Readback(), True: Readback()}
-        self._correction_replay = graphs.Replayer(self.device, "BackwardEuler correction", slots=2, eager=True)
+        self._correction_replay = graphs.Replayer(self.device, "BackwardEuler correction", slots=2)
         # the node rotations of eq. (2) launched by build() where the preconditioner takes them
         # from there (its begin_step reads fem's node rotations as build left them)
         self.node_rotations_in_build = bool(getattr(preconditioner, "uses_build_rotations", False))

@@ -124,36 +124,25 @@ class Staged:
 class Readback:
     """Host buffers kept for a fixed list of device arrays: :meth:`copy` enqueues their copies
     (plain launches, which a graph may capture: the buffers stay where they are while the
-    arrays fit them), :meth:`read` waits for the stream once and returns NumPy views
-    (overwritten by the next copy). Page-locked on a GPU, each array's buffer a view of a
-    pooled block (:class:`PinnedPool`) kept while the array's bytes fit it: an array that changes
-    size (a cut) is read into the same block, so that a capture of the copies allocates nothing
-    (page-locked memory cannot be allocated during a capture). On the CPU device the views are
-    the arrays' own memory, as :func:`to_host` gives them (nothing is copied)."""
+    arrays keep their shapes), :meth:`read` waits for the stream once and returns NumPy views
+    (overwritten by the next copy). Page-locked on a GPU; on the CPU device the views are the
+    arrays' own memory, as :func:`to_host` gives them (nothing is copied)."""
 
     def __init__(self):
         self._bufs: list[wp.array] = []
-        self._blocks: list[wp.array | None] = []
 
     def copy(self, *arrays: wp.array) -> None:
         for i, a in enumerate(arrays):
             if i == len(self._bufs):
                 self._bufs.append(None)
-                self._blocks.append(None)
             if a.device.is_cpu:
-                self._bufs[i], self._blocks[i] = a, None
+                self._bufs[i] = a
                 continue
             b = self._bufs[i]
             if b is None or b.shape != a.shape or b.dtype != a.dtype:
-                block = self._blocks[i]
-                nbytes = a.size * wp.types.type_size_in_bytes(a.dtype)
-                if block is None or block.capacity < nbytes:
-                    block = self._blocks[i] = PINNED.empty(max(nbytes, 1), wp.uint8)
-                b = self._bufs[i] = wp.array(ptr=block.ptr, dtype=a.dtype, shape=a.shape, device="cpu",
-                                             pinned=block.pinned)  # a view: the block owns the memory
+                b = self._bufs[i] = PINNED.empty(a.shape, a.dtype)
             wp.copy(b, a)
         del self._bufs[len(arrays):]
-        del self._blocks[len(arrays):]
 
     def key(self) -> tuple:
         """The buffers' addresses (a graph that captured :meth:`copy` writes there)."""

@@ -8,7 +8,7 @@ import os
 import numpy as np
 import warp as wp
 
-from soft_tissue_sim.transfer import Readback, Staged, to_host
+from soft_tissue_sim.transfer import Staged, to_host
 
 DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 
@@ -65,27 +65,3 @@ def test_pinned_pool_recycles_blocks_by_size_and_keeps_a_lent_one_apart():
         wp.synchronize_device(DEVICE)
         np.testing.assert_array_equal(b.numpy(), np.arange(30.0))
 
-
-def test_a_readback_reads_arrays_of_new_sizes_into_the_blocks_it_keeps():
-    """Readback: every array's values after one read; an array that shrinks or grows within its
-    block is read into the same page-locked block (the buffers' key unchanged: a captured copy
-    needs no allocation), one that outgrows it gets a new block. On the CPU the views are the
-    arrays themselves."""
-    rb = Readback()
-    a = wp.array(np.arange(40.0), dtype=wp.float64, device=DEVICE)  # 320 bytes: a 512-byte block
-    b = wp.array(np.arange(6, dtype=np.int32), dtype=wp.int32, device=DEVICE)
-    rb.copy(a, b)
-    ha, hb = rb.read(DEVICE)
-    np.testing.assert_array_equal(ha, np.arange(40.0))
-    np.testing.assert_array_equal(hb, np.arange(6))
-    key = rb.key()
-    a2 = wp.array(np.arange(60.0) + 1.0, dtype=wp.float64, device=DEVICE)  # 480 bytes: fits
-    rb.copy(a2, b)
-    (ha2, _) = rb.read(DEVICE)
-    np.testing.assert_array_equal(ha2, np.arange(60.0) + 1.0)
-    assert (rb.key() == key) == (DEVICE != "cpu")
-    a3 = wp.array(np.arange(100.0), dtype=wp.float64, device=DEVICE)  # 800 bytes: a new block
-    rb.copy(a3, b)
-    (ha3, _) = rb.read(DEVICE)
-    np.testing.assert_array_equal(ha3, np.arange(100.0))
-    assert rb.key()[0] != key[0] and rb.key()[1] == key[1]

@@ -67,9 +67,7 @@ class Replayer:
     is captured at its first use (for launches whose key changes every few calls, or after every
     cut: a plain first run and a capture at the second would pay for the launches twice); if that
     capture fails, the launches run plainly and the key is captured at its next use, as without
-    ``eager`` (the failure is not counted); while the graph captured so at its first use has not
-    been launched again (keys that change at every call: a run of cuts), new keys are launched
-    plainly first, as without ``eager``. Another capture that fails runs the launches plainly
+    ``eager`` (the failure is not counted). Another capture that fails runs the launches plainly
     and forgets the key; ``max_failures`` failures in a row
     turn capturing off for this replayer, with a warning. ``None`` as a key, ``enabled`` False,
     or a capture already under way (a replayer's launches inside another's): plain launches.
@@ -83,7 +81,6 @@ class Replayer:
         self.slots = int(slots)
         self.eager = bool(eager)
         self.loaded = bool(loaded)
-        self.reused = True  # the graph captured last has been launched again (or none was captured yet)
         self.max_failures = int(max_failures)
         self.enabled = True
         self.error: str | None = None
@@ -108,8 +105,7 @@ class Replayer:
             return False
         graph = self._graphs.get(key)
         if graph is None:
-            eager = self.eager and (self.loaded or self.captures > 0) and self.reused
-            if key not in self._seen and not eager:
+            if key not in self._seen and not (self.eager and (self.loaded or self.captures > 0)):
                 self._seen[key] = True
                 while len(self._seen) > 2 * self.slots:
                     self._seen.popitem(last=False)
@@ -138,12 +134,10 @@ class Replayer:
             self._graphs[key] = graph
             self.failures = 0
             self.captures += 1
-            self.reused = not first
             while len(self._graphs) > self.slots:
                 retire(self._graphs.popitem(last=False)[1])
         else:
             self._graphs.move_to_end(key)
-            self.reused = True
         wp.capture_launch(graph)
         self.replays += 1
         return True

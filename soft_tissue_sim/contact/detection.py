@@ -206,8 +206,8 @@ class SurfaceTopology:
         the contacts' ``obj``): each gets its output slots. ``buffers``: the device arrays kept
         from the surface this one replaces (the same ``objects``); its arrays become this
         surface's (the replaced one must not be used any more). None: new ones. ``loaded``: the
-        detection's kernels are loaded (the replaced surface's detections were captured and
-        replayed): this surface's are captured at their first launch."""
+        detection's kernels are loaded (the replaced surface's detections were captured): this
+        surface's are captured at their first launch."""
         mesh, dev = fem.mesh, fem.device
         self.buffers = buffers = buffers if buffers is not None else SurfaceBuffers(len(objects), dev)
         self.keys = (fem.mesh, fem.mesh.tets, fem.tets, fem.n_nodes)

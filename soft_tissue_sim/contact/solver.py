@@ -158,7 +158,7 @@ class ContactSolver:
             old = self._topo
             self._topo = SurfaceTopology(fem, self.options["self_collision"], self.objects,
                                          None if old is None else old.buffers,  # its arrays, kept
-                                         loaded=old is not None and old.replay.captures > 0 and old.replay.reused)
+                                         loaded=old is not None and old.replay.captures > 0)
         return self._topo
 
     def refresh_surface(self, fem) -> float:

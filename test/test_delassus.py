@@ -155,17 +155,23 @@ def dense_reference(A, B):
     return B.T @ np.linalg.solve(A.toarray() if sps.issparse(A) else A, B)
 
 
+def beam_factors(monkeypatch, blas_from):
+    """The beam's matrix, its simplicial CHOLMOD factor and that factor's LowerFactor with the
+    supernodes of at least ``blas_from`` columns solved by BLAS: (A, n nodes, factor, lower)."""
+    monkeypatch.setattr(delassus, "SNODE_BLAS", blas_from)
+    A, n = beam_matrix()
+    f = analyze(A, mode="simplicial")
+    f.cholesky_inplace(A)
+    return A, n, f, LowerFactor.from_cholmod(f)
+
+
 @pytest.mark.parametrize("blas_from", [2, 10**9])
 def test_kernel_and_blas_supernodes_give_the_dense_inverse(monkeypatch, blas_from):
     """W by the kernel alone (no supernode large enough for BLAS) and with BLAS on nearly
     every supernode: both B^T A^-1 B of the dense inverse, whatever the columns (one to 4
     nodes, several in the same place, a column given twice, an empty one)."""
-    monkeypatch.setattr(delassus, "SNODE_BLAS", blas_from)
     rng = np.random.default_rng(3)
-    A, n = beam_matrix()
-    f = analyze(A, mode="simplicial")
-    f.cholesky_inplace(A)
-    lower = LowerFactor.from_cholmod(f)
+    A, n, f, lower = beam_factors(monkeypatch, blas_from)
     assert (len(lower.snodes) == 0) == (blas_from > n)
     for m in (1, 3, GROUP, 3 * GROUP + 1):
         B = constraint_columns(rng, n, m, nodes=rng.choice(n, max(4, m // 3), replace=False))
@@ -184,12 +190,8 @@ def test_block_solve_equals_the_factors_solve(monkeypatch, blas_from):
     supernodes by BLAS and with BLAS on nearly every supernode: unit columns (a cut's G, one
     node's three DOFs after another, the last group padded), constraint columns with a column
     given twice and an empty one, dense and sparse."""
-    monkeypatch.setattr(delassus, "SNODE_BLAS", blas_from)
     rng = np.random.default_rng(5)
-    A, n = beam_matrix()
-    f = analyze(A, mode="simplicial")
-    f.cholesky_inplace(A)
-    lower = LowerFactor.from_cholmod(f)
+    A, n, f, lower = beam_factors(monkeypatch, blas_from)
     for c in (1, GROUP, 2 * GROUP + 5):
         dofs = (3 * rng.choice(n, -(-c // 3), replace=False)[:, None] + np.arange(3)).ravel()[:c]
         G = np.zeros((3 * n, c))

@@ -138,6 +138,27 @@ def test_steps_with_and_without_a_device_solve_alternate_under_graphs():
     np.testing.assert_allclose(x1, x0, rtol=0, atol=0.0 if DEVICE == "cpu" else 1e-12)
 
 
+def test_the_device_solves_key_makes_its_work_vectors():
+    """DeviceLCP.key() makes the views its launches use for this node count, so that the launches
+    allocate nothing (memory allocated inside a graph capture would be the graph's)."""
+    from soft_tissue_sim.contact.device_lcp import DeviceLCP
+
+    lcp = DeviceLCP(8, DEVICE)
+    free = wp.ones(37, dtype=wp.float64, device=DEVICE)
+
+    class Inner:
+        def graph_key(self):
+            return ()
+
+        def delassus_key(self):
+            return ()
+
+    assert lcp._r.capacity == lcp._z.capacity == lcp._dx.capacity == 0
+    key = lcp.key(Inner(), free, 0.01, ())
+    assert min(lcp._r.capacity, lcp._z.capacity, lcp._dx.capacity) >= 37
+    assert lcp.key(Inner(), free, 0.01, ()) == key
+
+
 @pytest.mark.parametrize("bad", [-1, 257, 2.5, True, "many"])
 def test_device_lcp_rows_is_validated(bad):
     with pytest.raises(ParameterError, match="device_lcp_rows"):

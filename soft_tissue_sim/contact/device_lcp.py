@@ -175,9 +175,11 @@ class DeviceLCP:
 
     def key(self, inner, free: wp.array, dt: float, options: tuple) -> tuple:
         """What :meth:`launch`'s launches depend on (the buffers are fixed while the node count
-        holds)."""
-        return (inner.graph_key(), inner.delassus_key(), free.ptr, self._dx.view(free.shape[0]).ptr, float(dt),
-                *options)
+        holds; their views for this count are made here, so that the launches allocate
+        nothing, even captured at a key's first use)."""
+        n = free.shape[0]
+        r, z, dx = self._r.view(n), self._z.view(n), self._dx.view(n)
+        return (inner.graph_key(), inner.delassus_key(), free.ptr, r.ptr, z.ptr, dx.ptr, float(dt), *options)
 
     def launch(self, inner, free: wp.array, dt: float, max_iterations: int, tolerance: float,
                pyramid: bool) -> wp.array:

@@ -99,11 +99,8 @@ class Replayer:
         """The graph launched last among those kept, or None."""
         return next(reversed(self._graphs.values()), None)
 
-    def run(self, key, launches, key_after=None) -> bool:
-        """Run ``launches`` for ``key`` (see the class); True where a graph was launched.
-        ``key_after``: the key formed again after the launches, for launches that may change
-        what the key names (read-back buffers made for new sizes): a graph whose capture
-        changed it is launched this once and retired, not kept under a key it does not match."""
+    def run(self, key, launches) -> bool:
+        """Run ``launches`` for ``key`` (see the class); True where a graph was launched."""
         if key is None or not self.enabled or self.device.is_capturing:  # capturing: part of the outer graph
             launches()
             return False
@@ -135,14 +132,9 @@ class Replayer:
                 launches()
                 return False
             graph = cap.graph
+            self._graphs[key] = graph
             self.failures = 0
             self.captures += 1
-            if key_after is not None and key_after() != key:
-                wp.capture_launch(graph)
-                self.replays += 1
-                retire(graph)
-                return True
-            self._graphs[key] = graph
             while len(self._graphs) > self.slots:
                 retire(self._graphs.popitem(last=False)[1])
         else:

@@ -249,11 +249,11 @@ class BackwardEuler:
         self.after_solve = None
         self.after_solve_reading = None
         self._readback = Readback()
-        self._after_replay = graphs.Replayer(self.device, "BackwardEuler after the solve", slots=2, eager=True)
+        self._after_replay = graphs.Replayer(self.device, "BackwardEuler after the solve", slots=2)
         # the correction's read-back, one per layout (with a solve's output or without), so that a
         # replayed graph writes into the buffers of the layout it was captured with
         self._correction_reads = {False: Readback(), True: Readback()}
-        self._correction_replay = graphs.Replayer(self.device, "BackwardEuler correction", slots=2, eager=True)
+        self._correction_replay = graphs.Replayer(self.device, "BackwardEuler correction", slots=2)
         # the node rotations of eq. (2) launched by build() where the preconditioner takes them
         # from there (its begin_step reads fem's node rotations as build left them)
         self.node_rotations_in_build = bool(getattr(preconditioner, "uses_build_rotations", False))
@@ -483,11 +483,10 @@ class BackwardEuler:
             extra = hook_launch() if hook_launch is not None else []
             self._readback.copy(self.cg.scalars, self.launch_guard(), *extra)
 
-        def key_now():
-            return (self._state_arrays_key(), self.dv.ptr, self.cg.scalars.ptr, hook_key, self._readback.key())
-
-        key = key_now() if self.graph_steps and hook_key is not None else None
-        self._after_replay.run(key, launches, key_now)
+        key = None
+        if self.graph_steps and hook_key is not None:
+            key = (self._state_arrays_key(), self.dv.ptr, self.cg.scalars.ptr, hook_key, self._readback.key())
+        self._after_replay.run(key, launches)
         return self._readback.read(self.device)
 
     def correct_and_read(self, dx, hook: tuple = ((), None), solve=None) -> list:
@@ -507,14 +506,11 @@ class BackwardEuler:
             extra = hook_launch() if hook_launch is not None else []
             readback.copy(self.launch_guard(), *outs, *extra)
 
-        def key_now():
-            return (None if dx is None else dx.ptr, None if solve is None else solve.key(), self._state_arrays_key(),
-                    hook_key, readback.key())
-
         key = None
         if self.graph_steps and hook_key is not None and (dx is None or isinstance(dx, wp.array)):
-            key = key_now()
-        self._correction_replay.run(key, launches, key_now)
+            key = (None if dx is None else dx.ptr, None if solve is None else solve.key(), self._state_arrays_key(),
+                   hook_key, readback.key())
+        self._correction_replay.run(key, launches)
         return readback.read(self.device)
 
     def _state_arrays_key(self) -> tuple:

@@ -344,9 +344,9 @@ class LowerFactor:
         product of its rows below with the final rows there, then the triangular solve), the
         columns between two of them by :func:`backward_kernel`."""
         n, c = B.shape
-        if c == 0 or n != self.n:
-            if n != self.n:
-                raise ValueError(f"factor is for {self.n} DOFs, got a block of shape {B.shape}")
+        if n != self.n:
+            raise ValueError(f"factor is for {self.n} DOFs, got a block of shape {B.shape}")
+        if c == 0:
             return np.zeros((n, 0))
         groups = -(-c // GROUP)
         with one_thread():

@@ -70,8 +70,8 @@ class Replayer:
     ``eager`` (the failure is not counted). Only for launches that allocate nothing: memory
     allocated inside a capture belongs to the graph. Another capture that fails runs the
     launches plainly and forgets the key; ``max_failures`` failures in a row turn capturing off
-    for this replayer, with a warning. ``None`` as a key, ``enabled`` False,
-    or a capture already under way (a replayer's launches inside another's): plain launches.
+    for this replayer, with a warning. ``None`` as a key, ``enabled`` False, or a capture
+    already under way (a replayer's launches inside another's): plain launches.
     ``loaded``: the launches' kernels are known to be loaded (a replayer that takes over from
     another one, for a new surface say): with ``eager``, the first key is captured at once too."""
 

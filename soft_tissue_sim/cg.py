@@ -497,26 +497,26 @@ class DevicePCG(PCG):
         self.replay.clear()  # a graph of the old size is released where no factorization runs
 
     # ------------------------------------------------------------------ pieces
-    def _ddot(self, a, b):
-        nb = self._partials.shape[0]
-        wp.launch(_dot_partial_kernel, nb * self._block, [a, b, a.shape[0], self._partials], device=self.device,
-                  block_dim=self._block)
+    def _blocks(self, kernel, args):
+        """``kernel`` over as many blocks as the partial sums (grid-stride over the vectors)."""
+        wp.launch(kernel, self._partials.shape[0] * self._block, args, device=self.device, block_dim=self._block)
 
-    def _scalar(self, kernel, args):
-        wp.launch(kernel, self._block, [self._partials] + args, device=self.device, block_dim=self._block)
+    def _ddot(self, a, b):
+        self._blocks(_dot_partial_kernel, [a, b, a.shape[0], self._partials])
+
+    def _scalar(self, kernel, args, partials=None):
+        """``kernel`` on one block, adding up ``partials`` (default: the dot products')."""
+        wp.launch(kernel, self._block, [self._partials if partials is None else partials] + args,
+                  device=self.device, block_dim=self._block)
 
     def _tail(self, matvec, x):
         """A p, p.Ap, alpha, x += alpha p, r -= alpha A p, r.r, stopping test."""
-        dev, n = self.device, self.n
         matvec(self.p, self.Ap)
         self._ddot(self.p, self.Ap)
-        nb = self._partials.shape[0]
-        wp.launch(_pcg_alpha_axpy2_kernel, nb * self._block,
-                  [self._partials, self._s, self.p, self.Ap, x, self.r, n, self._rr_partials], device=dev,
-                  block_dim=self._block)
-        wp.launch(_pcg_check_kernel, self._block,
-                  [self._rr_partials, self._s, self._flag, self.tolerance, float(self.max_iterations)],
-                  device=dev, block_dim=self._block)
+        self._blocks(_pcg_alpha_axpy2_kernel,
+                     [self._partials, self._s, self.p, self.Ap, x, self.r, self.n, self._rr_partials])
+        self._scalar(_pcg_check_kernel, [self._s, self._flag, self.tolerance, float(self.max_iterations)],
+                     self._rr_partials)
 
     def _run(self, matvec, b, x, preconditioner):
         dev, n = self.device, self.n
@@ -534,9 +534,7 @@ class DevicePCG(PCG):
         def body():
             preconditioner.apply(self.r, self.z)
             self._ddot(self.r, self.z)
-            nb = self._partials.shape[0]
-            wp.launch(_pcg_beta_xpby_kernel, nb * self._block, [self._partials, self._s, self.z, self.p, n, nb],
-                      device=dev, block_dim=self._block)
+            self._blocks(_pcg_beta_xpby_kernel, [self._partials, self._s, self.z, self.p, n, self._partials.shape[0]])
             self._tail(matvec, x)
 
         wp.capture_while(self._flag, body)

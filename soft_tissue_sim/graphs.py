@@ -107,9 +107,7 @@ class Replayer:
         graph = self._graphs.get(key)
         if graph is None:
             if key not in self._seen and not (self.eager and (self.loaded or self.captures > 0)):
-                self._seen[key] = True
-                while len(self._seen) > 2 * self.slots:
-                    self._seen.popitem(last=False)
+                self._see(key)
                 launches()
                 return False
             first = key not in self._seen  # an eager capture at the key's first use
@@ -119,7 +117,7 @@ class Replayer:
             except Exception as exc:  # noqa: BLE001 - these launches run plainly; captured again later
                 self.error = f"{type(exc).__name__}: {exc}"
                 if first:  # (it may have met what a first run does: an allocation) as if not eager
-                    self._seen[key] = True
+                    self._see(key)
                     launches()
                     return False
                 self.failures += 1
@@ -142,6 +140,12 @@ class Replayer:
         wp.capture_launch(graph)
         self.replays += 1
         return True
+
+    def _see(self, key) -> None:
+        """Remember ``key`` as seen (the last 2 slots keys)."""
+        self._seen[key] = True
+        while len(self._seen) > 2 * self.slots:
+            self._seen.popitem(last=False)
 
     def clear(self) -> None:
         """Retire every kept graph and forget the keys seen."""

@@ -8,6 +8,10 @@ iterating until the recursively updated residual r ~ b - A x is below the tolera
 (||r|| / ||b||). In floating point that recursion drifts from the true residual (far, on
 stiff, badly conditioned systems), so the solve ends with one more product: convergence is
 judged on the true relative residual ||b - A x|| / ||b||, which is what ``residual`` reports.
+With ``warm_start`` the iteration starts from the x it is given (the previous step's solution,
+left in place by the caller) instead of zero: r = b - A x, one product more, and zero after all
+where that residual is not below ||b|| (or not finite), so a guess never costs more than a
+cold start; the stopping test stays relative to ||b||.
 Float64 cannot make that residual much smaller than eps ||A|| ||x|| / ||b|| (the rounding of
 the product itself); ``residual_floor`` is that estimate (||A|| by a few power iterations,
 cached while the operator's key holds) and ``tolerance_unreachable`` says when the tolerance
@@ -172,6 +176,7 @@ class PCG:
             raise ValueError(f"CG max_iterations must be >= 1, got {max_iterations}")
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
+        self.warm_start = False  # start from the x given (see the module docstring)
         self.device = wp.get_device(device)
         self._norm_key = None  # what the cached ||A|| estimate was made for (kept across resizes)
         self.norm_estimate = float("nan")
@@ -226,8 +231,9 @@ class PCG:
                         bool(self.tolerance < floor))
 
     def solve(self, matvec, b: wp.array, x: wp.array, preconditioner) -> CGResult:
-        """Solve A x = b from x = 0. Returns iterations, the final true relative residual
-        (converged when it is within the tolerance) and the float64 floor estimate."""
+        """Solve A x = b from x = 0 (``warm_start``: from the x given, where its residual is
+        below ||b||). Returns iterations, the final true relative residual (converged when it
+        is within the tolerance) and the float64 floor estimate."""
         if b.shape[0] != self.n:
             self.resize(b.shape[0])
         dev = self.device
@@ -238,8 +244,14 @@ class PCG:
             nan = float("nan")
             return CGResult(0, 0.0 if b_norm == 0.0 else nan, b_norm == 0.0, 0.0, 0.0 if b_norm == 0.0 else nan)
         norm_a = self.operator_norm(matvec)
-        x.zero_()
-        wp.copy(r, b)
+        cold = True
+        if self.warm_start:
+            matvec(x, Ap)
+            wp.launch(_residual_kernel, self.n, [b, Ap, r], device=dev)
+            cold = not (np.sqrt(self._inner(r, r)) < b_norm)  # NaN: cold too
+        if cold:
+            x.zero_()
+            wp.copy(r, b)
         t_pre = 0.0
         t0 = time.perf_counter()
         preconditioner.apply(r, z)
@@ -348,6 +360,22 @@ def _pcg_init_kernel(s: wp.array(dtype=wp.float64), flag: wp.array(dtype=wp.int3
     else:
         s[_REL] = wp.float64(wp.nan)
     flag[0] = 1
+
+
+@wp.kernel
+def _pcg_warm_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64),
+                     b: wp.array(dtype=wp.vec3d), x: wp.array(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d),
+                     n: int, blocks: int):
+    """The warm start kept or dropped: r.r of the guess (the sum of ``partials``, added up by
+    every block) against b.b (slot BB); unless it is smaller, x = 0 and r = b (grid-stride over
+    ``blocks`` blocks)."""
+    t = wp.tid()
+    nt = wp.block_dim()
+    rr = _sum_partials(partials, t % nt, nt)
+    if not (rr < s[_BB]):
+        for i in range(t, n, blocks * nt):
+            x[i] = wp.vec3d()
+            r[i] = b[i]
 
 
 @wp.kernel
@@ -520,10 +548,16 @@ class DevicePCG(PCG):
 
     def _run(self, matvec, b, x, preconditioner):
         dev, n = self.device, self.n
-        x.zero_()
-        wp.copy(self.r, b)
         self._ddot(b, b)
         self._scalar(_pcg_store_kernel, [self._s, _BB])
+        if self.warm_start:  # r = b - A x, or x = 0 and r = b where that is not smaller than b
+            matvec(x, self.Ap)
+            wp.launch(_residual_kernel, n, [b, self.Ap, self.r], device=dev)
+            self._ddot(self.r, self.r)
+            self._blocks(_pcg_warm_kernel, [self._partials, self._s, b, x, self.r, n, self._partials.shape[0]])
+        else:
+            x.zero_()
+            wp.copy(self.r, b)
         wp.launch(_pcg_init_kernel, 1, [self._s, self._flag], device=dev)
         preconditioner.apply(self.r, self.z)
         wp.copy(self.p, self.z)
@@ -555,7 +589,7 @@ class DevicePCG(PCG):
         pkey = pk()
         if pkey is None:  # an apply that cannot be captured (cuDSS's solve allocates)
             return None
-        return (self.n, b.ptr, x.ptr, self.r.ptr, mk(), pkey, self.tolerance, self.max_iterations)
+        return (self.n, b.ptr, x.ptr, self.r.ptr, mk(), pkey, self.tolerance, self.max_iterations, self.warm_start)
 
     def solve(self, matvec, b: wp.array, x: wp.array, preconditioner) -> CGResult:
         done = self.launch(matvec, b, x, preconditioner)

@@ -204,7 +204,7 @@ class BackwardEuler:
 
     def __init__(self, fem: CorotationalFEM, dt: float, damping: Damping, gravity, preconditioner,
                  tolerance: float = 1e-7, max_iterations: int = 1000, newton_iterations: int | None = None,
-                 newton_tolerance: float | None = None):
+                 newton_tolerance: float | None = None, warm_start: bool = True):
         dt = float(dt)
         if not np.isfinite(dt) or dt <= 0.0:
             raise ParameterError(f"time step dt must be > 0 and finite, got {dt}")
@@ -234,6 +234,9 @@ class BackwardEuler:
         self.gravity = g
         self.preconditioner = preconditioner
         self.cg = PCG(fem.n_nodes, fem.device, tolerance, max_iterations)
+        # warm_start: each step's solve starts from the last accepted step's dv (the PCG's
+        # warm_start); set_state (a cut, a rollback, reset) and Newton's later solves start from 0
+        self.warm_start = bool(warm_start)
         self.step_index = 0
         self.time = 0.0
         # read_guard: a device solve's step also launches the divergence guard (launch_guard) at
@@ -265,9 +268,9 @@ class BackwardEuler:
         # the work vectors and the state: views into allocations kept across node-count changes
         self._work = {name: GrowArray(wp.float64 if name in ("_energy", "_guard") else wp.vec3d, self.device)
                       for name in self._WORK}
-        self._state = PackedArrays({"x": wp.vec3d, "v": wp.vec3d}, self.device)
+        self._state = PackedArrays({"x": wp.vec3d, "v": wp.vec3d, "dv": wp.vec3d}, self.device)
         self._allocate()
-        self._state.reserve({"x": fem.n_nodes, "v": fem.n_nodes})
+        self._state.reserve({"x": fem.n_nodes, "v": fem.n_nodes, "dv": fem.n_nodes})
         self.x, self.v = self._state.array("x"), self._state.array("v")
         wp.copy(self.x, fem.rest)
         self.v.zero_()
@@ -293,10 +296,12 @@ class BackwardEuler:
             a.zero_()
             setattr(self, name, a)
 
-    def set_state(self, x: np.ndarray, v: np.ndarray) -> None:
+    def set_state(self, x: np.ndarray, v: np.ndarray, dv: np.ndarray | None = None) -> None:
         """Replace positions and velocities (e.g. after a topology change or a rollback): written
         into the state's kept arrays (their addresses change only where the node count outgrows
-        them), sent in one copy."""
+        them), sent in one copy. ``dv``: the next solve's guess on the new state (a change
+        carries the last one through, :class:`~soft_tissue_sim.cutting.TopologyChange`); None:
+        zero."""
         if x.shape[0] != self.fem.n_nodes:
             raise ValueError("state size does not match the mesh")
         n = x.shape[0]
@@ -304,11 +309,13 @@ class BackwardEuler:
             self._allocate()
             self.cg.resize(n)
         st = self._state
-        st.reserve({"x": n, "v": n})
+        st.reserve({"x": n, "v": n, "dv": n})
         st.host("x")[...] = x
         st.host("v")[...] = v
-        st.send(("x", "v"))
+        st.host("dv")[...] = dv if dv is not None and self.warm_start else 0.0
+        st.send(("x", "v", "dv"))
         self.x, self.v = st.array("x"), st.array("v")
+        wp.copy(self.dv, st.array("dv"))
         self.state_version += 1
 
     def matvec(self, p: wp.array, out: wp.array) -> None:
@@ -400,6 +407,7 @@ class BackwardEuler:
         # a device solve is only launched here: its result and the guard's values are read in one wait
         launch = getattr(self.cg, "launch", None) if self.read_guard and not newton else None
         solve = launch if launch is not None else self.cg.solve
+        self.cg.warm_start = self.warm_start
         res = solve(self.matvec, self.b, self.dv, self.preconditioner)
         if res is None:
             s, guard, *after = self._finish_launched()
@@ -422,6 +430,7 @@ class BackwardEuler:
                         or linearisations >= self.newton_iterations or not np.isfinite(nonlinear):
                     break
                 ts = time.perf_counter()
+                self.dv.zero_()  # a correction: no guess
                 res = self.cg.solve(self.matvec, self.b, self.dv, self.preconditioner)
                 solve_s += time.perf_counter() - ts
                 wp.launch(_newton_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],

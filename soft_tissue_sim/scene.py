@@ -20,6 +20,7 @@ Scene keys (all but ``mesh`` and ``materials`` optional)::
     fixed: {axis: x, below: 0.0}  # or {box: {min: [..], max: [..]}} or {nodes: [..]}, or a list of these
     time: {dt: 0.01}
     solver: {tolerance: 1.0e-7, max_iterations: 1000,
+             warm_start: true,                    # each solve starts from the last step's dv
              newton_iterations: 1,                # linearisations of eq. (1) per step (1: the paper's);
              newton_tolerance: null,              #   or until ||g|| / ||b|| is within this (then up to 20)
                                                   #   (see implicit_integration.py)
@@ -234,6 +235,9 @@ class Simulation:
         if not (isinstance(max_it, int) and max_it >= 1):
             raise ParameterError(f"solver max_iterations must be an integer >= 1, got {max_it!r}")
         dt = (config.get("time") or {}).get("dt", 0.01)
+        warm = solver.get("warm_start", True)
+        if not isinstance(warm, bool):
+            raise ParameterError(f"solver warm_start must be true or false, got {warm!r}")
         graph = _graph_option(solver.get("graph", "auto"))
         priority = str(solver.get("stream_priority", "high"))
         if priority not in ("high", "default"):
@@ -260,6 +264,7 @@ class Simulation:
             self.fem, dt, self.damping, config.get("gravity", [0.0, 0.0, -9.81]), self.preconditioner,
             tolerance=float(tol), max_iterations=int(max_it),
             newton_iterations=solver.get("newton_iterations"), newton_tolerance=solver.get("newton_tolerance"),
+            warm_start=warm,
         )
         device_factor = hasattr(self.preconditioner, "backend")  # a factor that applies on the device
         use_graph = graph == "true" or (graph == "auto" and device_factor and wp.get_device(self.device).is_cuda)
@@ -327,8 +332,13 @@ class Simulation:
         one transfer)."""
         from .cutting import Tissue
 
-        x, v, free = to_host(self.integrator.x, self.integrator.v, self.fem.free)
-        return Tissue(self.mesh, x.copy(), v.copy(), self.node_uids, free.copy())
+        integ = self.integrator
+        if integ.warm_start:  # the solver's guess goes through the change with the state
+            x, v, free, dv = to_host(integ.x, integ.v, self.fem.free, integ.dv)
+            dv = dv.copy()
+        else:
+            (x, v, free), dv = to_host(integ.x, integ.v, self.fem.free), None
+        return Tissue(self.mesh, x.copy(), v.copy(), self.node_uids, free.copy(), dv)
 
     def _instruments(self) -> dict:
         return self.contact.instruments if self.contact is not None else {}
@@ -380,7 +390,7 @@ class Simulation:
         R_nodes = fem.node_rotations_around(integ.x, around, np.flatnonzero(need))
         old_blocks = fem.element_blocks(change.removed_tets, m_coef, k_coef)
         fem.set_mesh(change.mesh, change.fixed, change.tet_source)
-        integ.set_state(change.x, change.v)
+        integ.set_state(change.x, change.v, change.dv)
         # the state is the same node for node: the tets that kept their source's shape keep its rotation
         fem.update_rotations(integ.x, changed_only=True)
         new_blocks = fem.element_blocks(change.added_tets, m_coef, k_coef)
@@ -474,6 +484,7 @@ class Simulation:
 
         def rollback():
             self._restore_state(prev)
+            integ.dv.zero_()  # the rejected step's solution is no guess for the retry
             integ.step_index, integ.time = k0, t0
 
         self.rollbacks += 1

@@ -285,7 +285,7 @@ def test_a_part_cut_free_is_lifted_out_and_the_preconditioner_follows():
         assert 5 < free_part.sum() < len(T)
         n_tets, mass = sim.mesh.n_tets, sim.fem.total_mass
         vol = sim.fem.volume.numpy()
-        x_before, v_before = sim.positions(), sim.velocities()
+        x_before, v_before, dv_before = sim.positions(), sim.velocities(), sim.integrator.dv.numpy().copy()
         for bad in (np.ones(n_tets + 1, bool), [n_tets], [-1], np.ones(n_tets, bool), [], [0.5]):
             res = sim.remove_tets(bad)
             assert not res.changed and res.message
@@ -296,6 +296,7 @@ def test_a_part_cut_free_is_lifted_out_and_the_preconditioner_follows():
         assert sim.fem.total_mass == pytest.approx(mass * (1.0 - vol[free_part].sum() / vol.sum()), rel=1e-12)
         kept = np.isin(np.arange(len(x_before)), np.unique(T[~free_part]))
         np.testing.assert_array_equal(sim.velocities(), v_before[kept])
+        np.testing.assert_array_equal(sim.integrator.dv.numpy(), dv_before[kept])  # the solver's guess too
         assert corrected_vs_fresh(sim, rng) < 1e-8
         assert sim.step().converged
 
@@ -373,6 +374,8 @@ def test_subdivision_cuts_at_the_blade_and_conserves_mass_and_volume():
         layer = np.all((sim.mesh.points[sim.mesh.tets][:, :, 0] > 0.055) & (sim.mesh.points[sim.mesh.tets][:, :, 0] < 0.075),
                        axis=1)
         x_before, tets_before = sim.positions(), sim.mesh.tets.copy()
+        dv_before = sim.integrator.dv.numpy().copy()  # the last solve's, the next one's guess
+        assert np.abs(dv_before).max() > 0.0
         res = crosswise(sim, x_cut)
         assert res.changed and "subdivision" in res.message
         assert res.tets_changed == layer.sum()  # exactly the crossed layer
@@ -382,7 +385,8 @@ def test_subdivision_cuts_at_the_blade_and_conserves_mass_and_volume():
         assert len(new) == res.nodes_added > 0
         np.testing.assert_allclose(new[:, 0], x_cut, atol=1e-12)  # on the blade
         # the displacement field is unchanged: each new node is where the old (linear) field puts it
-        X = sim.positions()
+        X, DV = sim.positions(), sim.integrator.dv.numpy()
+        np.testing.assert_array_equal(DV[:n0], dv_before)
         P0 = sim.mesh.points[:n0][tets_before]  # (m, 4, 3) old tets, rest
         T = np.stack([P0[:, 1] - P0[:, 0], P0[:, 2] - P0[:, 0], P0[:, 3] - P0[:, 0]], axis=2)
         for p in range(n0, sim.mesh.n_nodes):
@@ -391,6 +395,7 @@ def test_subdivision_cuts_at_the_blade_and_conserves_mass_and_volume():
             e = int(np.argmax(w.min(axis=1)))  # a tet holding the node (on its edge)
             assert w[e].min() > -1e-9
             np.testing.assert_allclose(X[p], w[e] @ x_before[tets_before[e]], atol=1e-12)
+            np.testing.assert_allclose(DV[p], w[e] @ dv_before[tets_before[e]], atol=1e-12)  # the guess alike
         assert len(np.unique(sim.mesh.node_components())) == 2
         assert tet_quality(sim.mesh.points, sim.mesh.tets).min() >= sim.cutting.min_quality
         free = sim.mesh.points[:, 0] > x_cut

@@ -76,6 +76,41 @@ def test_cg_matches_a_direct_solve_of_the_assembled_system(mass):
         assert np.linalg.norm(x_cg - x_direct) <= 1e-6 * np.linalg.norm(x_direct)
 
 
+@pytest.mark.parametrize("device_scalars", [False, True])
+def test_a_warm_start_reaches_the_tolerance_from_its_guess_and_drops_a_bad_one(device_scalars):
+    """PCG's warm_start: from a guess near the solution fewer iterations to the same relative
+    tolerance; from a guess whose residual is not below ||b|| (far, or NaN) the cold solve
+    exactly (x = 0, r = b), for the host-scalar and the device-scalar PCG alike."""
+    from soft_tissue_sim.cg import DevicePCG
+
+    tol = 1e-9
+    with load_scene(beam_scene(16, 3, preconditioner="jacobi", tolerance=tol)) as sim:
+        for _ in range(5):
+            sim.step()
+        integ = sim.integrator
+        integ.build()
+        integ.preconditioner.begin_step(integ)
+        cg = DevicePCG(sim.fem.n_nodes, "cpu", tol, 3000) if device_scalars else integ.cg
+        A = sim.fem.assemble_scipy(integ.m_coef, integ.k_coef)
+        b = integ.b.numpy().ravel()
+
+        def solve(guess, warm):
+            cg.warm_start = warm
+            integ.dv.assign(guess)
+            res = cg.solve(integ.matvec, integ.b, integ.dv, integ.preconditioner)
+            x = integ.dv.numpy().copy()
+            assert res.converged and np.linalg.norm(A @ x.ravel() - b) <= 1.01 * tol * np.linalg.norm(b)
+            return res, x
+
+        cold, x_cold = solve(np.full((sim.fem.n_nodes, 3), 7.0), warm=False)  # the guess is ignored
+        warm, _ = solve(0.99 * x_cold, warm=True)  # the error a hundredth of the cold start's
+        assert cold.iterations > 5 and warm.iterations < cold.iterations
+        for bad in (np.full_like(x_cold, np.nan), 1e3 * (1.0 + np.abs(x_cold))):
+            res, x = solve(bad, warm=True)
+            assert res.iterations == cold.iterations
+            np.testing.assert_array_equal(x, x_cold)
+
+
 @pytest.mark.parametrize("pre", ["none", "jacobi"])
 def test_step_reports_the_residual_it_reached(pre):
     cfg = beam_scene(12, 3, preconditioner=pre, tolerance=1e-6)
@@ -157,6 +192,7 @@ def test_fixed_nodes_do_not_move():
         ({"damping": {"mass": -1.0}}, "damping"),
         ({"solver": {"preconditioner": "magic"}}, "preconditioner"),
         ({"solver": {"tolerance": 0.0}}, "tolerance"),
+        ({"solver": {"warm_start": "yes"}}, "warm_start"),
         ({"device": "tpu"}, "device"),
         ({"viscosity": 3}, "unknown scene keys"),
         ({"fixed": {"nodes": [10_000]}}, "out of range"),
@@ -210,6 +246,7 @@ def test_a_diverging_step_is_rolled_back_and_the_simulation_carries_on():
         sim.integrator.f_ext.assign(f)
         s = sim.step()
         assert s.extra["rolled_back"] and not s.converged and sim.rollbacks == 1
+        assert not np.any(sim.integrator.dv.numpy())  # the failed solve is no guess for the next
         np.testing.assert_array_equal(sim.positions(), x_good)
         np.testing.assert_array_equal(sim.velocities(), v_good)
         assert sim.time == t_good and sim.step_count == 3

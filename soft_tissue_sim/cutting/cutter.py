@@ -457,16 +457,18 @@ class Cutter:
         ``new_tets``: the new tets (None: element removal, ``keep`` the nodes kept, ``kept_tets``
         the tets). New nodes are appended after the old ones, node k at (1 - t) a + t b of old
         nodes ``source = (a, b, t)`` (a copy of node a: b = a, t = 0), for its rest and current
-        position and its velocity: a node on an edge follows the displacement field exactly.
+        position, its velocity and its dv (the solver's guess, where the tissue has it): a node
+        on an edge follows the displacement field exactly.
         ``mats``: the new tets' material ids (default: unchanged); ``tet_source``: the old tet
         each new one comes from (-1: none; removal: the kept ones)."""
         mesh, old_uids, free_old = tissue.mesh, tissue.node_uids, tissue.free
-        x, v = tissue.x, tissue.v
+        x, v, dv = tissue.x, tissue.v, tissue.dv
         if new_tets is None:  # element removal with compaction
             remap = np.full(mesh.n_nodes, -1, np.int64)
             remap[keep] = np.arange(len(keep))
             tets_new = np.take(remap, np.compress(kept_tets, mesh.tets, axis=0))
             pts_new, x_new, v_new = (np.take(a, keep, axis=0) for a in (mesh.points, x, v))
+            dv_new = None if dv is None else np.take(dv, keep, axis=0)
             uids_new = np.take(old_uids, keep)
             free_new = np.take(free_old, keep)
             mats = np.compress(kept_tets, mesh.material_ids)
@@ -485,6 +487,7 @@ class Cutter:
 
             tets_new = new_tets
             pts_new, x_new, v_new = along(mesh.points), along(x), along(v)
+            dv_new = None if dv is None else along(dv)
             first = int(old_uids.max()) + 1 if len(old_uids) else 0
             created = np.arange(first, first + len(a), dtype=np.int64)
             uids_new = np.concatenate([old_uids, created])
@@ -508,7 +511,7 @@ class Cutter:
             _carry_tables(mesh, new_mesh, removed_tets, np.take(tets_new, added_ids, axis=0), np.arange(mesh.n_nodes),
                           copies=a if np.array_equal(a, b) else None)
         change = TopologyChange(new_mesh, x_new, v_new, uids_new, free_new, removed_ids,
-                                added_ids, created, removed, source, old_uids, free_old, tet_source)
+                                added_ids, created, removed, source, old_uids, free_old, tet_source, dv_new)
         return CutPlan(CutResult(True, what, tets_changed=int(len(removed_ids)), nodes_added=int(len(created)),
                                  nodes_removed=int(len(removed))), change, note, t0)
 

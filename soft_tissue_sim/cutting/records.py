@@ -41,6 +41,7 @@ class Tissue:
     v: np.ndarray  # (n, 3) velocities
     node_uids: np.ndarray  # (n,) identities that survive topology changes
     free: np.ndarray  # (n,) 1.0 free, 0.0 fixed
+    dv: np.ndarray | None = None  # (n, 3) the last step's velocity change (the solver's next guess), if read
 
 
 @dataclass
@@ -66,6 +67,7 @@ class TopologyChange:
     old_uids: np.ndarray  # the numbering before
     old_free: np.ndarray
     tet_source: np.ndarray | None = None  # per new tet, the old tet it comes from (-1: a new one)
+    dv: np.ndarray | None = None  # the tissue's dv carried like v (None: the tissue had none)
 
     @property
     def fixed(self) -> np.ndarray:
@@ -74,7 +76,7 @@ class TopologyChange:
     def tissue(self) -> Tissue:
         """The body once this change is applied, as cutting reads it (what the simulation
         would read back from the device: the same arrays)."""
-        return Tissue(self.mesh, self.x, self.v, self.node_uids, self.free)
+        return Tissue(self.mesh, self.x, self.v, self.node_uids, self.free, self.dv)
 
     def modification(self, version: int, old_blocks, new_blocks, R_nodes: np.ndarray) -> Modification:
         """The change of A (eq. 5-7) from the removed tets' element blocks (old numbering) and the

@@ -235,7 +235,8 @@ class BackwardEuler:
         self.preconditioner = preconditioner
         self.cg = PCG(fem.n_nodes, fem.device, tolerance, max_iterations)
         # warm_start: each step's solve starts from the last accepted step's dv (the PCG's
-        # warm_start); set_state (a cut, a rollback, reset) and Newton's later solves start from 0
+        # warm_start); a cut carries dv to the new mesh (set_state's dv); set_state without one,
+        # reset, the guard's rollback and Newton's later solves start from 0
         self.warm_start = bool(warm_start)
         self.step_index = 0
         self.time = 0.0

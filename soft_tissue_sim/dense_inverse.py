@@ -186,6 +186,12 @@ def delassus_matrix_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dt
                                              + delassus_entry(P, nodes, coef, dR, b, a))
 
 
+def _square_view(buf: GrowArray, n: int) -> wp.array:
+    """An (n, n) row-major view of ``buf``'s first n^2 values (reallocated, contents lost, only
+    when it outgrows the allocation)."""
+    return typed_view(buf.view(n * n), 0, buf.dtype, (n, n))
+
+
 def fold_into(xp, P, rows, N) -> None:
     """P <- P - U Q U^T in place (``xp`` arrays), U = P[:, rows], Q = (I + N S)^-1 N with
     S = U[rows] (:func:`~soft_tissue_sim.sherman_morrison.woodbury_q`): :meth:`DenseInverse.fold`'s
@@ -271,6 +277,12 @@ class DenseInverse:
         self._keep_in = PackedArrays({"keep": wp.int32}, self.device)
         self.inv32: wp.array | None = None  # precision float32: its single-precision copy
         self.work: wp.array | None = None  # (n3, n3) the next one
+        # the work buffer, the GPU's second buffer and the single-precision copy as views of
+        # allocations kept across node-count changes (a request or a cut after a cut allocates
+        # nothing while they hold)
+        self._work_buf = GrowArray(wp.float64, self.device)
+        self._rhs_buf = GrowArray(wp.float64, self.device)
+        self._inv32_buf = GrowArray(wp.float32, self.device)
         self._s: wp.array | None = None
         self._info = wp.zeros(2, dtype=wp.int32, device=self.device)
         # GPU: the info copied to page-locked memory at the end of a factorization, on its stream,
@@ -299,9 +311,8 @@ class DenseInverse:
         """The work buffer = A (n3 x n3) from 3x3 block triplets, on ``stream``."""
         rows, cols, vals = triplets
         if self.work is None or self.work.shape[0] != n3:
-            self.work = wp.zeros((n3, n3), dtype=wp.float64, device=self.device)
-        else:
-            self.work.zero_()
+            self.work = _square_view(self._work_buf, n3)
+        self.work.zero_()
         wp.launch(scatter_dense_kernel, rows.shape[0], [rows, cols, vals, self.work], device=self.device,
                   stream=stream)
         if self.device.is_cuda:
@@ -322,7 +333,7 @@ class DenseInverse:
             self._workspace = wp.empty(lwork, dtype=wp.float64, device=self.device)
             self._lwork = lwork
         if self._rhs is None or self._rhs.shape[0] != n:
-            self._rhs = wp.empty((n, n), dtype=wp.float64, device=self.device)
+            self._rhs = _square_view(self._rhs_buf, n)
         wp.launch(identity_matrix_kernel, (n, n), [self._rhs], device=self.device, stream=stream)
         if self._blas is None:
             from nvmath.bindings import cublas
@@ -419,9 +430,8 @@ class DenseInverse:
         return GrowArray(wp.float64, self.device), GrowArray(wp.float64, self.device)
 
     def _square(self, k: int, n: int) -> wp.array:
-        """An (n, n) view of store ``k`` (its first n^2 values; reallocated, contents lost, only
-        when it outgrows the store)."""
-        return typed_view(self._store[k].view(n * n), 0, wp.float64, (n, n))
+        """An (n, n) view of store ``k`` (see :func:`_square_view`)."""
+        return _square_view(self._store[k], n)
 
     @contextlib.contextmanager
     def changing(self):
@@ -446,7 +456,7 @@ class DenseInverse:
         self._stale = False
         n = self.inv.shape[0]
         if self.inv32 is None or self.inv32.shape[0] != n:
-            self.inv32 = wp.empty((n, n), dtype=wp.float32, device=self.device)
+            self.inv32 = _square_view(self._inv32_buf, n)
         wp.launch(narrow_kernel, (n, n), [self.inv, self.inv32], device=self.device, stream=stream)
 
     @property
@@ -534,3 +544,5 @@ class DenseInverse:
             self._blas = None
         self.inv = self.inv32 = self.work = self._workspace = self._rhs = self._result = None
         self._store = self._empty_stores()
+        self._work_buf, self._rhs_buf, self._inv32_buf = (GrowArray(b.dtype, self.device) for b in
+                                                          (self._work_buf, self._rhs_buf, self._inv32_buf))

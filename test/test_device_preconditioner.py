@@ -582,3 +582,33 @@ def test_changes_in_one_scope_make_the_single_precision_copy_once():
     D.fold(np.arange(3, 6), N)
     assert np.array_equal(D.inv32.numpy(), D.inv.numpy().astype(np.float32))
     D.close()
+
+
+def test_factors_of_changing_sizes_reuse_the_dense_buffers():
+    """The work buffer, the GPU's second buffer and the single-precision copy are views of kept
+    allocations: factors of a body that shrinks, then grows within the headroom, allocate
+    nothing new, and each is the inverse of its own matrix."""
+    from soft_tissue_sim import dense_inverse as DI
+
+    rng = np.random.default_rng(8)
+    D = DI.DenseInverse(DEVICE, "float32")
+    ptrs = None
+    for nodes in (40, 36, 44):
+        n3 = 3 * nodes
+        B = rng.standard_normal((n3, n3))
+        A = B @ B.T / n3 + 0.5 * np.eye(n3)
+        idx = np.arange(nodes, dtype=np.int32)
+        r, c = np.repeat(idx, nodes), np.tile(idx, nodes)
+        blocks = A.reshape(nodes, 3, nodes, 3).transpose(0, 2, 1, 3).reshape(-1, 3, 3)
+        trip = (wp.array(r, dtype=wp.int32, device=DEVICE), wp.array(c, dtype=wp.int32, device=DEVICE),
+                wp.array(blocks, dtype=wp.mat33d, device=DEVICE))
+        D.assemble(trip, n3)
+        D.factorize()
+        assert D.install() is None
+        np.testing.assert_allclose(D.inv.numpy() @ A, np.eye(n3), atol=1e-9)
+        assert np.array_equal(D.inv32.numpy(), D.inv.numpy().astype(np.float32))
+        now = (D.work.ptr, D.inv32.ptr) + ((D._rhs.ptr,) if D.device.is_cuda else ())
+        assert ptrs is None or now == ptrs
+        ptrs = now
+    assert D._work_buf.allocations == D._inv32_buf.allocations == 1
+    D.close()

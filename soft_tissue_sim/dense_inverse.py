@@ -71,6 +71,12 @@ def symmetrize_kernel(A: wp.array2d(dtype=wp.float64)):
 
 
 @wp.kernel
+def zero_matrix_kernel(A: wp.array2d(dtype=wp.float64)):
+    i, j = wp.tid()
+    A[i, j] = wp.float64(0.0)
+
+
+@wp.kernel
 def identity_matrix_kernel(A: wp.array2d(dtype=wp.float64)):
     i, j = wp.tid()
     A[i, j] = wp.where(i == j, wp.float64(1.0), wp.float64(0.0))
@@ -292,6 +298,7 @@ class DenseInverse:
         if self.device.is_cuda:  # loaded here, not first in the thread that enqueues factorizations
             wp.load_module(sys.modules[__name__], device=self.device)
         self._rhs = None  # GPU: the identity, then the inverse
+        self._triplets = None  # GPU: the assembly factorize launches first (see assemble)
         self._result = None  # the buffer holding the finished inverse
         self._lwork = 0
         self._workspace = None
@@ -308,21 +315,27 @@ class DenseInverse:
         return 0 if self.inv is None else self.inv.shape[0]
 
     def assemble(self, triplets, n3: int, stream=None, topology=None) -> None:
-        """The work buffer = A (n3 x n3) from 3x3 block triplets, on ``stream``."""
+        """The work buffer = A (n3 x n3) from 3x3 block triplets: on the CPU now, on ``stream``;
+        on a GPU the zeroing and the scatter are launched by :meth:`factorize`, on the
+        factorization's stream (the triplets must then hold until the factorization has begun:
+        the caller orders it after them), so that none of that work waits on the simulation's
+        stream."""
         rows, cols, vals = triplets
         if self.work is None or self.work.shape[0] != n3:
             self.work = _square_view(self._work_buf, n3)
+        if self.device.is_cuda:
+            self._prepare_gpu(n3, stream)
+            self._triplets = triplets
+            return
         self.work.zero_()
         wp.launch(scatter_dense_kernel, rows.shape[0], [rows, cols, vals, self.work], device=self.device,
                   stream=stream)
-        if self.device.is_cuda:
-            self._prepare_gpu(n3, stream)
 
     def _prepare_gpu(self, n: int, stream) -> None:
-        """What the GPU factorization needs, made on the caller's thread and stream before it is
-        enqueued (possibly by another thread, which then allocates nothing and loads no
-        module): the cuSOLVER and cuBLAS handles, the workspace, and the identity as the
-        right-hand side of ``trsm``."""
+        """What the GPU factorization needs, made on the caller's thread before it is enqueued
+        (possibly by another thread, which then allocates nothing and loads no module): the
+        cuSOLVER and cuBLAS handles, the workspace, the second buffer (:meth:`factorize` writes
+        the identity into it, the right-hand side of ``trsm``)."""
         from nvmath.bindings import cusolverDn
 
         if self._handle is None:
@@ -334,7 +347,6 @@ class DenseInverse:
             self._lwork = lwork
         if self._rhs is None or self._rhs.shape[0] != n:
             self._rhs = _square_view(self._rhs_buf, n)
-        wp.launch(identity_matrix_kernel, (n, n), [self._rhs], device=self.device, stream=stream)
         if self._blas is None:
             from nvmath.bindings import cublas
 
@@ -351,7 +363,8 @@ class DenseInverse:
         X = L^-1 against the identity in the second buffer (``trsm``: X's upper triangle comes
         out exactly zero) and A^-1 = X^T X into the work buffer (``trmm``), by column blocks
         (:meth:`_inverse_from_factor`): one triangular solve fewer than ``potrs`` against the
-        identity.
+        identity; before them, on the same stream, the assembly :meth:`assemble` left (the work
+        buffer zeroed, the triplets scattered) and the identity in the second buffer.
         CPU: LAPACK's ``potrf`` and ``potri`` in place, the missing triangle mirrored."""
         n = self.work.shape[0]
         if self.xp is np:
@@ -369,6 +382,13 @@ class DenseInverse:
             return
         from nvmath.bindings import cusolverDn
 
+        if self._triplets is not None:  # the assembly (see assemble), on this stream
+            rows, cols, vals = self._triplets
+            self._triplets = None
+            wp.launch(zero_matrix_kernel, (n, n), [self.work], device=self.device, stream=stream)
+            wp.launch(scatter_dense_kernel, rows.shape[0], [rows, cols, vals, self.work], device=self.device,
+                      stream=stream)
+        wp.launch(identity_matrix_kernel, (n, n), [self._rhs], device=self.device, stream=stream)
         cusolverDn.set_stream(self._handle, stream.cuda_stream if stream is not None else 0)
         lower = 0  # CUBLAS_FILL_MODE_LOWER
         info = self._info.ptr
@@ -542,7 +562,7 @@ class DenseInverse:
 
             cublas.destroy(self._blas)
             self._blas = None
-        self.inv = self.inv32 = self.work = self._workspace = self._rhs = self._result = None
+        self.inv = self.inv32 = self.work = self._workspace = self._rhs = self._result = self._triplets = None
         self._store = self._empty_stores()
         self._work_buf, self._rhs_buf, self._inv32_buf = (GrowArray(b.dtype, self.device) for b in
                                                           (self._work_buf, self._rhs_buf, self._inv32_buf))

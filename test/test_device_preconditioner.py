@@ -612,3 +612,36 @@ def test_factors_of_changing_sizes_reuse_the_dense_buffers():
         ptrs = now
     assert D._work_buf.allocations == D._inv32_buf.allocations == 1
     D.close()
+
+
+def test_on_a_gpu_the_assembly_is_launched_with_the_factorization():
+    """``assemble`` writes the work buffer at once on the CPU; on a GPU it leaves the zeroing and
+    the scatter to ``factorize`` (on the factorization's stream, none of it on the
+    simulation's): the buffer is untouched until then, and the factor is A's inverse."""
+    from soft_tissue_sim import dense_inverse as DI
+
+    rng = np.random.default_rng(9)
+    nodes = 20
+    n3 = 3 * nodes
+    B = rng.standard_normal((n3, n3))
+    A = B @ B.T / n3 + 0.5 * np.eye(n3)
+    idx = np.arange(nodes, dtype=np.int32)
+    blocks = A.reshape(nodes, 3, nodes, 3).transpose(0, 2, 1, 3).reshape(-1, 3, 3)
+    trip = (wp.array(np.repeat(idx, nodes), dtype=wp.int32, device=DEVICE),
+            wp.array(np.tile(idx, nodes), dtype=wp.int32, device=DEVICE),
+            wp.array(blocks, dtype=wp.mat33d, device=DEVICE))
+    D = DI.DenseInverse(DEVICE)
+    D.assemble(trip, n3)
+    D.work.fill_(7.0)
+    D.assemble(trip, n3)
+    if D.device.is_cuda:
+        assert np.all(D.work.numpy() == 7.0)
+    else:
+        np.testing.assert_allclose(D.work.numpy(), A, rtol=0, atol=1e-12)
+    stream = wp.Stream(D.device) if D.device.is_cuda else None
+    D.factorize(stream=stream)
+    if stream is not None:
+        wp.synchronize_stream(stream)
+    assert D.install() is None
+    np.testing.assert_allclose(D.inv.numpy() @ A, np.eye(n3), atol=1e-9)
+    D.close()

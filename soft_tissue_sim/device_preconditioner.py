@@ -236,7 +236,7 @@ class AsyncDevicePreconditioner:
         meta = dict(self.meta_fn() or {})
         uids = np.asarray(meta.get("uids", np.arange(fem.n_nodes)), np.int64).copy()
         if self._main is not None and self._busy is not None:
-            self._main.wait_event(self._busy.events()[1])  # the work buffer is free once the last one ended
+            self._main.wait_event(self._busy.events()[1])  # the triplets and work buffer are free once the last one ended
         triplets = fem.assemble_triplets(system.m_coef, system.k_coef)
         self.backend.assemble(triplets, 3 * fem.n_nodes, stream=self._main, topology=meta.get("version"))
         R = wp.clone(fem.current_node_rotations())  # R(t_u) of this factor

@@ -169,14 +169,14 @@ class BlockJacobiPreconditioner:
 class PCG:
     """Preconditioned conjugate gradient with preallocated work vectors."""
 
-    def __init__(self, n: int, device, tolerance: float = 1e-7, max_iterations: int = 1000):
+    def __init__(self, n: int, device, tolerance: float = 1e-7, max_iterations: int = 1000, warm_start: bool = False):
         if not (tolerance > 0.0):
             raise ValueError(f"CG tolerance must be > 0, got {tolerance}")
         if int(max_iterations) < 1:
             raise ValueError(f"CG max_iterations must be >= 1, got {max_iterations}")
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
-        self.warm_start = False  # start from the x given (see the module docstring)
+        self.warm_start = bool(warm_start)  # start from the x given (see the module docstring)
         self.device = wp.get_device(device)
         self._norm_key = None  # what the cached ||A|| estimate was made for (kept across resizes)
         self.norm_estimate = float("nan")
@@ -490,14 +490,15 @@ class DevicePCG(PCG):
     separately).
     """
 
-    def __init__(self, n: int, device, tolerance: float = 1e-7, max_iterations: int = 1000, graph: bool = False):
+    def __init__(self, n: int, device, tolerance: float = 1e-7, max_iterations: int = 1000, graph: bool = False,
+                 warm_start: bool = False):
         dev = wp.get_device(device)
         # a CUDA graph needs conditional nodes (CUDA 12.4+ driver and toolkit) for the while loop
         self.graph_unsupported = bool(graph and dev.is_cuda and not wp.is_conditional_graph_supported())
         self.replay = graphs.Replayer(dev, "DevicePCG", eager=True, max_failures=MAX_CAPTURE_FAILURES)
         self.replay.enabled = bool(graph) and not self.graph_unsupported
         self.host_solves = 0
-        super().__init__(n, device, tolerance, max_iterations)
+        super().__init__(n, device, tolerance, max_iterations, warm_start)
 
     # the capture's state, as the replayer keeps it
     graph = property(lambda self: self.replay.enabled, doc="Whether solves are captured (off after failures).")

@@ -233,11 +233,10 @@ class BackwardEuler:
         self.damping = damping
         self.gravity = g
         self.preconditioner = preconditioner
-        self.cg = PCG(fem.n_nodes, fem.device, tolerance, max_iterations)
-        # warm_start: each step's solve starts from the last accepted step's dv (the PCG's
-        # warm_start); a cut carries dv to the new mesh (set_state's dv); set_state without one,
-        # reset, the guard's rollback and Newton's later solves start from 0
-        self.warm_start = bool(warm_start)
+        # warm_start (:attr:`warm_start`, the PCG's own): each step's solve starts from the last
+        # accepted step's dv; a cut carries dv to the new mesh (set_state's dv); set_state
+        # without one, reset, the guard's rollback and Newton's later solves start from 0
+        self.cg = PCG(fem.n_nodes, fem.device, tolerance, max_iterations, warm_start)
         self.step_index = 0
         self.time = 0.0
         # read_guard: a device solve's step also launches the divergence guard (launch_guard) at
@@ -269,12 +268,14 @@ class BackwardEuler:
         # the work vectors and the state: views into allocations kept across node-count changes
         self._work = {name: GrowArray(wp.float64 if name in ("_energy", "_guard") else wp.vec3d, self.device)
                       for name in self._WORK}
+        # (x, v and dv, the solve's unknown and the next one's guess, in one allocation)
         self._state = PackedArrays({"x": wp.vec3d, "v": wp.vec3d, "dv": wp.vec3d}, self.device)
         self._allocate()
         self._state.reserve({"x": fem.n_nodes, "v": fem.n_nodes, "dv": fem.n_nodes})
-        self.x, self.v = self._state.array("x"), self._state.array("v")
+        self.x, self.v, self.dv = (self._state.array(k) for k in ("x", "v", "dv"))
         wp.copy(self.x, fem.rest)
         self.v.zero_()
+        self.dv.zero_()
 
     # coefficients of A = m_coef M + k_coef K
     @property
@@ -285,9 +286,15 @@ class BackwardEuler:
     def k_coef(self) -> float:
         return self.dt * self.damping.stiffness + self.dt * self.dt
 
-    # f, the external forces, M dv of the first linearisation (zero), b, dv, M v, K v, the energy
+    # f, the external forces, M dv of the first linearisation (zero), b, M v, K v, the energy
     # and guard reductions (2 values each), the step's start velocity (Newton), its dv and M dv
-    _WORK = ("f", "f_ext", "_zero", "b", "dv", "_Mv", "_Kv", "_energy", "_guard", "_v_t", "_dvel", "_Mdv")
+    _WORK = ("f", "f_ext", "_zero", "b", "_Mv", "_Kv", "_energy", "_guard", "_v_t", "_dvel", "_Mdv")
+
+    @property
+    def warm_start(self) -> bool:
+        """Whether each step's solve starts from the last step's dv (the PCG's setting, kept
+        where the simulation puts another PCG)."""
+        return self.cg.warm_start
 
     def _allocate(self) -> None:
         """The work vectors for the current node count, zeroed (views of kept allocations)."""
@@ -315,8 +322,7 @@ class BackwardEuler:
         st.host("v")[...] = v
         st.host("dv")[...] = dv if dv is not None and self.warm_start else 0.0
         st.send(("x", "v", "dv"))
-        self.x, self.v = st.array("x"), st.array("v")
-        wp.copy(self.dv, st.array("dv"))
+        self.x, self.v, self.dv = (st.array(k) for k in ("x", "v", "dv"))
         self.state_version += 1
 
     def matvec(self, p: wp.array, out: wp.array) -> None:
@@ -408,7 +414,6 @@ class BackwardEuler:
         # a device solve is only launched here: its result and the guard's values are read in one wait
         launch = getattr(self.cg, "launch", None) if self.read_guard and not newton else None
         solve = launch if launch is not None else self.cg.solve
-        self.cg.warm_start = self.warm_start
         res = solve(self.matvec, self.b, self.dv, self.preconditioner)
         if res is None:
             s, guard, *after = self._finish_launched()

@@ -269,7 +269,8 @@ class Simulation:
         device_factor = hasattr(self.preconditioner, "backend")  # a factor that applies on the device
         use_graph = graph == "true" or (graph == "auto" and device_factor and wp.get_device(self.device).is_cuda)
         if device_factor or use_graph:  # PCG with its scalars on the device (captured as a graph if use_graph)
-            self.integrator.cg = DevicePCG(self.fem.n_nodes, self.device, float(tol), int(max_it), graph=use_graph)
+            self.integrator.cg = DevicePCG(self.fem.n_nodes, self.device, float(tol), int(max_it), graph=use_graph,
+                                           warm_start=warm)
         self.integrator.graph_steps = use_graph  # the step's other launches as graphs too
         # Optional components: built only when the scene names them.
         self.contact = None
@@ -333,12 +334,9 @@ class Simulation:
         from .cutting import Tissue
 
         integ = self.integrator
-        if integ.warm_start:  # the solver's guess goes through the change with the state
-            x, v, free, dv = to_host(integ.x, integ.v, self.fem.free, integ.dv)
-            dv = dv.copy()
-        else:
-            (x, v, free), dv = to_host(integ.x, integ.v, self.fem.free), None
-        return Tissue(self.mesh, x.copy(), v.copy(), self.node_uids, free.copy(), dv)
+        guess = (integ.dv,) if integ.warm_start else ()  # the solver's guess goes through a change with the state
+        x, v, free, *dv = to_host(integ.x, integ.v, self.fem.free, *guess)
+        return Tissue(self.mesh, x.copy(), v.copy(), self.node_uids, free.copy(), dv[0].copy() if dv else None)
 
     def _instruments(self) -> dict:
         return self.contact.instruments if self.contact is not None else {}

@@ -245,13 +245,15 @@ class BackwardEuler:
         self.read_guard = False
         self.guard_reading = None
         # after_solve: where the solve is only launched (that path), a callable that prepares on
-        # the host what is launched after the free motion and returns (key, launch): launch()
+        # the host what is launched after the free motion and returns (key, launch) or (key,
+        # launch, layout) (a name for the list of arrays launch returns): launch()
         # launches it and returns device arrays, read in the step's one wait; key names what
         # the launches depend on (None: not to be captured). after_solve_reading = (the state's
         # name (state_version, step_index), their host views) of the last step, or None
         self.after_solve = None
         self.after_solve_reading = None
-        self._readback = Readback()
+        # (the hook may name a layout of its arrays: a read-back each, see _finish_launched)
+        self._readbacks = {None: Readback()}
         self._after_replay = graphs.Replayer(self.device, "BackwardEuler after the solve", slots=2)
         # the correction's read-back, one per layout (with a solve's output or without), so that a
         # replayed graph writes into the buffers of the layout it was captured with
@@ -266,7 +268,7 @@ class BackwardEuler:
         self._build_replay = graphs.Replayer(self.device, "BackwardEuler.build", eager=True)
         self.state_version = 0  # counts set_state calls: with step_index, names the state (x, v)
         # the work vectors and the state: views into allocations kept across node-count changes
-        self._work = {name: GrowArray(wp.float64 if name in ("_energy", "_guard") else wp.vec3d, self.device)
+        self._work = {name: GrowArray(wp.float64 if name in self._PAIRS else wp.vec3d, self.device)
                       for name in self._WORK}
         # (x, v and dv, the solve's unknown and the next one's guess, in one allocation)
         self._state = PackedArrays({"x": wp.vec3d, "v": wp.vec3d, "dv": wp.vec3d}, self.device)
@@ -288,7 +290,8 @@ class BackwardEuler:
 
     # f, the external forces, M dv of the first linearisation (zero), b, M v, K v, the energy
     # and guard reductions (2 values each), the step's start velocity (Newton), its dv and M dv
-    _WORK = ("f", "f_ext", "_zero", "b", "_Mv", "_Kv", "_energy", "_guard", "_v_t", "_dvel", "_Mdv")
+    _WORK = ("f", "f_ext", "_zero", "b", "_Mv", "_Kv", "_energy", "_guard", "_guard_after", "_v_t", "_dvel", "_Mdv")
+    _PAIRS = ("_energy", "_guard", "_guard_after")  # two values each
 
     @property
     def warm_start(self) -> bool:
@@ -300,7 +303,7 @@ class BackwardEuler:
         """The work vectors for the current node count, zeroed (views of kept allocations)."""
         n = self.fem.n_nodes
         for name, buf in self._work.items():
-            a = buf.view(2 if name in ("_energy", "_guard") else n)
+            a = buf.view(2 if name in self._PAIRS else n)
             a.zero_()
             setattr(self, name, a)
 
@@ -491,18 +494,20 @@ class BackwardEuler:
         scalars and read in one wait: [scalars, guard, *the hook's arrays]. Where the build is
         graphed these launches are too, one graph per arguments (the hook's key included; a
         hook without a key: plain launches)."""
-        hook_key, hook_launch = self.after_solve() if self.after_solve is not None else ((), None)
+        hook_key, hook_launch, *layout = self.after_solve() if self.after_solve is not None else ((), None)
+        readback = self._readbacks.setdefault(layout[0] if layout else None, Readback())
 
         def launches():
             self._launch_update()
+            guard = self.launch_guard()  # of the free motion, before the hook's launches (which may correct it)
             extra = hook_launch() if hook_launch is not None else []
-            self._readback.copy(self.cg.scalars, self.launch_guard(), *extra)
+            readback.copy(self.cg.scalars, guard, *extra)
 
         key = None
         if self.graph_steps and hook_key is not None:
-            key = (self._state_arrays_key(), self.dv.ptr, self.cg.scalars.ptr, hook_key, self._readback.key())
+            key = (self._state_arrays_key(), self.dv.ptr, self.cg.scalars.ptr, hook_key, readback.key())
         self._after_replay.run(key, launches)
-        return self._readback.read(self.device)
+        return readback.read(self.device)
 
     def correct_and_read(self, dx, hook: tuple = ((), None), solve=None) -> list:
         """x += dx, v += dx / dt (:meth:`correct`; ``dx`` None: none), then the guard's reduction
@@ -545,14 +550,20 @@ class BackwardEuler:
         """Kinetic energy only (the guard's reduction, one read), for the divergence guard."""
         return float(to_host(self.launch_guard())[0][0])
 
-    def launch_guard(self) -> wp.array:
+    def launch_guard(self, out: wp.array | None = None) -> wp.array:
         """Launch the divergence guard's reduction at the current state: a device array
-        [kinetic energy, non-finite nodes], returned unread (read it with the step's other
-        values)."""
-        self._guard.zero_()
-        wp.launch(_guard_kernel, self.fem.n_nodes, [self.x, self.v, self.fem.lumped_mass, self._guard],
-                  device=self.device)
-        return self._guard
+        [kinetic energy, non-finite nodes] (``out``, default the guard's own), returned unread
+        (read it with the step's other values)."""
+        out = self._guard if out is None else out
+        out.zero_()
+        wp.launch(_guard_kernel, self.fem.n_nodes, [self.x, self.v, self.fem.lumped_mass, out], device=self.device)
+        return out
+
+    @property
+    def guard_after(self) -> wp.array:
+        """A second guard array, for a reduction launched in the same read as the free motion's
+        (a correction launched after the solve, see ``after_solve``)."""
+        return self._guard_after
 
     def correct(self, dx) -> None:
         """x += dx, v += dx / dt (a position correction, e.g. the contact response of eq. 4);

@@ -298,6 +298,7 @@ class Simulation:
             raise ParameterError(f"guard energy_ratio must be 0 (off) or > 1, got {self.guard_ratio}")
         self.integrator.read_guard = self.guard_ratio > 0
         self._contact_begun = False  # this step's instruments took their poses (ContactSolver.prepare)
+        self._device_step = None  # (plan, free-motion copy, measured) of a contact step launched with the free motion
         if self.contact is not None:  # the detection launched after the free motion, read with its result
             self.integrator.after_solve = self._launch_contact
         size = float(np.ptp(self.mesh.points, axis=0).max())
@@ -425,15 +426,20 @@ class Simulation:
         known = self._ke_state
         return known[0] if known is not None and known[1] == self._state_key() else self._kinetic_energy()
 
-    def _copy_state(self, purpose: str) -> tuple:
-        """(x, v) copied on the device into buffers kept for ``purpose`` (grow-only, across node
-        count changes too): a state the step may go back to."""
-        integ = self.integrator
+    def _state_buffers(self, purpose: str) -> tuple:
+        """(x, v) buffers kept for ``purpose`` (grow-only, across node count changes too), sized
+        for the current node count (see :meth:`_copy_state`)."""
         grow = self._copies.get(purpose)
         if grow is None:
             grow = self._copies[purpose] = (GrowArray(wp.vec3d, self.device), GrowArray(wp.vec3d, self.device))
-        n = integ.x.shape[0]
-        bufs = (grow[0].view(n), grow[1].view(n))
+        n = self.integrator.x.shape[0]
+        return grow[0].view(n), grow[1].view(n)
+
+    def _copy_state(self, purpose: str) -> tuple:
+        """(x, v) copied on the device into buffers kept for ``purpose``: a state the step may go
+        back to."""
+        integ = self.integrator
+        bufs = self._state_buffers(purpose)
         wp.copy(bufs[0], integ.x)
         wp.copy(bufs[1], integ.v)
         return bufs
@@ -527,7 +533,30 @@ class Simulation:
         view = self.view()
         key = self.contact.prepare(view, begin=not self._contact_begun)
         self._contact_begun = True
-        return key, lambda: self.contact.launch_detection_of(view)
+        plan = self.contact.device_rows_plan(view)
+        if plan is None:
+            self._device_step = None
+            return key, lambda: self.contact.launch_detection_of(view)
+        # the whole contact step too (contact.device_rows): the free motion kept, the detection,
+        # the rows, the LCP and the correction, the guard and the penetration left, read with the solve
+        integ = self.integrator
+        free = self._state_buffers("free motion")
+        every = self._penetration_every
+        measure = every > 0 and (integ.step_index + 1) % every == 0  # (the step's index once taken)
+        guard = integ.guard_after
+
+        def launches():
+            wp.copy(free[0], integ.x)
+            wp.copy(free[1], integ.v)
+            dx, outs = plan.launch()
+            integ.correct(dx)
+            integ.launch_guard(guard)
+            gap = self.contact.launch_penetration(view) if measure else None
+            return [*outs, guard, *([] if gap is None else [gap])]
+
+        pen_key = self.contact.penetration_key(view) if measure else None
+        self._device_step = (plan, free, measure)
+        return (key, plan.key(), free[0].ptr, free[1].ptr, guard.ptr, pen_key), launches, ("device rows", measure)
 
     def _correct(self, dx, solve=None, measure: bool = True) -> list:
         """x += dx, v += dx / dt (``dx`` None: no correction; ``solve``: a device LCP that makes
@@ -552,7 +581,6 @@ class Simulation:
         and corrects again) and reported as ``contact_rejected``. Fills ``stats.contact`` (None
         when the solve failed) and the guard's contact fields."""
         integ = self.integrator
-        free = self._copy_state("free motion")
         ke_free = 0.0
         if self.guard_ratio > 0:
             ke_free = self._known_kinetic_energy()
@@ -560,6 +588,18 @@ class Simulation:
         host = read[1] if read is not None and read[0] == self._state_key() else None
         every = self._penetration_every  # the contact option: measure the penetration left on every n-th step
         measure = every > 0 and integ.step_index % every == 0
+        device_step, self._device_step = self._device_step, None
+        if device_step is not None:  # the contact step launched with the free motion (contact.device_rows)
+            plan, free, measured = device_step
+            if host is not None:
+                out, header, record, guard, *gap = host
+                stats.contact = self.contact.finish_device_rows(self.view(), plan, out, header, record)
+                if stats.contact is not None:
+                    self._judge_contact(stats, guard, gap, measured, ke_free, free, None)
+                    return
+            self._restore_state(free)  # not solved there: the step's contacts on the host
+            host = None
+        free = self._copy_state("free motion")
         reason = None
         for device_lcp in (True, False):
             try:
@@ -578,6 +618,16 @@ class Simulation:
                 break
             # the device refused W (nothing corrected): this step's contacts again, on the host
             self._restore_state(free)
+        self._judge_contact(stats, None if reason else guard, None if reason else rest, measure, ke_free, free,
+                            reason)
+
+    def _judge_contact(self, stats: StepStats, guard, rest, measure: bool, ke_free: float, free: tuple,
+                       reason: str | None) -> None:
+        """The contact correction under the divergence guard (see :meth:`_contact_response`):
+        ``guard`` the guard's reading after it, ``rest`` [the smallest gap] where ``measure``d,
+        ``ke_free`` the free motion's kinetic energy, ``free`` its copy, ``reason`` why the
+        correction already failed (None: judged here)."""
+        integ = self.integrator
         if reason is None:
             ke, nonfinite = float(guard[0]), float(guard[1])
             if not measure:
@@ -594,7 +644,7 @@ class Simulation:
             self._restore_state(free)
             self._ke_state = (ke_free, self._state_key()) if self.guard_ratio > 0 else None
             self.contact_rejections += 1
-            warnings.warn(f"step {integ.step_index}: {reason}; the free motion stands for this step", stacklevel=2)
+            warnings.warn(f"step {integ.step_index}: {reason}; the free motion stands for this step", stacklevel=3)
         stats.guard = stats.guard or GuardStats()
         stats.guard.contact_rejected = reason
         stats.guard.contact_rejections = self.contact_rejections
@@ -607,6 +657,7 @@ class Simulation:
 
     def _step(self) -> StepStats:
         self._contact_begun = False
+        self._device_step = None
         stats, ok = self._free_motion()
         if not ok:
             self.last_stats = stats

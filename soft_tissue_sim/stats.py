@@ -41,6 +41,7 @@ class ContactStats:
     compliance_fallbacks: int | None = None  # running total of fallbacks to the diagonal (idem)
     lcp_device: bool | None = None  # the LCP was solved on the device, with the correction
     lcp_redone: bool | None = None  # the device's solve was refused and redone on the host
+    rows_device: bool | None = None  # the detection, rows, LCP and correction launched with the free motion
 
 
 @dataclass

@@ -108,16 +108,18 @@ def test_sweeps_that_end_above_the_tolerance_stand_on_the_device():
     assert max(s["lcp_residual"] for s in host if s.get("contacts", 0)) <= tol
 
 
-def test_steps_with_and_without_a_device_solve_alternate_under_graphs():
+@pytest.mark.parametrize("device_rows", [False, True])
+def test_steps_with_and_without_a_device_solve_alternate_under_graphs(device_rows):
     """A capsule tapping a clamped block every other step, graphs on: the correction's graphs
     with and without the device solve are replayed in turn (each writes the read-back it was
-    captured with) and give the host solve's steps."""
+    captured with) and give the host solve's steps. With the rows built on the device the
+    whole contact step is in the graph after the solve, with contacts or without."""
     runs = {}
     for rows in (0, 32):
         cfg = scene(mesh={"generator": "beam", "n_long": 5, "n_cross": 4, "spacing": 0.005},
                     fixed={"axis": "z", "below": -0.007},
                     instruments=[{"name": "probe", "shape": "capsule", "radius": 0.004, "length": 0.05}],
-                    contact={"device_lcp_rows": rows, "active_set": False})
+                    contact={"device_lcp_rows": rows, "active_set": False, "device_rows": device_rows})
         cfg["device"] = DEVICE
         cfg["solver"]["ldlt"].update(backend="dense")
         cfg["solver"]["graph"] = True
@@ -129,10 +131,13 @@ def test_steps_with_and_without_a_device_solve_alternate_under_graphs():
                 z = top + 0.004 - (0.0008 if i % 2 else -0.003)  # in, out, in, ...
                 sim.set_instrument_pose("probe", [-0.006, 0.001, z], q)
                 stats.append(sim.step().extra)
-            runs[rows] = (sim.positions(), stats, sim.integrator._correction_replay.replays)
+            replayer = sim.integrator._after_replay if device_rows else sim.integrator._correction_replay
+            runs[rows] = (sim.positions(), stats, replayer.replays)
     (x0, s0, _), (x1, s1, replays) = runs[0], runs[32]
     assert [s.get("contacts", 0) > 0 for s in s1] == [i % 2 == 1 for i in range(24)]
     assert all(s.get("lcp_device") for s in s1 if s.get("contacts", 0))
+    assert all(s.get("rows_device", False) is device_rows for s in s1)
+    assert not any(s.get("rows_device") for s in s0)  # no device LCP: the rows on the host
     assert replays >= 15
     assert [s.get("active_contacts", 0) for s in s0] == [s.get("active_contacts", 0) for s in s1]
     np.testing.assert_allclose(x1, x0, rtol=0, atol=0.0 if DEVICE == "cpu" else 1e-12)

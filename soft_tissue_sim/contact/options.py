@@ -18,6 +18,10 @@ Scene options (all optional)::
       max_contacts: 2048     # keep the deepest ones beyond this
       device_lcp_rows: 32    # with a dense factor: solve an LCP of up to this many rows on the
                              # device, with the correction (0: always on the host)
+      device_rows: true      # with the device LCP and no friction or mesh obstacle: build its
+                             # rows on the device too, so that the detection, the LCP and the
+                             # correction follow the free motion in the same read (false: rows
+                             # built on the host from the read detection)
       penetration_every: 1   # measure the deepest penetration left after the correction (a
                              # detection at the corrected positions) every this many steps
                              # (0: never); unmeasured steps report max_penetration None
@@ -45,6 +49,7 @@ DEFAULTS = {
     "compliance": "preconditioner",
     "max_contacts": 2048,
     "device_lcp_rows": 32,
+    "device_rows": True,
     "penetration_every": 1,
 }
 
@@ -74,7 +79,7 @@ def parse_options(cfg) -> dict:
     rows = o["device_lcp_rows"]
     if isinstance(rows, bool) or not isinstance(rows, int) or not 0 <= rows <= 256:
         raise ParameterError(f"contact device_lcp_rows must be an integer in [0, 256], got {rows!r}")
-    for key in ("self_collision", "active_set"):
+    for key in ("self_collision", "active_set", "device_rows"):
         if not isinstance(o[key], bool):
             raise ParameterError(f"contact {key} must be true or false, got {o[key]!r}")
     if o["friction_cone"] not in ("disk", "pyramid"):

@@ -28,6 +28,7 @@ from ..stats import ContactStats
 from ..transfer import to_host
 from .compliance import compliance, positive_definite
 from .device_lcp import DeviceLCP, PendingLCP, scaled_free_kernel
+from .device_rows import DeviceRows
 from .detection import SurfaceTopology, collect, launch_detection, launch_min_gap, launch_start, upload_objects
 from .geometry import cross, tangent_basis
 from .jacobian import ConstraintRows
@@ -87,6 +88,9 @@ class ContactSolver:
         self._warm = WarmStart()
         self._pgs = PGS(o["active_set"])
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
+        self._device_rows: DeviceRows | None = None  # the rows built on the device (device_rows), idem
+        self._last_rows = 0  # the last step's constraint rows (where the next step's rows are built)
+        self._frictionless = self._friction(np.zeros(0, np.int64)).uniform and self.options["friction"] == 0.0
         self._dx = GrowArray(wp.vec3d, device)  # the device correction, overwritten each step
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite
@@ -142,6 +146,7 @@ class ContactSolver:
         self._retire_topology()
         self._topo = None
         self._warm = WarmStart()
+        self._last_rows = 0
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0
 
@@ -325,10 +330,75 @@ class ContactSolver:
             self._warm = WarmStart()
         else:
             dx = self._respond(body, c, nodes4, w4, ws4, free, x, x_start, stats, device_lcp)
+        self._last_rows = k if self._frictionless else 3 * k
+        if self._device_rows is not None:
+            self._device_rows.forget()  # the forces kept on the device are not this step's
         stats.contact_ms = 1000.0 * (time.perf_counter() - t0)
         if isinstance(dx, PendingLCP):
             return ContactResponse(None, stats, dx)
         return ContactResponse(dx, stats)
+
+    # ------------------------------------------------- rows on the device
+    def device_rows_plan(self, body: BodyView) -> DeviceStep | None:
+        """This step's contacts as launches after the free motion (:mod:`.device_rows`: the
+        detection, the rows, the LCP and dx on the device), where they can be: the option on,
+        no friction and no mesh obstacle, the LCP solvable on the device, a surface, and the
+        last step within the row limit (a larger set would overflow and be redone on the host).
+        Call after :meth:`prepare`; None: the host path (:meth:`step`)."""
+        o = self.options
+        limit = min(o["device_lcp_rows"], o["max_contacts"])
+        if not o["device_rows"] or not self._frictionless or self._mesh_objects or self._last_rows > limit:
+            return None
+        inner = self._device_solver(body, 1)
+        topo = self._topo
+        if inner is None or topo is None or not topo.matches(body.fem) or not len(topo.surface):
+            return None
+        if self._device_rows is None or self._device_rows.rows != o["device_lcp_rows"]:
+            self._device_rows = DeviceRows(o["device_lcp_rows"], self.device)
+        self._device_rows.surface(topo)
+        return DeviceStep(self, body, inner, limit)
+
+    def finish_device_rows(self, body: BodyView, plan: DeviceStep, out: np.ndarray, header: np.ndarray,
+                           record: np.ndarray) -> ContactStats | None:
+        """The host's part of a step made by ``plan`` from what was read after it (the LCP's
+        output, the rows' header and record): forces, wrenches, :attr:`contacts`, the host's warm
+        start and the statistics, as :meth:`step` makes them; None where the device could not
+        solve the step (more contacts than the limit, or W not positive definite: nothing was
+        corrected, the caller restores the free motion and calls :meth:`step`)."""
+        t0 = time.perf_counter()
+        m = int(header[1])
+        if header[2] != 0.0 or (m and out[2] == 0.0):
+            self._last_rows = max(int(header[0]), self._last_rows)
+            return None
+        self._last_rows = m
+        for obj in self.objects:
+            obj.force, obj.torque = np.zeros(3), np.zeros(3)
+        if m == 0:
+            self.contacts = Contacts.empty(responded=True)
+            self._warm = WarmStart()
+            return ContactStats(rows_device=True, contact_ms=1000.0 * (time.perf_counter() - t0))
+        rec = np.array(record[:m])
+        node, obj = rec[:, 1].astype(np.int64), rec[:, 2].astype(np.int64)
+        normal = rec[:, 6:9]
+        c = Contacts(node, obj, rec[:, 9], normal, rec[:, 3:6], rec[:, 10:13].astype(np.int64), rec[:, 13:16])
+        own = obj < 0
+        n_own = int(np.count_nonzero(own))
+        stats = ContactStats(contacts=m, self_contacts=n_own,
+                             face_contacts=int(np.count_nonzero((node < 0) & ~own)), lcp_device=True, rows_device=True,
+                             compliance_fallbacks=self.compliance_fallbacks, compliance="preconditioner",
+                             gs_iterations=int(out[0]), lcp_residual=float(out[1]))
+        ln = np.array(out[3:3 + m])
+        force = ln[:, None] * normal
+        self._set_wrenches(c, force)
+        pressed = ln > 0.0
+        n = body.fem.n_nodes
+        uids = body.node_uids
+        uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
+        self._warm = WarmStart(contact_names(obj, node, c.tri, uids), force, pressed)
+        self.contacts = c.responded(ln, force)
+        stats.active_contacts = int(np.count_nonzero(pressed))
+        stats.contact_ms = 1000.0 * (time.perf_counter() - t0)
+        return stats
 
     def _device_solver(self, body: BodyView, m: int):
         """The factor's services where this step's LCP of ``m`` rows is solved on the device, else
@@ -488,6 +558,33 @@ class ContactSolver:
         np.add.at(wrench, obj, terms)
         for oi, o in enumerate(self.objects):
             o.force, o.torque = wrench[oi, :3], wrench[oi, 3:]
+
+
+class DeviceStep:
+    """One step's contacts launched on the device after the free motion (see
+    :meth:`ContactSolver.device_rows_plan`): :meth:`launch` launches the detection, the rows, the
+    LCP and dx; :meth:`key` names what those launches depend on."""
+
+    def __init__(self, solver: ContactSolver, body: BodyView, inner, limit: int):
+        self.solver, self.body, self.inner, self.limit = solver, body, inner, int(limit)
+        o = solver.options
+        self.lcp, self.rows = solver._device_lcp, solver._device_rows
+        self._args = (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid")
+        self.dt = float(body.integrator.dt)
+
+    def key(self) -> tuple:
+        b = self.body
+        return (self.lcp.key(self.inner, b.fem.free, self.dt, self._args), self.rows.key(self.limit),
+                b.integrator.x.ptr)
+
+    def launch(self) -> tuple[wp.array, list[wp.array]]:
+        """Launches only: (dx, the arrays to read: the LCP's output, the rows' header and record)."""
+        b = self.body
+        self.solver.launch_detection_of(b)
+        self.rows.launch(self.solver._topo, b.integrator.x, b.fem.free, self.lcp, self.limit)
+        dx = self.lcp.launch(self.inner, b.fem.free, self.dt, *self._args)
+        self.rows.remember(self.lcp)
+        return dx, [self.lcp.out, self.rows.header, self.rows.record]
 
 
 class Friction(NamedTuple):

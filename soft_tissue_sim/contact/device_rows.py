@@ -1,0 +1,260 @@
+"""The contact rows of eq. (3) built on the device from the detection's output slots, so that
+a step's detection, LCP, correction and guard follow the free motion with no host work in
+between (one read a step).
+
+:meth:`.solver.ContactSolver.step` reads the detection to the host, builds the constraint rows
+(H in node form, delta^0, the warm start) with NumPy and stages them for the device LCP
+(:mod:`.device_lcp`). For the contact sets the device LCP solves anyway (frictionless, at most
+``contact.device_lcp_rows`` rows, no mesh obstacle) the same rows are made here, launched
+right after the detection:
+
+1. :func:`active_slots_kernel` lists the active output slots (an atomic counter; the list is
+   sorted by slot in step 2, so the rows come in the host's order, slot order);
+2. :func:`device_rows_kernel` (one thread, at most ``limit`` contacts) reads each slot's
+   contact as :func:`.detection.collect` does (node, object, triangle of the surface, the
+   barycentric weights), moves a self-collision contact's point and gap to the free motion
+   (the triangle's point follows its nodes), drops the contacts whose nodes are all fixed,
+   and writes the LCP's inputs into :class:`.device_lcp.DeviceLCP`'s device arrays and one
+   record row per contact for the host; more contacts than ``limit`` set the overflow flag
+   (nothing is solved; the host redoes the step's contacts, as it does beyond the row limit);
+3. the warm start: the last step's force of the same slot (an object's node or face, a
+   node's self-collision: the host's contact names within one surface), where that step was
+   solved here (a stamp per slot against an epoch counter, both on the device);
+4. :func:`remember_forces_kernel`, after the LCP, keeps the pressed contacts' forces for the
+   next step and advances the epoch.
+
+The host reads the record with the LCP's output and the guard after the correction, and
+finishes the step (forces, wrenches, the host's warm start, statistics) as the host path does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ..buffers import GrowArray
+
+F64 = wp.float64
+
+# one record row per contact: slot, node, obj, point (3), normal (3), gap, tri (3), bary (3)
+RECORD = 16
+_KIND_NODE, _KIND_FACE, _KIND_SELF = 0, 1, 2  # as detection.SlotMap.kind
+
+
+@wp.kernel
+def active_slots_kernel(active: wp.array(dtype=wp.int32), cap: int, count: wp.array(dtype=wp.int32),
+                        slots: wp.array(dtype=wp.int32)):
+    """Append each active slot's index to ``slots`` (the first ``cap``); ``count`` counts them all."""
+    s = wp.tid()
+    if active[s] != 0:
+        i = wp.atomic_add(count, 0, 1)
+        if i < cap:
+            slots[i] = s
+
+
+@wp.kernel
+def device_rows_kernel(
+    count: wp.array(dtype=wp.int32),
+    slots: wp.array(dtype=wp.int32),
+    limit: int,
+    slot_node: wp.array(dtype=wp.int32),
+    slot_obj: wp.array(dtype=wp.int32),
+    slot_kind: wp.array(dtype=wp.int32),
+    slot_tri_row: wp.array(dtype=wp.int32),
+    tris: wp.array(dtype=wp.vec3i),
+    gap: wp.array(dtype=wp.float64),
+    normal: wp.array(dtype=wp.vec3d),
+    point: wp.array(dtype=wp.vec3d),
+    tri: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3d),
+    x: wp.array(dtype=wp.vec3d),
+    free: wp.array(dtype=wp.float64),
+    warm_force: wp.array(dtype=wp.vec3d),
+    warm_stamp: wp.array(dtype=wp.int32),
+    epoch: wp.array(dtype=wp.int32),
+    sizes: wp.array(dtype=wp.int32),
+    row_start: wp.array(dtype=wp.int32),
+    n_rows: wp.array(dtype=wp.int32),
+    nodes: wp.array2d(dtype=wp.int32),
+    coef: wp.array2d(dtype=wp.vec3d),
+    d0: wp.array(dtype=wp.float64),
+    lam0: wp.array(dtype=wp.float64),
+    mu: wp.array(dtype=wp.float64),
+    record: wp.array2d(dtype=wp.float64),
+    header: wp.array(dtype=wp.float64),
+):
+    """The frictionless LCP's rows from the active slots (see the module docstring). One thread.
+    header = [active slots, contacts kept (= rows), overflow (1: more than ``limit``)]."""
+    found = count[0]
+    sizes[0] = 0
+    sizes[1] = 0
+    header[0] = F64(float(found))
+    header[1] = F64(0.0)
+    header[2] = F64(0.0)
+    if found > limit:
+        header[2] = F64(1.0)
+        return
+    # the slots in ascending order (insertion sort of at most `limit` entries)
+    for i in range(1, found):
+        v = slots[i]
+        j = i
+        while j > 0:
+            u = slots[j - 1]
+            if u <= v:
+                break
+            slots[j] = u
+            j -= 1
+        slots[j] = v
+    e = epoch[0]
+    m = int(0)
+    for i in range(found):
+        s = slots[i]
+        kind = slot_kind[s]
+        node = slot_node[s]
+        row = slot_tri_row[s]
+        if kind == _KIND_SELF:
+            row = tri[s]
+        t = tris[row]
+        w = bary[s]
+        if kind == _KIND_NODE:
+            w = wp.vec3d(F64(0.0), F64(0.0), F64(0.0))
+        n = normal[s]
+        p = point[s]
+        g = gap[s]
+        sign = F64(1.0)
+        if kind == _KIND_SELF:  # the other surface is a tissue triangle: it moves with the free motion
+            sign = F64(-1.0)
+            p = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]]
+            g = wp.dot(n, x[node] - p)
+        # the tissue point's weights on (node, triangle nodes), zeroed where a node is absent
+        # and, for the Jacobian, on fixed nodes
+        w4 = wp.vec4d(F64(0.0), F64(0.0), F64(0.0), F64(0.0))
+        if node >= 0:
+            w4[0] = free[node]
+        for k in range(3):
+            if t[k] >= 0:
+                w4[k + 1] = sign * w[k] * free[t[k]]
+        if wp.dot(w4, w4) > F64(0.0):
+            if m >= limit:
+                header[2] = F64(1.0)
+                return
+            nodes[m, 0] = node
+            for k in range(3):
+                nodes[m, k + 1] = t[k]
+            for k in range(4):
+                coef[m, k] = w4[k] * n
+            d0[m] = g
+            row_start[m] = m
+            n_rows[m] = 1
+            mu[m] = F64(0.0)
+            lam = F64(0.0)
+            if warm_stamp[s] == e:
+                lam = wp.max(F64(0.0), wp.dot(warm_force[s], n))
+            lam0[m] = lam
+            record[m, 0] = F64(float(s))
+            record[m, 1] = F64(float(node))
+            record[m, 2] = F64(float(slot_obj[s]))
+            for k in range(3):
+                record[m, 3 + k] = p[k]
+                record[m, 6 + k] = n[k]
+                record[m, 10 + k] = F64(float(t[k]))
+                record[m, 13 + k] = w[k]
+            record[m, 9] = g
+            m += 1
+    sizes[0] = m
+    sizes[1] = m
+    header[1] = F64(float(m))
+
+
+@wp.kernel
+def remember_forces_kernel(sizes: wp.array(dtype=wp.int32), record: wp.array2d(dtype=wp.float64),
+                           out: wp.array(dtype=wp.float64), warm_force: wp.array(dtype=wp.vec3d),
+                           warm_stamp: wp.array(dtype=wp.int32), epoch: wp.array(dtype=wp.int32)):
+    """After the LCP (``out`` = [sweeps, residual, W usable | lambda]): each pressed contact's
+    force (lambda n) kept at its slot for the next step's warm start, stamped with the next
+    epoch; then the epoch advances (the other slots' forces are no longer current). One thread."""
+    e = epoch[0] + 1
+    for r in range(sizes[0]):
+        lam = out[3 + r]
+        if lam > F64(0.0):
+            s = int(record[r, 0])
+            warm_force[s] = lam * wp.vec3d(record[r, 6], record[r, 7], record[r, 8])
+            warm_stamp[s] = e
+    epoch[0] = e
+
+
+@wp.kernel
+def advance_epoch_kernel(epoch: wp.array(dtype=wp.int32)):
+    """Forget the kept forces (a step solved elsewhere, or a new surface)."""
+    epoch[0] = epoch[0] + 1
+
+
+class DeviceRows:
+    """The device side of :mod:`this module <.device_rows>` for one contact solver: the slot
+    tables of the current surface and the warm start by slot (grow-only arrays), the active
+    slots' list, the record of up to ``rows`` contacts and its header.
+
+    :meth:`surface` uploads a new surface's slot tables (and forgets the kept forces); :meth:`launch`
+    launches steps 1-2 for the detection outputs of that surface, :meth:`remember` step 4."""
+
+    def __init__(self, rows: int, device):
+        self.rows = int(rows)
+        self.device = wp.get_device(device)
+        d = self.device
+        self.count = wp.zeros(1, dtype=wp.int32, device=d)
+        self.epoch = wp.zeros(1, dtype=wp.int32, device=d)
+        self.list = wp.zeros(max(self.rows, 1), dtype=wp.int32, device=d)
+        self.record = wp.zeros((max(self.rows, 1), RECORD), dtype=wp.float64, device=d)
+        self.header = wp.zeros(3, dtype=wp.float64, device=d)
+        self._tables = {k: GrowArray(wp.int32, d) for k in ("node", "obj", "kind", "tri_row")}
+        self._tris = GrowArray(wp.vec3i, d)
+        self._warm_force = GrowArray(wp.vec3d, d)
+        self._warm_stamp = GrowArray(wp.int32, d)
+        self.serial = None  # the surface whose tables are up
+
+    def surface(self, topo) -> None:
+        """The slot tables of ``topo`` (a :class:`.detection.SurfaceTopology`) on the device, where
+        they are not the ones up; the kept forces are forgotten with the old surface's slots."""
+        if self.serial == topo.serial:
+            return
+        sm = topo.slot_map
+        n = len(sm.obj)
+        for name, values in (("node", sm.node), ("obj", sm.obj), ("kind", sm.kind), ("tri_row", sm.tri_row)):
+            a = self._tables[name].view(n)
+            a.assign(np.ascontiguousarray(values, dtype=np.int32))
+            setattr(self, "slot_" + name, a)
+        self.tris = self._tris.view(len(sm.tris))
+        self.tris.assign(np.ascontiguousarray(sm.tris, dtype=np.int32))
+        self.warm_force = self._warm_force.view(n)
+        self.warm_stamp = self._warm_stamp.view(n)
+        self.warm_stamp.fill_(-1)
+        self.epoch.zero_()
+        self.serial = topo.serial
+
+    def forget(self) -> None:
+        """The kept forces are not the last step's any more (a step solved on the host)."""
+        wp.launch(advance_epoch_kernel, 1, [self.epoch], device=self.device)
+
+    def key(self, limit: int) -> tuple:
+        return (self.serial, int(limit), self.count.ptr, self.list.ptr, self.record.ptr, self.header.ptr,
+                self.slot_node.ptr, self.tris.ptr, self.warm_force.ptr, self.warm_stamp.ptr)
+
+    def launch(self, topo, x: wp.array, free: wp.array, lcp, limit: int) -> None:
+        """Steps 1-2 for the detection just launched into ``topo.out``: the rows of at most
+        ``limit`` contacts at the free motion ``x`` into ``lcp``'s (a
+        :class:`.device_lcp.DeviceLCP`) arrays. Launches only."""
+        d = self.device
+        out = topo.out
+        self.count.zero_()
+        wp.launch(active_slots_kernel, out.active.shape[0], [out.active, self.list.shape[0], self.count, self.list],
+                  device=d)
+        wp.launch(device_rows_kernel, 1,
+                  [self.count, self.list, int(limit), self.slot_node, self.slot_obj, self.slot_kind, self.slot_tri_row,
+                   self.tris, out.gap, out.normal, out.point, out.tri, out.bary, x, free, self.warm_force,
+                   self.warm_stamp, self.epoch, lcp.sizes, lcp.row_start, lcp.n_rows, lcp.nodes, lcp.coef, lcp.d0,
+                   lcp.lam0, lcp.mu, self.record, self.header], device=d)
+
+    def remember(self, lcp) -> None:
+        """Step 4, after ``lcp``'s launch. Launches only."""
+        wp.launch(remember_forces_kernel, 1, [lcp.sizes, self.record, lcp.out, self.warm_force, self.warm_stamp,
+                                              self.epoch], device=self.device)

@@ -548,7 +548,7 @@ class AsyncDevicePreconditioner:
             "factor_age": self.step - self.factor_step if self.factor_step >= 0 else -1,
             "factorization_ms": self.factorization_ms,
             "factor_latency_steps": self.factor_latency_steps,
-            "refresh_interval": float(np.mean(np.diff(sw))) if len(sw) > 1 else 0.0,
+            "refresh_interval": (sw[-1] - sw[0]) / (len(sw) - 1) if len(sw) > 1 else 0.0,  # the mean gap
             "precond_ms": self.precond_ms,
             "worker": "device stream" if self._side is not None else "synchronous",
             "factor_sms": self.partition.sms if self.partition is not None else None,

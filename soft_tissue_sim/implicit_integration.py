@@ -266,6 +266,9 @@ class BackwardEuler:
         # caller's, e.g. the contact correction) captured as graphs and replayed while their keys hold
         self.graph_steps = False
         self._build_replay = graphs.Replayer(self.device, "BackwardEuler.build", eager=True)
+        # keep_start: build() first copies x and v into kept arrays (step_start), in its graph: the
+        # state a caller may go back to if the step fails
+        self.keep_start = False
         self.state_version = 0  # counts set_state calls: with step_index, names the state (x, v)
         # the work vectors and the state: views into allocations kept across node-count changes
         self._work = {name: GrowArray(wp.float64 if name in self._PAIRS else wp.vec3d, self.device)
@@ -290,7 +293,8 @@ class BackwardEuler:
 
     # f, the external forces, M dv of the first linearisation (zero), b, M v, K v, the energy
     # and guard reductions (2 values each), the step's start velocity (Newton), its dv and M dv
-    _WORK = ("f", "f_ext", "_zero", "b", "_Mv", "_Kv", "_energy", "_guard", "_guard_after", "_v_t", "_dvel", "_Mdv")
+    _WORK = ("f", "f_ext", "_zero", "b", "_Mv", "_Kv", "_energy", "_guard", "_guard_after", "_v_t", "_dvel", "_Mdv",
+             "_x0", "_v0")
     _PAIRS = ("_energy", "_guard", "_guard_after")  # two values each
 
     @property
@@ -351,7 +355,8 @@ class BackwardEuler:
         arrays = (self.x, self.v, self.f, self.f_ext, self._zero, self._Mv, self._Kv, self.b, f._ones(),
                   f._rot_acc, f._node_rot)
         return (self.graph_key(), tuple(a.ptr for a in arrays), tuple(float(g) for g in self.gravity),
-                float(self.dt), float(self.damping.mass), float(self.damping.stiffness), self.node_rotations_in_build)
+                float(self.dt), float(self.damping.mass), float(self.damping.stiffness), self.node_rotations_in_build,
+                self.keep_start and (self._x0.ptr, self._v0.ptr))
 
     def build(self) -> None:
         """Rotations at u_t and the right-hand side b of eq. (1) (and the node rotations where
@@ -361,9 +366,17 @@ class BackwardEuler:
         self._build_replay.run(self.build_key() if self.graph_steps else None, self._launch_build)
         self.fem.node_rotations_current = self.node_rotations_in_build  # as the launches leave it
 
+    def step_start(self) -> tuple[wp.array, wp.array]:
+        """(x, v) as the last :meth:`build` found them, with :attr:`keep_start` (valid until the
+        next build)."""
+        return self._x0, self._v0
+
     def _launch_build(self) -> None:
         """The launches of :meth:`build`."""
         fem, dt = self.fem, self.dt
+        if self.keep_start:
+            wp.copy(self._x0, self.x)
+            wp.copy(self._v0, self.v)
         fem.update_rotations(self.x)
         wp.launch(_gravity_kernel, fem.n_nodes, [fem.lumped_mass, wp.vec3d(*self.gravity), self.f_ext, self.f],
                   device=self.device)

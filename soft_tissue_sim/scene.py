@@ -297,6 +297,7 @@ class Simulation:
         if not (self.guard_ratio == 0.0 or self.guard_ratio > 1.0):
             raise ParameterError(f"guard energy_ratio must be 0 (off) or > 1, got {self.guard_ratio}")
         self.integrator.read_guard = self.guard_ratio > 0
+        self.integrator.keep_start = True  # the state a failed step goes back to, copied by the step's build
         self._contact_begun = False  # this step's instruments took their poses (ContactSolver.prepare)
         self._device_step = None  # (plan, free-motion copy, measured) of a contact step launched with the free motion
         if self.contact is not None:  # the detection launched after the free motion, read with its result
@@ -477,7 +478,6 @@ class Simulation:
         the last good state is kept. The event is reported in the step statistics.
         """
         integ = self.integrator
-        prev = self._copy_state("last good")
         k0, t0 = integ.step_index, integ.time
         ke_before = self._known_kinetic_energy() if self.guard_ratio > 0 else 0.0
         stats = integ.step()
@@ -485,6 +485,9 @@ class Simulation:
             None if np.isfinite(stats.residual) and np.isfinite(to_host(integ.x)[0]).all() else "non-finite state")
         if reason is None:
             return stats, True
+        prev = self._state_buffers("last good")  # kept here: the retries' builds copy their own starts
+        for dst, src in zip(prev, integ.step_start()):
+            wp.copy(dst, src)
 
         def rollback():
             self._restore_state(prev)

@@ -21,7 +21,7 @@ DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 # a self contact's point on the moving triangle is summed in another order than NumPy's (and the GPU
 # scatters H^T lambda with atomic adds, its PGS uses FMA): rounding, carried by the sweeps (which
 # stop at the 1e-8 m tolerance) from step to step, far under that tolerance
-EXACT = 1e-10
+EXACT = 1e-10 if DEVICE == "cpu" else 1e-9
 
 
 def _u_scene(tmp_path, device_rows, rows=64, graph=True, **contact):
@@ -77,7 +77,7 @@ def test_rows_built_on_the_device_give_the_host_rows_steps(tmp_path, graph):
             kinds[key] = max(kinds[key], sd.get(key, 0))
         for a, b in zip(cd[:3], ch[:3]):
             np.testing.assert_array_equal(a, b)
-        np.testing.assert_allclose(cd[3], ch[3], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(cd[3], ch[3], rtol=1e-6, atol=1e-7)  # [N]: a contact barely pressed may differ
         np.testing.assert_allclose(xd, xh, rtol=0, atol=EXACT)
         np.testing.assert_allclose(wd[0], wh[0], rtol=1e-6, atol=1e-9)
     assert kinds["self_contacts"] > 0 and kinds["face_contacts"] > 0

@@ -293,6 +293,34 @@ def test_a_step_that_keeps_failing_keeps_the_last_good_state():
         assert sim.step_count == n_good and sim.integrator.dt == 0.01
 
 
+def test_a_failing_second_half_step_goes_back_to_the_step_start_not_the_half_step():
+    """The step's start is copied by each build (in its graph); the retries' builds copy their
+    own starts, so the state a failed step goes back to is kept aside at the first failure:
+    a first half step that holds and a second that blows up leave the last good state, not the
+    half step's."""
+    with load_scene(beam_scene(10, 3, preconditioner="async_ldlt")) as sim:
+        for _ in range(3):
+            sim.step()
+        x_good, v_good = sim.positions(), sim.velocities()
+        real_step = sim.integrator.step
+        calls = []
+
+        def step():
+            s = real_step()
+            calls.append(s)
+            if len(calls) in (1, 2, 4):  # the step, its fresh-factor retry, the second half step
+                v = sim.integrator.v.numpy()
+                v[-1] += 1000.0
+                sim.integrator.v.assign(v)
+            return s
+
+        sim.integrator.step = step
+        s = sim.step()
+        assert len(calls) == 4 and s.extra["remedy"].startswith("none")
+        np.testing.assert_array_equal(sim.positions(), x_good)
+        np.testing.assert_array_equal(sim.velocities(), v_good)
+
+
 def test_a_step_runs_its_host_blas_on_one_thread_unless_told_otherwise(monkeypatch):
     """``solver.blas_threads``: one (default) holds the one-thread BLAS scope during the step
     and leaves it after; default does not enter it; anything else is refused."""

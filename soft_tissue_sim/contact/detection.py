@@ -28,7 +28,7 @@ import numpy as np
 import warp as wp
 
 from .. import graphs
-from ..buffers import GrowArray, PackedArrays
+from ..buffers import GrowArray, PackedArrays, typed_view
 from ..instrument import Instrument, MeshObstacle, PlaneObstacle
 from ..mesh import extent
 from ..transfer import Staged
@@ -192,8 +192,12 @@ class SurfaceBuffers:
         self.lowers, self.uppers = GrowArray(wp.vec3, dev), GrowArray(wp.vec3, dev)
         self.inside = wp.zeros(max(n_objects, 1), dtype=wp.int32, device=dev)
         self.min_gap = wp.zeros(1, dtype=wp.float64, device=dev)
-        self.geom_in = Staged(4 * max(n_objects, 1), wp.vec3d, dev)
-        self.params_in = Staged(3 * max(n_objects, 1), wp.float64, dev)
+        # the objects' geometry and parameters, sent in one copy: per object 4 vec3d of geometry,
+        # then per object a vec3d of parameters, read by the kernels as 3 float64 (see upload_objects)
+        k = max(n_objects, 1)
+        self.objects_in = Staged(5 * k, wp.vec3d, dev)
+        self.geom = typed_view(self.objects_in.array, 0, wp.vec3d, 4 * k)
+        self.params = typed_view(self.objects_in.array, 4 * k * 24, wp.float64, 3 * k)
 
 
 class SurfaceTopology:
@@ -272,8 +276,7 @@ class SurfaceTopology:
         self.out = Outputs(sections, dev, buffers.outputs)
         self.slot_map = SlotMap(sections, self.out.active.shape[0], self.surface, self.faces)
         # the objects' geometry of the step, on the device (see upload_objects)
-        self.geom_in, self.params_in = buffers.geom_in, buffers.params_in
-        self.geom, self.params = self.geom_in.array, self.params_in.array
+        self.objects_in, self.geom, self.params = buffers.objects_in, buffers.geom, buffers.params
         # captured detections, by arguments
         self.replay = graphs.Replayer(dev, "contact detection", slots=4, eager=True, loaded=loaded)
         self.serial = next(_SERIALS)  # names this surface in the keys of graphs that launch on it
@@ -288,10 +291,11 @@ def upload_objects(topo: SurfaceTopology, objects: list) -> None:
     kernels read it (so that a captured detection replays with new poses): per object ``oi``,
     geom[4 oi ...] = an instrument's axis (a, b) at the step's pose and at the previous step's
     pose, or a plane's (point, normal); params[3 oi ...] = (radius, blade_lo, blade_hi).
-    Filled on the host and sent without a wait (:class:`~soft_tissue_sim.transfer.Staged`)."""
-    geom, params = topo.geom_in.view(), topo.params_in.view()
-    geom[:] = 0.0
-    params[:] = 0.0
+    Filled on the host and sent in one copy without a wait (:class:`~soft_tissue_sim.transfer.Staged`)."""
+    staged = topo.objects_in.view()
+    staged[:] = 0.0
+    k = len(staged) // 5
+    geom, params = staged[: 4 * k], staged[4 * k:].reshape(-1)
     for oi, obj in enumerate(objects):
         if isinstance(obj, Instrument):
             geom[4 * oi: 4 * oi + 2] = obj.segment_world()
@@ -299,8 +303,7 @@ def upload_objects(topo: SurfaceTopology, objects: list) -> None:
             params[3 * oi: 3 * oi + 3] = (obj.radius, *blade_span(obj))
         elif isinstance(obj, PlaneObstacle):
             geom[4 * oi], geom[4 * oi + 1] = obj.point, obj.normal
-    topo.geom_in.send()
-    topo.params_in.send()
+    topo.objects_in.send()
 
 
 def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_features: wp.array, distance: float,

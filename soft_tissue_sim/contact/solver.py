@@ -86,6 +86,7 @@ class ContactSolver:
         self._mesh_objects = [oi for oi, obj in enumerate(self.objects) if isinstance(obj, MeshObstacle)]
         self._topo: SurfaceTopology | None = None
         self._warm = WarmStart()
+        self._warm_rows = None  # the last step's contacts solved from device rows, named when next needed
         self._pgs = PGS(o["active_set"])
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
         self._device_rows: DeviceRows | None = None  # the rows built on the device (device_rows), idem
@@ -145,7 +146,7 @@ class ContactSolver:
             obs.torque[:] = 0.0
         self._retire_topology()
         self._topo = None
-        self._warm = WarmStart()
+        self._warm, self._warm_rows = WarmStart(), None
         self._last_rows = 0
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0
@@ -327,7 +328,7 @@ class ContactSolver:
         dx = None
         if k == 0:
             self.contacts = Contacts.empty(responded=True)
-            self._warm = WarmStart()
+            self._warm, self._warm_rows = WarmStart(), None
         else:
             dx = self._respond(body, c, nodes4, w4, ws4, free, x, x_start, stats, device_lcp)
         self._last_rows = k if self._frictionless else 3 * k
@@ -375,7 +376,7 @@ class ContactSolver:
             obj.force, obj.torque = np.zeros(3), np.zeros(3)
         if m == 0:
             self.contacts = Contacts.empty(responded=True)
-            self._warm = WarmStart()
+            self._warm, self._warm_rows = WarmStart(), None
             return ContactStats(rows_device=True, contact_ms=1000.0 * (time.perf_counter() - t0))
         rec = np.array(record[:m])
         node, obj = rec[:, 1].astype(np.int64), rec[:, 2].astype(np.int64)
@@ -391,14 +392,20 @@ class ContactSolver:
         force = ln[:, None] * normal
         self._set_wrenches(c, force)
         pressed = ln > 0.0
-        n = body.fem.n_nodes
-        uids = body.node_uids
-        uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
-        self._warm = WarmStart(contact_names(obj, node, c.tri, uids), force, pressed)
+        self._warm_rows = (obj, node, c.tri, force, pressed, body.node_uids, body.fem.n_nodes)  # see _warm_start
         self.contacts = c.responded(ln, force)
         stats.active_contacts = int(np.count_nonzero(pressed))
         stats.contact_ms = 1000.0 * (time.perf_counter() - t0)
         return stats
+
+    def _warm_start(self) -> WarmStart:
+        """The host's warm start: the last step's forces by contact name (named here, at their
+        first use, where that step was solved from device rows)."""
+        if self._warm_rows is not None:
+            obj, node, tri, force, pressed, uids, n = self._warm_rows
+            uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
+            self._warm, self._warm_rows = WarmStart(contact_names(obj, node, tri, uids), force, pressed), None
+        return self._warm
 
     def _device_solver(self, body: BodyView, m: int):
         """The factor's services where this step's LCP of ``m`` rows is solved on the device, else
@@ -475,7 +482,7 @@ class ContactSolver:
         uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
         names = contact_names(c.obj, c.node, c.tri, uids)
         lam = np.zeros(m)
-        warm = self._warm
+        warm = self._warm_start()
         found, f = warm.lookup(names)
         if len(f):
             r = row_start[found] if friction else found  # the normal rows of the contacts found

@@ -595,8 +595,9 @@ class Simulation:
         if device_step is not None:  # the contact step launched with the free motion (contact.device_rows)
             plan, free, measured = device_step
             if host is not None:
-                out, header, record, guard, *gap = host
-                stats.contact = self.contact.finish_device_rows(self.view(), plan, out, header, record)
+                k = plan.READS
+                (guard, *gap) = host[k:]
+                stats.contact = self.contact.finish_device_rows(self.view(), plan, host[:k])
                 if stats.contact is not None:
                     self._judge_contact(stats, guard, gap, measured, ke_free, free, None)
                     return

@@ -192,12 +192,14 @@ class SurfaceBuffers:
         self.lowers, self.uppers = GrowArray(wp.vec3, dev), GrowArray(wp.vec3, dev)
         self.inside = wp.zeros(max(n_objects, 1), dtype=wp.int32, device=dev)
         self.min_gap = wp.zeros(1, dtype=wp.float64, device=dev)
-        # the objects' geometry and parameters, sent in one copy: per object 4 vec3d of geometry,
-        # then per object a vec3d of parameters, read by the kernels as 3 float64 (see upload_objects)
+        # the objects' geometry, parameters and origins, sent in one copy: per object 4 vec3d of
+        # geometry, then per object a vec3d of parameters (read by the kernels as 3 float64),
+        # then per object its origin (see upload_objects)
         k = max(n_objects, 1)
-        self.objects_in = Staged(5 * k, wp.vec3d, dev)
+        self.objects_in = Staged(6 * k, wp.vec3d, dev)
         self.geom = typed_view(self.objects_in.array, 0, wp.vec3d, 4 * k)
         self.params = typed_view(self.objects_in.array, 4 * k * 24, wp.float64, 3 * k)
+        self.origins = typed_view(self.objects_in.array, 5 * k * 24, wp.vec3d, k)
 
 
 class SurfaceTopology:
@@ -276,7 +278,8 @@ class SurfaceTopology:
         self.out = Outputs(sections, dev, buffers.outputs)
         self.slot_map = SlotMap(sections, self.out.active.shape[0], self.surface, self.faces)
         # the objects' geometry of the step, on the device (see upload_objects)
-        self.objects_in, self.geom, self.params = buffers.objects_in, buffers.geom, buffers.params
+        self.objects_in, self.geom, self.params, self.origins = (buffers.objects_in, buffers.geom, buffers.params,
+                                                                 buffers.origins)
         # captured detections, by arguments
         self.replay = graphs.Replayer(dev, "contact detection", slots=4, eager=True, loaded=loaded)
         self.serial = next(_SERIALS)  # names this surface in the keys of graphs that launch on it
@@ -290,13 +293,15 @@ def upload_objects(topo: SurfaceTopology, objects: list) -> None:
     """The objects' geometry of this step into ``topo.geom`` / ``topo.params``, where the
     kernels read it (so that a captured detection replays with new poses): per object ``oi``,
     geom[4 oi ...] = an instrument's axis (a, b) at the step's pose and at the previous step's
-    pose, or a plane's (point, normal); params[3 oi ...] = (radius, blade_lo, blade_hi).
+    pose, or a plane's (point, normal); params[3 oi ...] = (radius, blade_lo, blade_hi);
+    origins[oi] = where its torque is taken (the contact solver's wrenches on the device).
     Filled on the host and sent in one copy without a wait (:class:`~soft_tissue_sim.transfer.Staged`)."""
     staged = topo.objects_in.view()
     staged[:] = 0.0
-    k = len(staged) // 5
-    geom, params = staged[: 4 * k], staged[4 * k:].reshape(-1)
+    k = len(staged) // 6
+    geom, params, origins = staged[: 4 * k], staged[4 * k: 5 * k].reshape(-1), staged[5 * k:]
     for oi, obj in enumerate(objects):
+        origins[oi] = obj.origin
         if isinstance(obj, Instrument):
             geom[4 * oi: 4 * oi + 2] = obj.segment_world()
             geom[4 * oi + 2: 4 * oi + 4] = obj.segment_world(obj.previous_step_pose)

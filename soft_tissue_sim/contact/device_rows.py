@@ -20,11 +20,13 @@ right after the detection:
 3. the warm start: the last step's force of the same slot (an object's node or face, a
    node's self-collision: the host's contact names within one surface), where that step was
    solved here (a stamp per slot against an epoch counter, both on the device);
-4. :func:`remember_forces_kernel`, after the LCP, keeps the pressed contacts' forces for the
+4. :func:`device_forces_kernel`, after the LCP, makes the contacts' forces, the objects'
+   wrenches and the counts the statistics report, keeps the pressed contacts' forces for the
    next step and advances the epoch.
 
-The host reads the record with the LCP's output and the guard after the correction, and
-finishes the step (forces, wrenches, the host's warm start, statistics) as the host path does.
+The host reads the header, the wrenches and the LCP's output with the guard after the
+correction; the contact record and the host's warm start are made from the read record only
+where they are asked for (:attr:`.solver.ContactSolver.contacts`, a later step on the host).
 """
 
 from __future__ import annotations
@@ -84,7 +86,7 @@ def device_rows_kernel(
     header: wp.array(dtype=wp.float64),
 ):
     """The frictionless LCP's rows from the active slots (see the module docstring). One thread.
-    header = [active slots, contacts kept (= rows), overflow (1: more than ``limit``)]."""
+    header[:3] = [active slots, contacts kept (= rows), overflow (1: more than ``limit``)]."""
     found = count[0]
     sizes[0] = 0
     sizes[1] = 0
@@ -167,19 +169,46 @@ def device_rows_kernel(
 
 
 @wp.kernel
-def remember_forces_kernel(sizes: wp.array(dtype=wp.int32), record: wp.array2d(dtype=wp.float64),
-                           out: wp.array(dtype=wp.float64), warm_force: wp.array(dtype=wp.vec3d),
-                           warm_stamp: wp.array(dtype=wp.int32), epoch: wp.array(dtype=wp.int32)):
-    """After the LCP (``out`` = [sweeps, residual, W usable | lambda]): each pressed contact's
-    force (lambda n) kept at its slot for the next step's warm start, stamped with the next
-    epoch; then the epoch advances (the other slots' forces are no longer current). One thread."""
+def device_forces_kernel(sizes: wp.array(dtype=wp.int32), record: wp.array2d(dtype=wp.float64),
+                         out: wp.array(dtype=wp.float64), origins: wp.array(dtype=wp.vec3d),
+                         warm_force: wp.array(dtype=wp.vec3d), warm_stamp: wp.array(dtype=wp.int32),
+                         epoch: wp.array(dtype=wp.int32), wrench: wp.array2d(dtype=wp.float64),
+                         header: wp.array(dtype=wp.float64)):
+    """After the LCP (``out`` = [sweeps, residual, W usable | lambda]): each contact's force on the
+    tissue f = lambda n; the wrench on each object, F = -sum f, T = sum (p - o) x (-f) about its
+    origin o (``wrench`` rows: force, torque); the counts header[3:6] = [self contacts, face
+    contacts, pressed contacts]; each pressed contact's force kept at its slot for the next
+    step's warm start, stamped with the next epoch; then the epoch advances (the other slots'
+    forces are no longer current). One thread."""
+    for oi in range(wrench.shape[0]):
+        for k in range(6):
+            wrench[oi, k] = F64(0.0)
     e = epoch[0] + 1
+    n_self = int(0)
+    n_face = int(0)
+    n_pressed = int(0)
     for r in range(sizes[0]):
         lam = out[3 + r]
+        f = lam * wp.vec3d(record[r, 6], record[r, 7], record[r, 8])
+        obj = int(record[r, 2])
+        if obj < 0:
+            n_self += 1
+        elif int(record[r, 1]) < 0:
+            n_face += 1
+        if obj >= 0:
+            p = wp.vec3d(record[r, 3], record[r, 4], record[r, 5])
+            t = wp.cross(p - origins[obj], -f)
+            for k in range(3):
+                wrench[obj, k] = wrench[obj, k] - f[k]
+                wrench[obj, 3 + k] = wrench[obj, 3 + k] + t[k]
         if lam > F64(0.0):
+            n_pressed += 1
             s = int(record[r, 0])
-            warm_force[s] = lam * wp.vec3d(record[r, 6], record[r, 7], record[r, 8])
+            warm_force[s] = f
             warm_stamp[s] = e
+    header[3] = F64(float(n_self))
+    header[4] = F64(float(n_face))
+    header[5] = F64(float(n_pressed))
     epoch[0] = e
 
 
@@ -195,9 +224,9 @@ class DeviceRows:
     slots' list, the record of up to ``rows`` contacts and its header.
 
     :meth:`surface` uploads a new surface's slot tables (and forgets the kept forces); :meth:`launch`
-    launches steps 1-2 for the detection outputs of that surface, :meth:`remember` step 4."""
+    launches steps 1-2 for the detection outputs of that surface, :meth:`forces` step 4."""
 
-    def __init__(self, rows: int, device):
+    def __init__(self, rows: int, n_objects: int, device):
         self.rows = int(rows)
         self.device = wp.get_device(device)
         d = self.device
@@ -205,7 +234,8 @@ class DeviceRows:
         self.epoch = wp.zeros(1, dtype=wp.int32, device=d)
         self.list = wp.zeros(max(self.rows, 1), dtype=wp.int32, device=d)
         self.record = wp.zeros((max(self.rows, 1), RECORD), dtype=wp.float64, device=d)
-        self.header = wp.zeros(3, dtype=wp.float64, device=d)
+        self.header = wp.zeros(6, dtype=wp.float64, device=d)
+        self.wrench = wp.zeros((max(int(n_objects), 1), 6), dtype=wp.float64, device=d)
         self._tables = {k: GrowArray(wp.int32, d) for k in ("node", "obj", "kind", "tri_row")}
         self._tris = GrowArray(wp.vec3i, d)
         self._warm_force = GrowArray(wp.vec3d, d)
@@ -237,7 +267,7 @@ class DeviceRows:
 
     def key(self, limit: int) -> tuple:
         return (self.serial, int(limit), self.count.ptr, self.list.ptr, self.record.ptr, self.header.ptr,
-                self.slot_node.ptr, self.tris.ptr, self.warm_force.ptr, self.warm_stamp.ptr)
+                self.wrench.ptr, self.slot_node.ptr, self.tris.ptr, self.warm_force.ptr, self.warm_stamp.ptr)
 
     def launch(self, topo, x: wp.array, free: wp.array, lcp, limit: int) -> None:
         """Steps 1-2 for the detection just launched into ``topo.out``: the rows of at most
@@ -254,7 +284,9 @@ class DeviceRows:
                    self.warm_stamp, self.epoch, lcp.sizes, lcp.row_start, lcp.n_rows, lcp.nodes, lcp.coef, lcp.d0,
                    lcp.lam0, lcp.mu, self.record, self.header], device=d)
 
-    def remember(self, lcp) -> None:
-        """Step 4, after ``lcp``'s launch. Launches only."""
-        wp.launch(remember_forces_kernel, 1, [lcp.sizes, self.record, lcp.out, self.warm_force, self.warm_stamp,
-                                              self.epoch], device=self.device)
+    def forces(self, lcp, origins: wp.array) -> None:
+        """Step 4, after ``lcp``'s launch: the forces, the objects' wrenches about ``origins``
+        (one per object), the counts, the warm start kept. Launches only."""
+        wp.launch(device_forces_kernel, 1, [lcp.sizes, self.record, lcp.out, origins, self.warm_force,
+                                            self.warm_stamp, self.epoch, self.wrench, self.header],
+                  device=self.device)

@@ -87,6 +87,7 @@ class ContactSolver:
         self._topo: SurfaceTopology | None = None
         self._warm = WarmStart()
         self._warm_rows = None  # the last step's contacts solved from device rows, named when next needed
+        self._rows_read = None  # (record, lambda) of those contacts, made a Contacts when next asked for
         self._pgs = PGS(o["active_set"])
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
         self._device_rows: DeviceRows | None = None  # the rows built on the device (device_rows), idem
@@ -355,56 +356,63 @@ class ContactSolver:
         if inner is None or topo is None or not topo.matches(body.fem) or not len(topo.surface):
             return None
         if self._device_rows is None or self._device_rows.rows != o["device_lcp_rows"]:
-            self._device_rows = DeviceRows(o["device_lcp_rows"], self.device)
+            self._device_rows = DeviceRows(o["device_lcp_rows"], len(self.objects), self.device)
         self._device_rows.surface(topo)
         return DeviceStep(self, body, inner, limit)
 
-    def finish_device_rows(self, body: BodyView, plan: DeviceStep, out: np.ndarray, header: np.ndarray,
-                           record: np.ndarray) -> ContactStats | None:
-        """The host's part of a step made by ``plan`` from what was read after it (the LCP's
-        output, the rows' header and record): forces, wrenches, :attr:`contacts`, the host's warm
-        start and the statistics, as :meth:`step` makes them; None where the device could not
-        solve the step (more contacts than the limit, or W not positive definite: nothing was
-        corrected, the caller restores the free motion and calls :meth:`step`)."""
+    def finish_device_rows(self, body: BodyView, plan: DeviceStep, reads: list) -> ContactStats | None:
+        """The host's part of a step made by ``plan`` from what was read after it (``reads``: the
+        arrays of :meth:`DeviceStep.launch`): the wrenches, :attr:`contacts` and the host's warm
+        start (both made from the record when next asked for) and the statistics, as :meth:`step`
+        makes them; None where the device could not solve the step (more contacts than the
+        limit, or W not positive definite: nothing was corrected, the caller restores the free
+        motion and calls :meth:`step`)."""
         t0 = time.perf_counter()
+        out, header, record, wrench = reads
         m = int(header[1])
         if header[2] != 0.0 or (m and out[2] == 0.0):
             self._last_rows = max(int(header[0]), self._last_rows)
             return None
         self._last_rows = m
-        for obj in self.objects:
-            obj.force, obj.torque = np.zeros(3), np.zeros(3)
+        for oi, obj in enumerate(self.objects):
+            obj.force, obj.torque = wrench[oi, :3].copy(), wrench[oi, 3:].copy()
         if m == 0:
             self.contacts = Contacts.empty(responded=True)
             self._warm, self._warm_rows = WarmStart(), None
             return ContactStats(rows_device=True, contact_ms=1000.0 * (time.perf_counter() - t0))
-        rec = np.array(record[:m])
-        node, obj = rec[:, 1].astype(np.int64), rec[:, 2].astype(np.int64)
-        normal = rec[:, 6:9]
-        c = Contacts(node, obj, rec[:, 9], normal, rec[:, 3:6], rec[:, 10:13].astype(np.int64), rec[:, 13:16])
-        own = obj < 0
-        n_own = int(np.count_nonzero(own))
-        stats = ContactStats(contacts=m, self_contacts=n_own,
-                             face_contacts=int(np.count_nonzero((node < 0) & ~own)), lcp_device=True, rows_device=True,
+        rec, ln = np.array(record[:m]), np.array(out[3:3 + m])
+        self._rows_read = rec, ln
+        self._warm_rows = rec, ln, body.node_uids, body.fem.n_nodes
+        stats = ContactStats(contacts=m, self_contacts=int(header[3]), face_contacts=int(header[4]),
+                             active_contacts=int(header[5]), lcp_device=True, rows_device=True,
                              compliance_fallbacks=self.compliance_fallbacks, compliance="preconditioner",
                              gs_iterations=int(out[0]), lcp_residual=float(out[1]))
-        ln = np.array(out[3:3 + m])
-        force = ln[:, None] * normal
-        self._set_wrenches(c, force)
-        pressed = ln > 0.0
-        self._warm_rows = (obj, node, c.tri, force, pressed, body.node_uids, body.fem.n_nodes)  # see _warm_start
-        self.contacts = c.responded(ln, force)
-        stats.active_contacts = int(np.count_nonzero(pressed))
         stats.contact_ms = 1000.0 * (time.perf_counter() - t0)
         return stats
+
+    @property
+    def contacts(self) -> Contacts:
+        """The last step's contacts with their forces (made from the device rows' record at the
+        first ask after a step solved there)."""
+        if self._rows_read is not None:
+            rec, ln = self._rows_read
+            c = _record_contacts(rec)
+            self._contacts, self._rows_read = c.responded(ln, ln[:, None] * c.normal), None
+        return self._contacts
+
+    @contacts.setter
+    def contacts(self, value: Contacts) -> None:
+        self._contacts, self._rows_read = value, None
 
     def _warm_start(self) -> WarmStart:
         """The host's warm start: the last step's forces by contact name (named here, at their
         first use, where that step was solved from device rows)."""
         if self._warm_rows is not None:
-            obj, node, tri, force, pressed, uids, n = self._warm_rows
+            rec, ln, uids, n = self._warm_rows
+            c = _record_contacts(rec)
             uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
-            self._warm, self._warm_rows = WarmStart(contact_names(obj, node, tri, uids), force, pressed), None
+            self._warm = WarmStart(contact_names(c.obj, c.node, c.tri, uids), ln[:, None] * c.normal, ln > 0.0)
+            self._warm_rows = None
         return self._warm
 
     def _device_solver(self, body: BodyView, m: int):
@@ -567,10 +575,18 @@ class ContactSolver:
             o.force, o.torque = wrench[oi, :3], wrench[oi, 3:]
 
 
+def _record_contacts(rec: np.ndarray) -> Contacts:
+    """The contacts of a device rows' record (:data:`.device_rows.RECORD` columns)."""
+    return Contacts(rec[:, 1].astype(np.int64), rec[:, 2].astype(np.int64), rec[:, 9], rec[:, 6:9], rec[:, 3:6],
+                    rec[:, 10:13].astype(np.int64), rec[:, 13:16])
+
+
 class DeviceStep:
     """One step's contacts launched on the device after the free motion (see
     :meth:`ContactSolver.device_rows_plan`): :meth:`launch` launches the detection, the rows, the
     LCP and dx; :meth:`key` names what those launches depend on."""
+
+    READS = 4  # the arrays launch() returns to be read
 
     def __init__(self, solver: ContactSolver, body: BodyView, inner, limit: int):
         self.solver, self.body, self.inner, self.limit = solver, body, inner, int(limit)
@@ -585,13 +601,16 @@ class DeviceStep:
                 b.integrator.x.ptr)
 
     def launch(self) -> tuple[wp.array, list[wp.array]]:
-        """Launches only: (dx, the arrays to read: the LCP's output, the rows' header and record)."""
+        """Launches only: (dx, the :attr:`READS` arrays to read for
+        :meth:`ContactSolver.finish_device_rows`: the LCP's output, the rows' header, record and
+        the objects' wrenches)."""
         b = self.body
         self.solver.launch_detection_of(b)
-        self.rows.launch(self.solver._topo, b.integrator.x, b.fem.free, self.lcp, self.limit)
+        topo = self.solver._topo
+        self.rows.launch(topo, b.integrator.x, b.fem.free, self.lcp, self.limit)
         dx = self.lcp.launch(self.inner, b.fem.free, self.dt, *self._args)
-        self.rows.remember(self.lcp)
-        return dx, [self.lcp.out, self.rows.header, self.rows.record]
+        self.rows.forces(self.lcp, topo.origins)
+        return dx, [self.lcp.out, self.rows.header, self.rows.record, self.rows.wrench]
 
 
 class Friction(NamedTuple):

@@ -518,6 +518,17 @@ class AsyncDevicePreconditioner:
         (device arrays): launches only (see :meth:`solves_contact_on_device`)."""
         self.backend.delassus_matrix(nodes, coef, self.dR, sizes, scale, W)
 
+    def apply_rows(self, nodes: wp.array, coef: wp.array, lam: wp.array, sizes: wp.array, scale: float,
+                   free: wp.array, out: wp.array) -> bool:
+        """out = scale P^-1 H^T lambda on the free nodes for the first sizes[0] rows (device arrays,
+        launches only) where the backend makes it from the rows' columns; False where it does not
+        (the caller forms H^T lambda and applies P^-1)."""
+        fn = getattr(self.backend, "apply_rows", None)
+        if fn is None:
+            return False
+        fn(nodes, coef, lam, sizes, self.dR, scale, free, out)
+        return True
+
     def delassus_key(self) -> tuple:
         """What :meth:`delassus_matrix`'s launch depends on besides its arguments."""
         return self.backend.inv.ptr, self.backend.n3, self.dR.ptr

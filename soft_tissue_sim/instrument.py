@@ -125,7 +125,9 @@ class Pose:
         return (np.asarray(world) - self.position) @ self.R
 
     def copy(self) -> "Pose":
-        return Pose(self.position.copy(), self.quaternion.copy())
+        p = Pose.__new__(Pose)
+        p.position, p.quaternion, p.R = self.position.copy(), self.quaternion.copy(), self.R.copy()
+        return p
 
 
 # ----------------------------------------------------------------------------- instruments
@@ -230,7 +232,7 @@ class Instrument:
     def segment_world(self, pose: Pose | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The capsule's axis segment (tip centre, end of the shaft) in world coordinates."""
         pose = self.step_pose if pose is None else pose
-        return pose.position.copy(), pose.apply(np.array([0.0, 0.0, self.length]))
+        return pose.position.copy(), pose.position + self.length * pose.R[:, 2]  # R e_z: the tool's axis
 
     @property
     def has_blade(self) -> bool:

@@ -58,7 +58,9 @@ def test_the_device_solve_takes_the_host_solves_steps(friction, cone, graph):
             # shifts with the rounding of another processor's arithmetic
             assert sd["lcp_residual"] == pytest.approx(sh["lcp_residual"], rel=1e-6, abs=1e-15 if cpu else 1e-12)
             assert sd["active_contacts"] == sh["active_contacts"]
-    tol = 0.0 if cpu else 1e-12  # the GPU scatters H^T lambda with atomic adds, its PGS uses FMA
+    # dx is summed from the contacts' nodes' columns of the inverse (the host applies it whole) and
+    # the GPU's PGS uses FMA: equal to rounding
+    tol = 1e-12
     np.testing.assert_allclose(dev[0], host[0], rtol=0, atol=tol)
     np.testing.assert_allclose(dev[1], host[1], rtol=0, atol=tol / 0.01)
     np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9, atol=1e-12)
@@ -140,7 +142,7 @@ def test_steps_with_and_without_a_device_solve_alternate_under_graphs(device_row
     assert not any(s.get("rows_device") for s in s0)  # no device LCP: the rows on the host
     assert replays >= 15
     assert [s.get("active_contacts", 0) for s in s0] == [s.get("active_contacts", 0) for s in s1]
-    np.testing.assert_allclose(x1, x0, rtol=0, atol=0.0 if DEVICE == "cpu" else 1e-12)
+    np.testing.assert_allclose(x1, x0, rtol=0, atol=1e-12)  # dx from the columns of the contacts' nodes
 
 
 def test_the_device_solves_key_makes_its_work_vectors():
@@ -209,3 +211,42 @@ def test_the_device_kernel_solves_the_hosts_problems():
         assert inf[2] == 1.0 and int(inf[0]) == its
         np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-15)
         assert inf[1] == pytest.approx(res, rel=1e-6, abs=1e-18)
+
+
+def test_the_correction_from_the_rows_columns_is_the_inverse_applied_to_h_transpose_lambda():
+    """rows_apply_kernel: dt^2 dR P dR^T H^T lambda on the free nodes, summed from the rows'
+    nodes' columns, equals the whole product (rows sharing a node, absent nodes, a zero
+    lambda, rotated nodes, a fixed node)."""
+    from scipy.spatial.transform import Rotation
+
+    from soft_tissue_sim.dense_inverse import rows_apply_kernel
+
+    rng = np.random.default_rng(3)
+    n, m = 9, 5
+    B = rng.standard_normal((3 * n, 3 * n))
+    P = B @ B.T + 3 * n * np.eye(3 * n)
+    dR = Rotation.random(n, random_state=4).as_matrix()
+    nodes = rng.integers(0, n, size=(m, 4)).astype(np.int32)
+    nodes[1, 2:] = -1
+    nodes[3, 0] = nodes[0, 0]  # two rows on one node
+    coef = rng.standard_normal((m, 4, 3))
+    lam = rng.random(m)
+    lam[2] = 0.0
+    free = np.ones(n)
+    free[nodes[0, 1]] = 0.0
+    r = np.zeros((n, 3))
+    for i in range(m):
+        for k in range(4):
+            if nodes[i, k] >= 0:
+                r[nodes[i, k]] += lam[i] * coef[i, k]
+    s = np.einsum("nji,nj->ni", dR, r).reshape(-1)  # dR^T r, node by node
+    z = np.einsum("nij,nj->ni", dR, (P @ s).reshape(n, 3))
+    expected = 1e-4 * free[:, None] * z
+    d = DEVICE
+    out = wp.zeros(n, dtype=wp.vec3d, device=d)
+    wp.launch(rows_apply_kernel, n, [wp.array(P, dtype=wp.float64, device=d), wp.array(nodes, dtype=wp.int32, device=d),
+                                     wp.array(coef, dtype=wp.vec3d, device=d), wp.array(lam, dtype=wp.float64, device=d),
+                                     wp.array([m, m], dtype=wp.int32, device=d), wp.array(dR, dtype=wp.mat33d, device=d),
+                                     1e-4, wp.array(free, dtype=wp.float64, device=d), out], device=d)
+    np.testing.assert_allclose(out.numpy(), expected, rtol=1e-12, atol=1e-18)
+    assert not out.numpy()[nodes[0, 1]].any()

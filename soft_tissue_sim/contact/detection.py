@@ -54,11 +54,18 @@ def blade_span(inst: Instrument) -> tuple[float, float]:
     there is a cut, not a contact), or (1, 0), none, for a tool without a blade on its axis
     (a blade further from the axis than the radius, e.g. beside or below the shaft)."""
     bl = getattr(inst, "blade", None)
+    key = (None if bl is None else bl.tobytes(), inst.length, inst.radius)
+    known = getattr(inst, "_blade_span", None)
+    if known is not None and known[0] == key:  # the tool's shape, unchanged since asked last
+        return known[1]
     if bl is None or inst.length <= 0.0 or np.hypot(bl[:, 0], bl[:, 1]).max() > inst.radius:
-        return 1.0, 0.0
-    z = bl[:, 2] / inst.length
-    lo, hi = max(float(z.min()), 0.0), min(float(z.max()), 1.0)
-    return (lo, hi) if lo < hi else (1.0, 0.0)
+        span = 1.0, 0.0
+    else:
+        z = bl[:, 2] / inst.length
+        lo, hi = max(float(z.min()), 0.0), min(float(z.max()), 1.0)
+        span = (lo, hi) if lo < hi else (1.0, 0.0)
+    inst._blade_span = key, span
+    return span
 
 
 @dataclass

@@ -13,8 +13,10 @@ correction, the penetration detection and the guard (one graph a step):
 3. :func:`device_pgs_kernel` checks W as :func:`.compliance.positive_definite` does (a Cholesky
    factorization of W + 1e-10 max(diag W) I) and runs the projected Gauss-Seidel sweeps of
    :mod:`.pgs` on one thread, from the warm start;
-4. H^T lambda is scattered onto the nodes, P^-1 applied (eq. 2) and dx = dt^2 P^-1 H^T lambda
-   zeroed on the fixed nodes.
+4. dx = dt^2 P^-1 H^T lambda, zeroed on the fixed nodes: with the dense inverse from the
+   columns of the rows' nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in
+   double precision as W is gathered), else H^T lambda scattered onto the nodes and P^-1 applied
+   (eq. 2).
 
 lambda, the sweeps, the residual and the check's verdict are read with the guard after the
 correction. Where W is not positive definite the device solve makes lambda = 0 (no
@@ -192,10 +194,12 @@ class DeviceLCP:
         wp.launch(device_pgs_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
                                          self.sizes, int(max_iterations), float(tolerance), int(bool(pyramid)),
                                          self.L, self.lam, self.delta, self.info], device=d)
-        r.zero_()
-        wp.launch(rows_transpose_times_kernel, self.rows, [self.nodes, self.coef, self.lam, self.sizes, r], device=d)
-        inner.apply(r, z)
-        wp.launch(scaled_free_kernel, n, [z, float(dt * dt), free, dx], device=d)
+        apply_rows = getattr(inner, "apply_rows", None)
+        if apply_rows is None or not apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx):
+            r.zero_()
+            wp.launch(rows_transpose_times_kernel, self.rows, [self.nodes, self.coef, self.lam, self.sizes, r], device=d)
+            inner.apply(r, z)
+            wp.launch(scaled_free_kernel, n, [z, float(dt * dt), free, dx], device=d)
         return dx
 
 

@@ -56,14 +56,15 @@ def test_the_device_solve_takes_the_host_solves_steps(friction, cone, graph):
             assert sd["gs_iterations"] == sh["gs_iterations"]
             # the residual (a difference of nearly equal terms, far under the 1e-8 m tolerance)
             # shifts with the rounding of another processor's arithmetic
-            assert sd["lcp_residual"] == pytest.approx(sh["lcp_residual"], rel=1e-6, abs=1e-15 if cpu else 1e-12)
+            assert sd["lcp_residual"] == pytest.approx(sh["lcp_residual"], rel=1e-6, abs=1e-15 if cpu else 1e-10)
             assert sd["active_contacts"] == sh["active_contacts"]
-    # dx is summed from the contacts' nodes' columns of the inverse (the host applies it whole) and
-    # the GPU's PGS uses FMA: equal to rounding
-    tol = 1e-12
+    # dx is summed from the contacts' nodes' columns of the inverse (the host applies it whole), and
+    # the GPU's PGS uses FMA: equal to rounding, which the sweeps (to 1e-8 m) carry from step to
+    # step on the GPU
+    tol = 1e-12 if cpu else 1e-9
     np.testing.assert_allclose(dev[0], host[0], rtol=0, atol=tol)
     np.testing.assert_allclose(dev[1], host[1], rtol=0, atol=tol / 0.01)
-    np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9 if cpu else 1e-6, atol=1e-12 if cpu else 1e-9)
     assert dev[2][0][2] < 0.0  # the floor carries the block
 
 
@@ -142,7 +143,8 @@ def test_steps_with_and_without_a_device_solve_alternate_under_graphs(device_row
     assert not any(s.get("rows_device") for s in s0)  # no device LCP: the rows on the host
     assert replays >= 15
     assert [s.get("active_contacts", 0) for s in s0] == [s.get("active_contacts", 0) for s in s1]
-    np.testing.assert_allclose(x1, x0, rtol=0, atol=1e-12)  # dx from the columns of the contacts' nodes
+    # dx from the columns of the contacts' nodes (see the first test)
+    np.testing.assert_allclose(x1, x0, rtol=0, atol=1e-12 if DEVICE == "cpu" else 1e-9)
 
 
 def test_the_device_solves_key_makes_its_work_vectors():

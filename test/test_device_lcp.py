@@ -13,7 +13,7 @@ import pytest
 import warp as wp
 
 from soft_tissue_sim import load_scene
-from soft_tissue_sim.contact.device_lcp import device_pgs_kernel
+from soft_tissue_sim.contact.device_lcp import device_pgs_kernel, device_pgs_small_kernel
 from soft_tissue_sim.contact.pgs import PGS
 from soft_tissue_sim.dense_inverse import DenseInverse
 from soft_tissue_sim.material import ParameterError
@@ -39,15 +39,16 @@ def _run(cfg, steps=40):
 
 
 @pytest.mark.parametrize("graph", [False, True])
-@pytest.mark.parametrize("friction, cone", [(0.0, "disk"), (0.4, "disk"), (0.4, "pyramid")])
-def test_the_device_solve_takes_the_host_solves_steps(friction, cone, graph):
+@pytest.mark.parametrize("friction, cone, rows", [(0.0, "disk", 32), (0.0, "disk", 64), (0.4, "disk", 64),
+                                                  (0.4, "pyramid", 64)])
+def test_the_device_solve_takes_the_host_solves_steps(friction, cone, rows, graph):
     """A block landing on a floor (0 to 12 contacts, 36 rows with friction): the LCP solved on
     the device, in the correction's graph, gives the host solve's positions, velocities,
     forces and sweeps (the sweeps alone on both: the host's active-set finish is the next
     test's); the statistics say where it was solved."""
     cpu = DEVICE == "cpu"
     host = _run(_floor_scene(0, friction, cone, graph, active_set=False))
-    dev = _run(_floor_scene(64, friction, cone, graph, active_set=False))
+    dev = _run(_floor_scene(rows, friction, cone, graph, active_set=False))  # 32 frictionless: the small kernel
     assert any(s.get("contacts", 0) == 12 for s in dev[3])
     for sh, sd in zip(host[3], dev[3]):
         assert "lcp_device" not in sh
@@ -177,7 +178,8 @@ def test_device_lcp_rows_is_validated(bad):
 def test_the_device_kernel_solves_the_hosts_problems():
     """device_pgs_kernel against the host PGS on random LCPs (frictionless and with friction
     rows, both cones), a padded capacity and the sizes read on the device; an indefinite W is
-    refused with lambda = 0."""
+    refused with lambda = 0; on the frictionless ones device_pgs_small_kernel gives the same
+    lambda, sweeps and residual."""
     rng = np.random.default_rng(11)
     cap = 24
     pgs = PGS(active_set=False)
@@ -213,6 +215,15 @@ def test_the_device_kernel_solves_the_hosts_problems():
         assert inf[2] == 1.0 and int(inf[0]) == its
         np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-15)
         assert inf[1] == pytest.approx(res, rel=1e-6, abs=1e-18)
+        if trial % 2 == 0:  # frictionless: the small kernel's sweeps are the same, to the bit
+            lam_s, info_s = wp.zeros(cap, dtype=wp.float64, device=DEVICE), wp.zeros(3, dtype=wp.float64, device=DEVICE)
+            wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)),
+                                                   arr(np.array([m, nc], np.int32), wp.int32), 200, 1e-10,
+                                                   wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam_s,
+                                                   wp.zeros(cap, dtype=wp.float64, device=DEVICE), info_s],
+                      device=DEVICE)
+            np.testing.assert_array_equal(lam_s.numpy(), lam.numpy())
+            np.testing.assert_array_equal(info_s.numpy(), inf)
 
 
 def test_the_correction_from_the_rows_columns_is_the_inverse_applied_to_h_transpose_lambda():

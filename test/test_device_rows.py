@@ -64,13 +64,13 @@ def _press(cfg, steps=40):
         return out, sim.integrator._after_replay.replays
 
 
-@pytest.mark.parametrize("graph", [False, True])
-def test_rows_built_on_the_device_give_the_host_rows_steps(tmp_path, graph):
+@pytest.mark.parametrize("graph, rows", [(False, 64), (True, 64), (True, 32)])
+def test_rows_built_on_the_device_give_the_host_rows_steps(tmp_path, graph, rows):
     """Self contacts, an instrument's node and face contacts, a warm start from the step before:
     with the rows built on the device every step is the host rows' (positions, wrench, contacts
     and their forces, the sweeps, the statistics), in the graph after the solve."""
-    host, _ = _press(_u_scene(tmp_path, False, graph=graph))
-    dev, replays = _press(_u_scene(tmp_path, True, graph=graph))
+    host, _ = _press(_u_scene(tmp_path, False, graph=graph, rows=rows))  # 32: the small kernel's sweeps
+    dev, replays = _press(_u_scene(tmp_path, True, graph=graph, rows=rows))
     kinds = {"self_contacts": 0, "face_contacts": 0}
     for (sh, xh, wh, *ch), (sd, xd, wd, *cd) in zip(host, dev):
         assert sd["rows_device"] is True and "rows_device" not in sh

@@ -111,6 +111,90 @@ def device_pgs_kernel(
     info[1] = res
 
 
+SMALL = 32  # the most rows device_pgs_small_kernel holds in the thread's own memory
+_vec_small = wp.types.vector(length=SMALL, dtype=wp.float64)
+
+
+@wp.kernel
+def device_pgs_small_kernel(
+    W: wp.array2d(dtype=wp.float64),
+    d0: wp.array(dtype=wp.float64),
+    lam0: wp.array(dtype=wp.float64),
+    sizes: wp.array(dtype=wp.int32),
+    max_iterations: int,
+    tolerance: wp.float64,
+    L: wp.array2d(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    delta: wp.array(dtype=wp.float64),
+    info: wp.array(dtype=wp.float64),
+):
+    """:func:`device_pgs_kernel` for a frictionless LCP of at most :data:`SMALL` rows (each row a
+    contact): the same check, sweeps and residual in the same order of operations (the same
+    lambda and sweeps), lambda and delta = W lambda + d0 held in the thread's own memory
+    instead of read and written in the device's, which a sweep does m^2 times. One thread."""
+    m = sizes[0]
+    zero = F64(0.0)
+    for i in range(m):
+        lam[i] = zero
+    info[0] = zero
+    info[1] = zero
+    info[2] = zero
+    if positive_definite_rows(W, L, m) == 0:
+        return
+    info[2] = F64(1.0)
+    lv = _vec_small()
+    dv = _vec_small()
+    for i in range(m):
+        lv[i] = lam0[i]
+    for i in range(m):  # delta = W lambda + d0, afresh
+        d = d0[i]
+        for j in range(m):
+            d += W[i, j] * lv[j]
+        dv[i] = d
+    it = int(0)
+    res = F64(-1.0)
+    for sweep in range(max_iterations):
+        change = zero
+        for r in range(m):
+            wrr = W[r, r]
+            ln = wp.max(zero, lv[r] - dv[r] / wrr)
+            change = wp.max(change, wrr * wp.abs(ln - lv[r]))
+            dl = ln - lv[r]
+            if dl != zero:
+                for i in range(m):
+                    dv[i] += W[r, i] * dl
+                lv[r] = ln
+        it = sweep + 1
+        res = F64(-1.0)
+        if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
+            res = zero
+            for i in range(m):
+                d = d0[i]
+                for j in range(m):
+                    d += W[i, j] * lv[j]
+                dv[i] = d
+            for r in range(m):
+                wrr = W[r, r]
+                res = wp.max(res, wrr * wp.abs(wp.max(zero, lv[r] - dv[r] / wrr) - lv[r]))
+            if res <= tolerance:
+                break
+    if res < zero:
+        res = zero
+        for i in range(m):
+            d = d0[i]
+            for j in range(m):
+                d += W[i, j] * lv[j]
+            dv[i] = d
+        for r in range(m):
+            wrr = W[r, r]
+            res = wp.max(res, wrr * wp.abs(wp.max(zero, lv[r] - dv[r] / wrr) - lv[r]))
+    for i in range(m):
+        lam[i] = lv[i]
+        delta[i] = dv[i]
+    info[0] = F64(it)
+    info[1] = res
+
+
 @wp.kernel
 def rows_transpose_times_kernel(nodes: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.vec3d),
                                 lam: wp.array(dtype=wp.float64), sizes: wp.array(dtype=wp.int32),
@@ -184,16 +268,22 @@ class DeviceLCP:
         return (inner.graph_key(), inner.delassus_key(), free.ptr, r.ptr, z.ptr, dx.ptr, float(dt), *options)
 
     def launch(self, inner, free: wp.array, dt: float, max_iterations: int, tolerance: float,
-               pyramid: bool) -> wp.array:
+               pyramid: bool, frictionless: bool = False) -> wp.array:
         """W, the LCP, H^T lambda, P^-1 (eq. 2) and dx = dt^2 P^-1 H^T lambda on the free nodes:
-        launches only. Returns dx (a (n,) vec3d array kept between steps)."""
+        launches only. Returns dx (a (n,) vec3d array kept between steps). ``frictionless``: every
+        row is a contact's normal (then, within :data:`SMALL` rows, the sweeps run in the
+        thread's own memory: :func:`device_pgs_small_kernel`)."""
         d = self.device
         n = free.shape[0]
         r, z, dx = self._r.view(n), self._z.view(n), self._dx.view(n)
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
-        wp.launch(device_pgs_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
-                                         self.sizes, int(max_iterations), float(tolerance), int(bool(pyramid)),
-                                         self.L, self.lam, self.delta, self.info], device=d)
+        if frictionless and self.rows <= SMALL:
+            wp.launch(device_pgs_small_kernel, 1, [self.W, self.d0, self.lam0, self.sizes, int(max_iterations),
+                                                   float(tolerance), self.L, self.lam, self.delta, self.info], device=d)
+        else:
+            wp.launch(device_pgs_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
+                                             self.sizes, int(max_iterations), float(tolerance), int(bool(pyramid)),
+                                             self.L, self.lam, self.delta, self.info], device=d)
         apply_rows = getattr(inner, "apply_rows", None)
         if apply_rows is None or not apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx):
             r.zero_()
@@ -208,10 +298,12 @@ class PendingLCP:
     correction (:meth:`key`, :meth:`launch`, its output read with the guard) and hands the
     read output to :meth:`finish`."""
 
-    def __init__(self, lcp: DeviceLCP, inner, free: wp.array, dt: float, options: dict, m: int, finish):
+    def __init__(self, lcp: DeviceLCP, inner, free: wp.array, dt: float, options: dict, m: int, finish,
+                 frictionless: bool = False):
         self.lcp, self.inner, self.free, self.dt, self.m = lcp, inner, free, float(dt), int(m)
         o = options
-        self._args = (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid")
+        self._args = (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid",
+                      bool(frictionless))
         self._finish = finish
 
     def key(self) -> tuple:

@@ -521,7 +521,7 @@ class ContactSolver:
             self._device_lcp.stage(H.nodes, H.coef, d0, lam, row_start, rows, mu)
             stats.lcp_device = True
             stats.compliance_fallbacks = self.compliance_fallbacks
-            return PendingLCP(self._device_lcp, inner, body.fem.free, dt, o, m, finish)
+            return PendingLCP(self._device_lcp, inner, body.fem.free, dt, o, m, finish, frictionless=not friction)
         W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
         W = W0 + W0.T
         W *= dt * dt * 0.5
@@ -592,7 +592,7 @@ class DeviceStep:
         self.solver, self.body, self.inner, self.limit = solver, body, inner, int(limit)
         o = solver.options
         self.lcp, self.rows = solver._device_lcp, solver._device_rows
-        self._args = (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid")
+        self._args = (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid", True)
         self.dt = float(body.integrator.dt)
 
     def key(self) -> tuple:

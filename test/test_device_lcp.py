@@ -215,15 +215,18 @@ def test_the_device_kernel_solves_the_hosts_problems():
         assert inf[2] == 1.0 and int(inf[0]) == its
         np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-15)
         assert inf[1] == pytest.approx(res, rel=1e-6, abs=1e-18)
-        if trial % 2 == 0:  # frictionless: the small kernel's sweeps are the same, to the bit
+        if trial % 2 == 0:  # frictionless: the small kernel's sweeps are the same (to the bit on the CPU;
+            # on a GPU the compiler may fuse another multiply-add)
             lam_s, info_s = wp.zeros(cap, dtype=wp.float64, device=DEVICE), wp.zeros(3, dtype=wp.float64, device=DEVICE)
             wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)),
                                                    arr(np.array([m, nc], np.int32), wp.int32), 200, 1e-10,
                                                    wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam_s,
                                                    wp.zeros(cap, dtype=wp.float64, device=DEVICE), info_s],
                       device=DEVICE)
-            np.testing.assert_array_equal(lam_s.numpy(), lam.numpy())
-            np.testing.assert_array_equal(info_s.numpy(), inf)
+            exact = DEVICE == "cpu"
+            np.testing.assert_allclose(lam_s.numpy(), lam.numpy(), rtol=0 if exact else 1e-12, atol=0)
+            assert info_s.numpy()[0] == inf[0] and info_s.numpy()[2] == inf[2]
+            assert info_s.numpy()[1] == pytest.approx(inf[1], rel=0 if exact else 1e-9, abs=0 if exact else 1e-20)
 
 
 def test_the_correction_from_the_rows_columns_is_the_inverse_applied_to_h_transpose_lambda():

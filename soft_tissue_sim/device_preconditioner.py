@@ -179,6 +179,7 @@ class AsyncDevicePreconditioner:
         self._busy = None  # the last factorization enqueued (its work buffer is in use until it ends)
         self._pool = None  # the background thread that enqueues factorizations (CUDA, asynchronous)
         self._gen = 0
+        self._rotation_cmd = None  # (its arrays, the recorded launch of the relative rotations)
         self.worker_error = None
         self._reset_counters()
 
@@ -368,8 +369,12 @@ class AsyncDevicePreconditioner:
         n = fem.n_nodes
         if self.dR is None or self.dR.shape[0] != n:
             self.dR = wp.empty(n, dtype=wp.mat33d, device=self.device)
-        if self.rotate:
-            wp.launch(relative_rotation_kernel, n, [R, self.R_ref, self.dR], device=self.device)
+        if self.rotate:  # the launch's arguments packed once while the arrays hold (a recorded launch)
+            key = (R.ptr, self.R_ref.ptr, self.dR.ptr, n)
+            if self._rotation_cmd is None or self._rotation_cmd[0] != key:
+                self._rotation_cmd = key, wp.launch(relative_rotation_kernel, n, [R, self.R_ref, self.dR],
+                                                    device=self.device, record_cmd=True)
+            self._rotation_cmd[1].launch()
         else:
             wp.launch(identity_kernel, n, [self.dR], device=self.device)
 

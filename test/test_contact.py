@@ -688,6 +688,19 @@ def test_a_thin_body_moving_fast_makes_no_self_contact_with_its_far_side(self_de
             assert s.extra["self_contacts"] > 0
 
 
+def u_scene(tmp_path, **extra):
+    """A soft U (6 x 4 cells of 1 cm, uniform split) lying on its side, its base (x <= 0) and lower
+    arm's bottom (z <= -5 mm) clamped, the 1 cm slot between the arms open: the upper arm sags
+    onto the lower one."""
+    m = beam_mesh(6, 4, spacing=0.01, split="uniform")
+    cen = m.centroids()
+    slot = (np.abs(cen[:, 2]) < 0.005) & (cen[:, 0] > 0.01)
+    path = tmp_path / "u.vtu"
+    save_mesh(validate_mesh(m.points, m.tets[~slot]), path)
+    return scene(mesh={"file": str(path)}, materials=[{"id": 0, "young": 5.0e3, "poisson": 0.3, "density": 1000.0}],
+                 fixed=[{"axis": "z", "below": -0.005}, {"axis": "x", "below": 0.0}], **extra)
+
+
 @pytest.mark.parametrize("self_collision", [True, False])
 def test_facing_surfaces_of_one_body_do_not_interpenetrate(tmp_path, self_collision):
     """One connected body shaped like a U lying on its side (a slot, like the two sides of
@@ -695,14 +708,7 @@ def test_facing_surfaces_of_one_body_do_not_interpenetrate(tmp_path, self_collis
     mirrored one the upper arm's corner node comes down level with the lower arm's corner edge,
     slightly outside it, where the self-contact's normal is horizontal and misses the fall
     (test_fidelity.py::test_a_corner_node_falling_past_a_corner_edge_is_caught)."""
-    m = beam_mesh(6, 4, spacing=0.01, split="uniform")
-    cen = m.centroids()
-    slot = (np.abs(cen[:, 2]) < 0.005) & (cen[:, 0] > 0.01)
-    path = tmp_path / "u.vtu"
-    save_mesh(validate_mesh(m.points, m.tets[~slot]), path)
-    cfg = scene(mesh={"file": str(path)}, materials=[{"id": 0, "young": 5.0e3, "poisson": 0.3, "density": 1000.0}],
-                fixed=[{"axis": "z", "below": -0.005}, {"axis": "x", "below": 0.0}],
-                **({"contact": {"self_collision": True}} if self_collision else {}))
+    cfg = u_scene(tmp_path, **({"contact": {"self_collision": True}} if self_collision else {}))
     with load_scene(cfg) as sim:
         pts, tets = sim.mesh.points, sim.mesh.tets
         lower = tets[(pts[tets][:, :, 2] <= -0.005 + 1e-9).all(axis=1)]

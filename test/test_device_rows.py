@@ -14,8 +14,7 @@ import pytest
 
 from soft_tissue_sim import load_scene
 from soft_tissue_sim.contact import solver as contact_solver
-from soft_tissue_sim.mesh import beam_mesh, save_mesh, validate_mesh
-from test_contact import scene
+from test_contact import u_scene
 
 DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 # a self contact's point on the moving triangle is summed in another order than NumPy's (and the GPU
@@ -29,17 +28,10 @@ def _u_scene(tmp_path, device_rows, rows=64, graph=True, **contact):
     """A U lying on its side (the soft upper arm sags onto the clamped lower arm: self contacts)
     with two capsules' tips pressed into the upper arm's top (node and face contacts),
     frictionless."""
-    m = beam_mesh(6, 4, spacing=0.01, split="uniform")
-    cen = m.centroids()
-    slot = (np.abs(cen[:, 2]) < 0.005) & (cen[:, 0] > 0.01)
-    path = tmp_path / "u.vtu"
-    save_mesh(validate_mesh(m.points, m.tets[~slot]), path)
-    cfg = scene(mesh={"file": str(path)}, materials=[{"id": 0, "young": 5.0e3, "poisson": 0.3, "density": 1000.0}],
-                fixed=[{"axis": "z", "below": -0.005}, {"axis": "x", "below": 0.0}],
-                instruments=[{"name": "probe", "shape": "capsule", "radius": 0.003, "length": 0.05},
-                             {"name": "spatula", "shape": "capsule", "radius": 0.002, "length": 0.05}],
-                contact={"self_collision": True, "device_lcp_rows": rows, "active_set": False,
-                         "device_rows": device_rows, "penetration_every": 3, **contact})
+    cfg = u_scene(tmp_path, instruments=[{"name": "probe", "shape": "capsule", "radius": 0.003, "length": 0.05},
+                                         {"name": "spatula", "shape": "capsule", "radius": 0.002, "length": 0.05}],
+                  contact={"self_collision": True, "device_lcp_rows": rows, "active_set": False,
+                           "device_rows": device_rows, "penetration_every": 3, **contact})
     cfg["device"] = DEVICE
     cfg["solver"]["ldlt"].update(backend="dense")
     cfg["solver"]["graph"] = graph

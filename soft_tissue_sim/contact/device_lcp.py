@@ -115,6 +115,30 @@ SMALL = 32  # the most rows device_pgs_small_kernel holds in the thread's own me
 _vec_small = wp.types.vector(length=SMALL, dtype=wp.float64)
 
 
+@wp.func
+def small_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lv: _vec_small, m: int):
+    """delta = W lambda + d0 over the first m rows, summed afresh (:func:`.pgs.exact_delta`)."""
+    dv = _vec_small()
+    for i in range(m):
+        d = d0[i]
+        for j in range(m):
+            d += W[i, j] * lv[j]
+        dv[i] = d
+    return dv
+
+
+@wp.func
+def small_residual(W: wp.array2d(dtype=wp.float64), lv: _vec_small, dv: _vec_small, m: int):
+    """The largest change a (Jacobi) sweep would make from ``lv`` with delta ``dv`` (exact), for
+    frictionless rows (:func:`.pgs.pgs_residual`)."""
+    zero = F64(0.0)
+    res = zero
+    for r in range(m):
+        wrr = W[r, r]
+        res = wp.max(res, wrr * wp.abs(wp.max(zero, lv[r] - dv[r] / wrr) - lv[r]))
+    return res
+
+
 @wp.kernel
 def device_pgs_small_kernel(
     W: wp.array2d(dtype=wp.float64),
@@ -143,14 +167,9 @@ def device_pgs_small_kernel(
         return
     info[2] = F64(1.0)
     lv = _vec_small()
-    dv = _vec_small()
     for i in range(m):
         lv[i] = lam0[i]
-    for i in range(m):  # delta = W lambda + d0, afresh
-        d = d0[i]
-        for j in range(m):
-            d += W[i, j] * lv[j]
-        dv[i] = d
+    dv = small_delta(W, d0, lv, m)
     it = int(0)
     res = F64(-1.0)
     for sweep in range(max_iterations):
@@ -167,27 +186,13 @@ def device_pgs_small_kernel(
         it = sweep + 1
         res = F64(-1.0)
         if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-            res = zero
-            for i in range(m):
-                d = d0[i]
-                for j in range(m):
-                    d += W[i, j] * lv[j]
-                dv[i] = d
-            for r in range(m):
-                wrr = W[r, r]
-                res = wp.max(res, wrr * wp.abs(wp.max(zero, lv[r] - dv[r] / wrr) - lv[r]))
+            dv = small_delta(W, d0, lv, m)
+            res = small_residual(W, lv, dv, m)
             if res <= tolerance:
                 break
     if res < zero:
-        res = zero
-        for i in range(m):
-            d = d0[i]
-            for j in range(m):
-                d += W[i, j] * lv[j]
-            dv[i] = d
-        for r in range(m):
-            wrr = W[r, r]
-            res = wp.max(res, wrr * wp.abs(wp.max(zero, lv[r] - dv[r] / wrr) - lv[r]))
+        dv = small_delta(W, d0, lv, m)
+        res = small_residual(W, lv, dv, m)
     for i in range(m):
         lam[i] = lv[i]
         delta[i] = dv[i]

@@ -531,8 +531,11 @@ class Simulation:
 
     def _launch_contact(self) -> tuple:
         """The integrator's after_solve hook: the contact detection of the free motion, prepared
-        here and launched by the integrator (which reads its arrays with the solve's result);
-        the instruments take their poses at the first preparation of a step."""
+        here and launched by the integrator (which reads its arrays with the solve's result),
+        or, where the contact solver builds this step's rows on the device
+        (:meth:`~soft_tissue_sim.contact.solver.ContactSolver.device_rows_plan`), the whole
+        contact step (finished by :meth:`_contact_response` from the same read); the
+        instruments take their poses at the first preparation of a step."""
         view = self.view()
         key = self.contact.prepare(view, begin=not self._contact_begun)
         self._contact_begun = True

@@ -515,8 +515,10 @@ class AsyncDevicePreconditioner:
 
     def solves_contact_on_device(self) -> bool:
         """Can the contact LCP be solved where the factor is (:mod:`..contact.device_lcp`): a
-        backend that gathers W from a row count on the device (the dense inverse), installed."""
-        return hasattr(self.backend, "delassus_matrix") and self.device_capable()
+        backend that gathers W from a row count on the device and applies P^-1 H^T from the rows
+        (the dense inverse), installed."""
+        b = self.backend
+        return hasattr(b, "delassus_matrix") and hasattr(b, "apply_rows") and self.device_capable()
 
     def delassus_matrix(self, nodes: wp.array, coef: wp.array, sizes: wp.array, scale: float, W: wp.array) -> None:
         """W[:m, :m] = scale H P^-1 H^T for the first m = sizes[0] constraint rows in node form
@@ -524,15 +526,10 @@ class AsyncDevicePreconditioner:
         self.backend.delassus_matrix(nodes, coef, self.dR, sizes, scale, W)
 
     def apply_rows(self, nodes: wp.array, coef: wp.array, lam: wp.array, sizes: wp.array, scale: float,
-                   free: wp.array, out: wp.array) -> bool:
-        """out = scale P^-1 H^T lambda on the free nodes for the first sizes[0] rows (device arrays,
-        launches only) where the backend makes it from the rows' columns; False where it does not
-        (the caller forms H^T lambda and applies P^-1)."""
-        fn = getattr(self.backend, "apply_rows", None)
-        if fn is None:
-            return False
-        fn(nodes, coef, lam, sizes, self.dR, scale, free, out)
-        return True
+                   free: wp.array, out: wp.array) -> None:
+        """out = scale P^-1 H^T lambda on the free nodes for the first sizes[0] constraint rows in
+        node form (device arrays): launches only (see :meth:`solves_contact_on_device`)."""
+        self.backend.apply_rows(nodes, coef, lam, sizes, self.dR, scale, free, out)
 
     def delassus_key(self) -> tuple:
         """What :meth:`delassus_matrix`'s launch depends on besides its arguments."""

@@ -547,8 +547,7 @@ class Simulation:
         # the rows, the LCP and the correction, the guard and the penetration left, read with the solve
         integ = self.integrator
         free = self._state_buffers("free motion")
-        every = self._penetration_every
-        measure = every > 0 and (integ.step_index + 1) % every == 0  # (the step's index once taken)
+        measure = self._measures_penetration(integ.step_index + 1)  # (the step's index once taken)
         guard = integ.guard_after
 
         def launches():
@@ -563,6 +562,12 @@ class Simulation:
         pen_key = self.contact.penetration_key(view) if measure else None
         self._device_step = (plan, free, measure)
         return (key, plan.key(), free[0].ptr, free[1].ptr, guard.ptr, pen_key), launches, ("device rows", measure)
+
+    def _measures_penetration(self, step: int) -> bool:
+        """Whether step ``step`` measures the penetration left after its correction (the contact
+        option ``penetration_every``: every n-th step, 0 never)."""
+        every = self._penetration_every
+        return every > 0 and step % every == 0
 
     def _correct(self, dx, solve=None, measure: bool = True) -> list:
         """x += dx, v += dx / dt (``dx`` None: no correction; ``solve``: a device LCP that makes
@@ -592,8 +597,7 @@ class Simulation:
             ke_free = self._known_kinetic_energy()
         read = integ.after_solve_reading  # the detection read with the free motion, if of this state
         host = read[1] if read is not None and read[0] == self._state_key() else None
-        every = self._penetration_every  # the contact option: measure the penetration left on every n-th step
-        measure = every > 0 and integ.step_index % every == 0
+        measure = self._measures_penetration(integ.step_index)
         device_step, self._device_step = self._device_step, None
         if device_step is not None:  # the contact step launched with the free motion (contact.device_rows)
             plan, free, measured = device_step

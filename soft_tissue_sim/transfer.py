@@ -130,17 +130,18 @@ class Readback:
 
     def __init__(self):
         self._bufs: list[wp.array] = []
-        self._views: list[np.ndarray | None] = []  # the page-locked buffers' NumPy views, made once
+        self._views: list[np.ndarray] = []  # their NumPy views, made once per buffer
 
     def copy(self, *arrays: wp.array) -> None:
         for i, a in enumerate(arrays):
             if i == len(self._bufs):
                 self._bufs.append(None)
                 self._views.append(None)
-            if a.device.is_cpu:
-                self._bufs[i], self._views[i] = a, None
-                continue
             b = self._bufs[i]
+            if a.device.is_cpu:
+                if b is not a:
+                    self._bufs[i], self._views[i] = a, a.numpy()
+                continue
             if b is None or b.shape != a.shape or b.dtype != a.dtype:
                 b = self._bufs[i] = PINNED.empty(a.shape, a.dtype)
                 self._views[i] = b.numpy()
@@ -157,4 +158,4 @@ class Readback:
         dev = wp.get_device(device)
         if dev.is_cuda:
             wp.synchronize_stream(wp.get_stream(dev))
-        return [b.numpy() if v is None else v for b, v in zip(self._bufs, self._views)]
+        return list(self._views)

@@ -163,9 +163,9 @@ def test_the_device_solves_key_makes_its_work_vectors():
         def delassus_key(self):
             return ()
 
-    assert lcp._r.capacity == lcp._z.capacity == lcp._dx.capacity == 0
+    assert lcp._dx.capacity == 0
     key = lcp.key(Inner(), free, 0.01, ())
-    assert min(lcp._r.capacity, lcp._z.capacity, lcp._dx.capacity) >= 37
+    assert lcp._dx.capacity >= 37
     assert lcp.key(Inner(), free, 0.01, ()) == key
 
 

@@ -13,10 +13,9 @@ correction, the penetration detection and the guard (one graph a step):
 3. :func:`device_pgs_kernel` checks W as :func:`.compliance.positive_definite` does (a Cholesky
    factorization of W + 1e-10 max(diag W) I) and runs the projected Gauss-Seidel sweeps of
    :mod:`.pgs` on one thread, from the warm start;
-4. dx = dt^2 P^-1 H^T lambda, zeroed on the fixed nodes: with the dense inverse from the
-   columns of the rows' nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in
-   double precision as W is gathered), else H^T lambda scattered onto the nodes and P^-1 applied
-   (eq. 2).
+4. dx = dt^2 P^-1 H^T lambda (eq. 2), zeroed on the fixed nodes, from the columns of the rows'
+   nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in double precision as
+   W is gathered).
 
 lambda, the sweeps, the residual and the check's verdict are read with the guard after the
 correction. Where W is not positive definite the device solve makes lambda = 0 (no
@@ -200,20 +199,6 @@ def device_pgs_small_kernel(
     info[1] = res
 
 
-@wp.kernel
-def rows_transpose_times_kernel(nodes: wp.array2d(dtype=wp.int32), coef: wp.array2d(dtype=wp.vec3d),
-                                lam: wp.array(dtype=wp.float64), sizes: wp.array(dtype=wp.int32),
-                                out: wp.array(dtype=wp.vec3d)):
-    """out += H^T lambda for the first sizes[0] rows (out zeroed before): each row's
-    coefficients times its lambda, added onto its nodes."""
-    r = wp.tid()
-    if r < sizes[0]:
-        for s in range(4):
-            i = nodes[r, s]
-            if i >= 0:
-                wp.atomic_add(out, i, coef[r, s] * lam[r])
-
-
 class DeviceLCP:
     """The buffers of the device solve for up to ``rows`` constraint rows (as many contacts),
     kept between steps at fixed addresses (captured graphs stay valid), and the launches.
@@ -221,8 +206,8 @@ class DeviceLCP:
     Inputs (:meth:`stage`): one :class:`~soft_tissue_sim.buffers.PackedArrays` of [m, nc],
     row_start, n_rows, the rows' nodes (rows, 4), delta^0, the warm start, mu and the rows'
     coefficients (rows, 4, 3), sent in one copy. Output (:attr:`out`): [sweeps, residual, W
-    usable | lambda (rows)]. The per-node vectors (H^T lambda, P^-1 of it, dx) are
-    :class:`~soft_tissue_sim.buffers.GrowArray` views of the body's node count.
+    usable | lambda (rows)]. dx is a :class:`~soft_tissue_sim.buffers.GrowArray` view of the
+    body's node count.
     """
 
     FIELDS = {"sizes": wp.int32, "row_start": wp.int32, "n_rows": wp.int32, "nodes": wp.vec4i,
@@ -245,7 +230,7 @@ class DeviceLCP:
         self.out = wp.zeros(3 + cap, dtype=wp.float64, device=self.device)
         self.info = typed_view(self.out, 0, wp.float64, 3)
         self.lam = typed_view(self.out, 3 * 8, wp.float64, cap)
-        self._r, self._z, self._dx = (GrowArray(wp.vec3d, self.device) for _ in range(3))
+        self._dx = GrowArray(wp.vec3d, self.device)
 
     def stage(self, nodes: np.ndarray, coef: np.ndarray, d0: np.ndarray, lam0: np.ndarray,
               row_start: np.ndarray, n_rows: np.ndarray, mu: np.ndarray) -> None:
@@ -268,19 +253,17 @@ class DeviceLCP:
         """What :meth:`launch`'s launches depend on (the buffers are fixed while the node count
         holds; their views for this count are made here, so that the launches allocate
         nothing, even captured at a key's first use)."""
-        n = free.shape[0]
-        r, z, dx = self._r.view(n), self._z.view(n), self._dx.view(n)
-        return (inner.graph_key(), inner.delassus_key(), free.ptr, r.ptr, z.ptr, dx.ptr, float(dt), *options)
+        dx = self._dx.view(free.shape[0])
+        return (inner.graph_key(), inner.delassus_key(), free.ptr, dx.ptr, float(dt), *options)
 
     def launch(self, inner, free: wp.array, dt: float, max_iterations: int, tolerance: float,
                pyramid: bool, frictionless: bool = False) -> wp.array:
-        """W, the LCP, H^T lambda, P^-1 (eq. 2) and dx = dt^2 P^-1 H^T lambda on the free nodes:
-        launches only. Returns dx (a (n,) vec3d array kept between steps). ``frictionless``: every
-        row is a contact's normal (then, within :data:`SMALL` rows, the sweeps run in the
-        thread's own memory: :func:`device_pgs_small_kernel`)."""
+        """W, the LCP and dx = dt^2 P^-1 H^T lambda (eq. 2) on the free nodes: launches only.
+        Returns dx (a (n,) vec3d array kept between steps). ``frictionless``: every row is a
+        contact's normal (then, within :data:`SMALL` rows, the sweeps run in the thread's own
+        memory: :func:`device_pgs_small_kernel`)."""
         d = self.device
-        n = free.shape[0]
-        r, z, dx = self._r.view(n), self._z.view(n), self._dx.view(n)
+        dx = self._dx.view(free.shape[0])
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
         if frictionless and self.rows <= SMALL:
             wp.launch(device_pgs_small_kernel, 1, [self.W, self.d0, self.lam0, self.sizes, int(max_iterations),
@@ -289,13 +272,14 @@ class DeviceLCP:
             wp.launch(device_pgs_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
                                              self.sizes, int(max_iterations), float(tolerance), int(bool(pyramid)),
                                              self.L, self.lam, self.delta, self.info], device=d)
-        apply_rows = getattr(inner, "apply_rows", None)
-        if apply_rows is None or not apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx):
-            r.zero_()
-            wp.launch(rows_transpose_times_kernel, self.rows, [self.nodes, self.coef, self.lam, self.sizes, r], device=d)
-            inner.apply(r, z)
-            wp.launch(scaled_free_kernel, n, [z, float(dt * dt), free, dx], device=d)
+        inner.apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx)
         return dx
+
+
+def launch_args(options: dict, frictionless: bool) -> tuple:
+    """:meth:`DeviceLCP.launch`'s arguments after dt from the contact options (part of a graph's key)."""
+    o = options
+    return int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid", bool(frictionless)
 
 
 class PendingLCP:
@@ -306,9 +290,7 @@ class PendingLCP:
     def __init__(self, lcp: DeviceLCP, inner, free: wp.array, dt: float, options: dict, m: int, finish,
                  frictionless: bool = False):
         self.lcp, self.inner, self.free, self.dt, self.m = lcp, inner, free, float(dt), int(m)
-        o = options
-        self._args = (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid",
-                      bool(frictionless))
+        self._args = launch_args(options, frictionless)
         self._finish = finish
 
     def key(self) -> tuple:

@@ -31,10 +31,9 @@ where they are asked for (:attr:`.solver.ContactSolver.contacts`, a later step o
 
 from __future__ import annotations
 
-import numpy as np
 import warp as wp
 
-from ..buffers import GrowArray
+from ..buffers import GrowArray, PackedArrays
 
 F64 = wp.float64
 
@@ -226,6 +225,8 @@ class DeviceRows:
     :meth:`surface` uploads a new surface's slot tables (and forgets the kept forces); :meth:`launch`
     launches steps 1-2 for the detection outputs of that surface, :meth:`forces` step 4."""
 
+    TABLES = {"node": wp.int32, "obj": wp.int32, "kind": wp.int32, "tri_row": wp.int32, "tris": wp.vec3i}
+
     def __init__(self, rows: int, n_objects: int, device):
         self.rows = int(rows)
         self.device = wp.get_device(device)
@@ -236,8 +237,7 @@ class DeviceRows:
         self.record = wp.zeros((max(self.rows, 1), RECORD), dtype=wp.float64, device=d)
         self.header = wp.zeros(6, dtype=wp.float64, device=d)
         self.wrench = wp.zeros((max(int(n_objects), 1), 6), dtype=wp.float64, device=d)
-        self._tables = {k: GrowArray(wp.int32, d) for k in ("node", "obj", "kind", "tri_row")}
-        self._tris = GrowArray(wp.vec3i, d)
+        self._tables = PackedArrays(self.TABLES, d)  # the surface's slot tables, sent in one copy
         self._warm_force = GrowArray(wp.vec3d, d)
         self._warm_stamp = GrowArray(wp.int32, d)
         self.serial = None  # the surface whose tables are up
@@ -249,12 +249,13 @@ class DeviceRows:
             return
         sm = topo.slot_map
         n = len(sm.obj)
-        for name, values in (("node", sm.node), ("obj", sm.obj), ("kind", sm.kind), ("tri_row", sm.tri_row)):
-            a = self._tables[name].view(n)
-            a.assign(np.ascontiguousarray(values, dtype=np.int32))
-            setattr(self, "slot_" + name, a)
-        self.tris = self._tris.view(len(sm.tris))
-        self.tris.assign(np.ascontiguousarray(sm.tris, dtype=np.int32))
+        t = self._tables
+        t.reserve({"node": n, "obj": n, "kind": n, "tri_row": n, "tris": len(sm.tris)})
+        for name in self.TABLES:
+            t.host(name)[...] = getattr(sm, name)
+        t.send(self.TABLES)
+        self.slot_node, self.slot_obj, self.slot_kind, self.slot_tri_row, self.tris = (
+            t.array(k) for k in self.TABLES)
         self.warm_force = self._warm_force.view(n)
         self.warm_stamp = self._warm_stamp.view(n)
         self.warm_stamp.fill_(-1)

@@ -27,7 +27,7 @@ from ..material import ParameterError
 from ..stats import ContactStats
 from ..transfer import to_host
 from .compliance import compliance, positive_definite
-from .device_lcp import DeviceLCP, PendingLCP, scaled_free_kernel
+from .device_lcp import DeviceLCP, PendingLCP, launch_args, scaled_free_kernel
 from .device_rows import DeviceRows
 from .detection import SurfaceTopology, collect, launch_detection, launch_min_gap, launch_start, upload_objects
 from .geometry import cross, tangent_basis
@@ -85,9 +85,10 @@ class ContactSolver:
         self.objects = list(self.instruments.values()) + list(self.obstacles.values())
         self._mesh_objects = [oi for oi, obj in enumerate(self.objects) if isinstance(obj, MeshObstacle)]
         self._topo: SurfaceTopology | None = None
-        self._warm = WarmStart()
-        self._warm_rows = None  # the last step's contacts solved from device rows, named when next needed
-        self._rows_read = None  # (record, lambda) of those contacts, made a Contacts when next asked for
+        self._warm = WarmStart()  # None: made from _device_read when next needed
+        # (record, lambda, node uids, node count) of the last step's contacts where they were solved
+        # from device rows: their Contacts and warm start are made from it when asked for
+        self._device_read = None
         self._pgs = PGS(o["active_set"])
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
         self._device_rows: DeviceRows | None = None  # the rows built on the device (device_rows), idem
@@ -147,7 +148,7 @@ class ContactSolver:
             obs.torque[:] = 0.0
         self._retire_topology()
         self._topo = None
-        self._warm, self._warm_rows = WarmStart(), None
+        self._warm = WarmStart()
         self._last_rows = 0
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0
@@ -329,7 +330,7 @@ class ContactSolver:
         dx = None
         if k == 0:
             self.contacts = Contacts.empty(responded=True)
-            self._warm, self._warm_rows = WarmStart(), None
+            self._warm = WarmStart()
         else:
             dx = self._respond(body, c, nodes4, w4, ws4, free, x, x_start, stats, device_lcp)
         self._last_rows = k if self._frictionless else 3 * k
@@ -378,11 +379,10 @@ class ContactSolver:
             obj.force, obj.torque = wrench[oi, :3].copy(), wrench[oi, 3:].copy()
         if m == 0:
             self.contacts = Contacts.empty(responded=True)
-            self._warm, self._warm_rows = WarmStart(), None
+            self._warm = WarmStart()
             return ContactStats(rows_device=True, contact_ms=1000.0 * (time.perf_counter() - t0))
-        rec, ln = np.array(record[:m]), np.array(out[3:3 + m])
-        self._rows_read = rec, ln
-        self._warm_rows = rec, ln, body.node_uids, body.fem.n_nodes
+        self.contacts = self._warm = None  # made from the read when asked for
+        self._device_read = np.array(record[:m]), np.array(out[3:3 + m]), body.node_uids, body.fem.n_nodes
         stats = ContactStats(contacts=m, self_contacts=int(header[3]), face_contacts=int(header[4]),
                              active_contacts=int(header[5]), lcp_device=True, rows_device=True,
                              compliance_fallbacks=self.compliance_fallbacks, compliance="preconditioner",
@@ -394,25 +394,23 @@ class ContactSolver:
     def contacts(self) -> Contacts:
         """The last step's contacts with their forces (made from the device rows' record at the
         first ask after a step solved there)."""
-        if self._rows_read is not None:
-            rec, ln = self._rows_read
+        if self._contacts is None:
+            rec, ln, *_ = self._device_read
             c = _record_contacts(rec)
-            self._contacts, self._rows_read = c.responded(ln, ln[:, None] * c.normal), None
+            self._contacts = c.responded(ln, ln[:, None] * c.normal)
         return self._contacts
 
     @contacts.setter
-    def contacts(self, value: Contacts) -> None:
-        self._contacts, self._rows_read = value, None
+    def contacts(self, value: Contacts | None) -> None:
+        self._contacts = value
 
     def _warm_start(self) -> WarmStart:
         """The host's warm start: the last step's forces by contact name (named here, at their
         first use, where that step was solved from device rows)."""
-        if self._warm_rows is not None:
-            rec, ln, uids, n = self._warm_rows
-            c = _record_contacts(rec)
+        if self._warm is None:
+            c, (*_, uids, n) = self.contacts, self._device_read
             uids = np.arange(n) if uids is None or len(uids) != n else np.asarray(uids)
-            self._warm = WarmStart(contact_names(c.obj, c.node, c.tri, uids), ln[:, None] * c.normal, ln > 0.0)
-            self._warm_rows = None
+            self._warm = WarmStart(contact_names(c.obj, c.node, c.tri, uids), c.force, c.lambda_n > 0.0)
         return self._warm
 
     def _device_solver(self, body: BodyView, m: int):
@@ -592,7 +590,7 @@ class DeviceStep:
         self.solver, self.body, self.inner, self.limit = solver, body, inner, int(limit)
         o = solver.options
         self.lcp, self.rows = solver._device_lcp, solver._device_rows
-        self._args = (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid", True)
+        self._args = launch_args(o, frictionless=True)
         self.dt = float(body.integrator.dt)
 
     def key(self) -> tuple:

@@ -14,7 +14,7 @@ import warp as wp
 
 from soft_tissue_sim import load_scene
 from soft_tissue_sim.contact.device_lcp import device_pgs_kernel, device_pgs_small_kernel
-from soft_tissue_sim.contact.pgs import PGS
+from soft_tissue_sim.contact.pgs import FIRST_SWEEPS, PGS
 from soft_tissue_sim.dense_inverse import DenseInverse
 from soft_tissue_sim.material import ParameterError
 from test_contact import FLOOR_Z, scene
@@ -97,19 +97,59 @@ def test_w_not_positive_definite_on_the_device_is_solved_again_on_the_host(monke
     np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9, atol=1e-12)
 
 
-def test_sweeps_that_end_above_the_tolerance_stand_on_the_device():
+def test_sweeps_that_end_above_the_tolerance_are_finished_on_the_device_as_on_the_host():
     """At 1e-10 m some of the landing block's frictionless LCPs stop at the 200 sweeps above
-    the tolerance: on the device their lambda stands (the host would finish them by its active
-    set, with or without which the device's steps are the same), still within 1e-8 m."""
+    the tolerance: with the active-set finish (the default) the device finishes them as the
+    host does, within the tolerance and with the host's steps; without it the sweeps' lambda
+    stands, still within 1e-8 m."""
     tol = 1e-10
-    runs = [_run(_floor_scene(32, tol=tol, active_set=a), steps=30) for a in (True, False)]
-    pressed = [s for s in runs[0][3] if s.get("contacts", 0)]
-    assert all(s.get("lcp_device") and not s.get("lcp_redone") for s in pressed)
-    worst = max(s["lcp_residual"] for s in pressed)
-    assert worst <= 1e-8 and (tol < worst or DEVICE != "cpu")  # the stall as recorded on the CPU
-    np.testing.assert_allclose(runs[0][0], runs[1][0], rtol=0, atol=0.0 if DEVICE == "cpu" else 1e-12)
-    host = _run(_floor_scene(0, tol=tol), steps=30)[3]  # the host's finish reaches the tolerance
-    assert max(s["lcp_residual"] for s in host if s.get("contacts", 0)) <= tol
+    runs = {a: _run(_floor_scene(32, tol=tol, active_set=a), steps=30) for a in (True, False)}
+    for a, run in runs.items():
+        pressed = [s for s in run[3] if s.get("contacts", 0)]
+        assert pressed and all(s.get("lcp_device") and not s.get("lcp_redone") for s in pressed)
+        worst = max(s["lcp_residual"] for s in pressed)
+        if a:
+            assert worst <= tol
+            assert any(s["gs_iterations"] > FIRST_SWEEPS for s in pressed)  # the finish ran
+        else:
+            assert worst <= 1e-8 and (tol < worst or DEVICE != "cpu")  # the stall as recorded on the CPU
+    host = _run(_floor_scene(0, tol=tol), steps=30)
+    assert max(s["lcp_residual"] for s in host[3] if s.get("contacts", 0)) <= tol
+    np.testing.assert_allclose(runs[True][0], host[0], rtol=0, atol=1e-12)
+    assert np.abs(runs[False][0] - host[0]).max() > 0.0 or DEVICE != "cpu"
+
+
+def test_the_small_kernels_active_set_finish_is_the_hosts():
+    """device_pgs_small_kernel with the active-set finish against the host's PGS (sweeps, then
+    :func:`~soft_tissue_sim.contact.pgs.active_set`) on random frictionless LCPs up to 32 rows,
+    W of low rank plus a small multiple of I (the nearly repeated rows that stall the sweeps):
+    the same sweeps and face solves, and lambda to the face solves' rounding."""
+    rng = np.random.default_rng(5)
+    cap, tol, finished = 32, 1e-10, 0
+    pgs = PGS(active_set=True)
+    for _ in range(24):
+        m = int(rng.integers(2, cap + 1))
+        B = rng.standard_normal((m, int(rng.integers(m // 2 + 1, m + 1))))
+        W = B @ B.T / m + 10.0 ** rng.uniform(-9, -2) * np.eye(m)
+        d0 = rng.standard_normal(m) * 1e-3
+        lam0 = np.abs(rng.standard_normal(m)) * 1e-4 * (rng.random(m) < 0.5)
+        ref, its, res = pgs.solve(W, d0, np.arange(m, dtype=np.int32), np.ones(m, np.int32), np.zeros(m), 200, tol,
+                                  False, lam0)
+        Wd = np.zeros((cap, cap))
+        Wd[:m, :m] = W
+        pad = lambda a: np.concatenate([a, np.zeros(cap - len(a))])  # noqa: E731
+        arr = lambda a, t=wp.float64: wp.array(a, dtype=t, device=DEVICE)  # noqa: E731
+        lam, info = wp.zeros(cap, dtype=wp.float64, device=DEVICE), wp.zeros(3, dtype=wp.float64, device=DEVICE)
+        wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(np.array([m, m], np.int32),
+                                               wp.int32), 200, tol, FIRST_SWEEPS,
+                                               wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam,
+                                               wp.zeros(cap, dtype=wp.float64, device=DEVICE), info], device=DEVICE)
+        got, inf = lam.numpy()[:m], info.numpy()
+        assert inf[2] == 1.0 and int(inf[0]) == its and (got >= 0.0).all()
+        assert res <= tol and inf[1] <= tol
+        np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
+        finished += its > FIRST_SWEEPS
+    assert finished >= 12  # most needed the finish
 
 
 @pytest.mark.parametrize("device_rows", [False, True])
@@ -215,11 +255,11 @@ def test_the_device_kernel_solves_the_hosts_problems():
         assert inf[2] == 1.0 and int(inf[0]) == its
         np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-15)
         assert inf[1] == pytest.approx(res, rel=1e-6, abs=1e-18)
-        if trial % 2 == 0:  # frictionless: the small kernel's sweeps are the same (to the bit on the CPU;
+        if trial % 2 == 0:  # frictionless: the small kernel's sweeps alone are the same (to the bit on the CPU;
             # on a GPU the compiler may fuse another multiply-add)
             lam_s, info_s = wp.zeros(cap, dtype=wp.float64, device=DEVICE), wp.zeros(3, dtype=wp.float64, device=DEVICE)
             wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)),
-                                                   arr(np.array([m, nc], np.int32), wp.int32), 200, 1e-10,
+                                                   arr(np.array([m, nc], np.int32), wp.int32), 200, 1e-10, 200,
                                                    wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam_s,
                                                    wp.zeros(cap, dtype=wp.float64, device=DEVICE), info_s],
                       device=DEVICE)

@@ -12,7 +12,10 @@ correction, the penetration detection and the guard (one graph a step):
    captured graph serves every contact count;
 3. :func:`device_pgs_kernel` checks W as :func:`.compliance.positive_definite` does (a Cholesky
    factorization of W + 1e-10 max(diag W) I) and runs the projected Gauss-Seidel sweeps of
-   :mod:`.pgs` on one thread, from the warm start;
+   :mod:`.pgs` on one thread, from the warm start; a frictionless set within :data:`SMALL`
+   rows goes to :func:`device_pgs_small_kernel`, which holds lambda and delta in the thread's
+   own memory and, as the host does, finishes sweeps that stall by the active-set method
+   (:func:`small_active_set`, the host's :func:`.pgs.active_set` on one thread);
 4. dx = dt^2 P^-1 H^T lambda (eq. 2), zeroed on the fixed nodes, from the columns of the rows'
    nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in double precision as
    W is gathered).
@@ -21,10 +24,9 @@ lambda, the sweeps, the residual and the check's verdict are read with the guard
 correction. Where W is not positive definite the device solve makes lambda = 0 (no
 correction) and says so: the caller restores the free motion and solves the step's contacts
 on the host, with the block diagonal of A (as :meth:`.solver.ContactSolver._respond` does).
-Sweeps that end above the tolerance stand, as they do on the host with friction: the host's
-active-set finish of a frictionless LCP (:func:`.pgs.active_set`) is not run here (redoing
-those steps on the host cost them about 3 ms). One thread sweeps in O(m^2) a sweep: the row
-limit keeps a sweep within microseconds; larger sets are solved on the host.
+Sweeps with friction that end above the tolerance stand, as they do on the host. One thread
+sweeps in O(m^2) a sweep: the row limit keeps a sweep within microseconds; larger sets are
+solved on the host.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ import warp as wp
 
 from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
-from .pgs import pgs_sweeps
+from .pgs import FIRST_SWEEPS, pgs_sweeps
 
 
 @wp.kernel
@@ -112,6 +114,7 @@ def device_pgs_kernel(
 
 SMALL = 32  # the most rows device_pgs_small_kernel holds in the thread's own memory
 _vec_small = wp.types.vector(length=SMALL, dtype=wp.float64)
+_ivec_small = wp.types.vector(length=SMALL, dtype=wp.int32)
 
 
 @wp.func
@@ -138,36 +141,13 @@ def small_residual(W: wp.array2d(dtype=wp.float64), lv: _vec_small, dv: _vec_sma
     return res
 
 
-@wp.kernel
-def device_pgs_small_kernel(
-    W: wp.array2d(dtype=wp.float64),
-    d0: wp.array(dtype=wp.float64),
-    lam0: wp.array(dtype=wp.float64),
-    sizes: wp.array(dtype=wp.int32),
-    max_iterations: int,
-    tolerance: wp.float64,
-    L: wp.array2d(dtype=wp.float64),
-    lam: wp.array(dtype=wp.float64),
-    delta: wp.array(dtype=wp.float64),
-    info: wp.array(dtype=wp.float64),
-):
-    """:func:`device_pgs_kernel` for a frictionless LCP of at most :data:`SMALL` rows (each row a
-    contact): the same check, sweeps and residual in the same order of operations (the same
-    lambda and sweeps), lambda and delta = W lambda + d0 held in the thread's own memory
-    instead of read and written in the device's, which a sweep does m^2 times. One thread."""
-    m = sizes[0]
+@wp.func
+def small_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lv: _vec_small, m: int,
+                 max_iterations: int, tolerance: wp.float64):
+    """Up to ``max_iterations`` frictionless sweeps from ``lv`` (:func:`.pgs.pgs_sweeps`, the same
+    operations in the same order), lambda and delta in the thread's own memory; returns
+    (lambda, delta, sweeps, residual)."""
     zero = F64(0.0)
-    for i in range(m):
-        lam[i] = zero
-    info[0] = zero
-    info[1] = zero
-    info[2] = zero
-    if positive_definite_rows(W, L, m) == 0:
-        return
-    info[2] = F64(1.0)
-    lv = _vec_small()
-    for i in range(m):
-        lv[i] = lam0[i]
     dv = small_delta(W, d0, lv, m)
     it = int(0)
     res = F64(-1.0)
@@ -192,6 +172,195 @@ def device_pgs_small_kernel(
     if res < zero:
         dv = small_delta(W, d0, lv, m)
         res = small_residual(W, lv, dv, m)
+    return lv, dv, it, res
+
+
+@wp.func
+def face_factor(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: _ivec_small, p: int,
+                shift: wp.float64):
+    """The Cholesky factor of W_PP + shift I (the rows P[0..p)) into L's leading p x p block;
+    1, or 0 where it is not positive definite."""
+    for j in range(p):
+        s = W[P[j], P[j]] + shift
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not (s > F64(0.0)) or not wp.isfinite(s):
+            return 0
+        ljj = wp.sqrt(s)
+        L[j, j] = ljj
+        for i in range(j + 1, p):
+            t = W[P[i], P[j]]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / ljj
+    return 1
+
+
+@wp.func
+def face_substitute(L: wp.array2d(dtype=wp.float64), b: _vec_small, p: int):
+    """x with L L^T x = b (L's leading p x p block, lower)."""
+    y = _vec_small()
+    for i in range(p):
+        t = b[i]
+        for k in range(i):
+            t -= L[i, k] * y[k]
+        y[i] = t / L[i, i]
+    x = _vec_small()
+    for q in range(p):
+        i = p - 1 - q
+        t = y[i]
+        for k in range(i + 1, p):
+            t -= L[k, i] * x[k]
+        x[i] = t / L[i, i]
+    return x
+
+
+@wp.func
+def small_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), L: wp.array2d(dtype=wp.float64),
+                     lam0: _vec_small, m: int, tolerance: wp.float64, max_steps: int):
+    """:func:`.pgs.active_set` on one thread (Lawson and Hanson's method from ``lam0``, the face
+    problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
+    refinement against W_PP): the same steps in the same order; returns (lambda, face solves)."""
+    zero = F64(0.0)
+    lam = _vec_small()
+    passive = _ivec_small()
+    dmax = zero
+    for i in range(m):
+        lam[i] = wp.max(lam0[i], zero)
+        if lam[i] > zero:
+            passive[i] = 1
+        dmax = wp.max(dmax, W[i, i])
+    shift = F64(1e-12) * dmax
+    steps = int(0)
+    joined = int(-1)
+    while steps < max_steps:
+        P = _ivec_small()
+        p = int(0)
+        for i in range(m):
+            if passive[i] != 0:
+                P[p] = i
+                p += 1
+        s = _vec_small()
+        if p > 0:
+            steps += 1
+            if face_factor(W, L, P, p, shift) == 0:
+                return lam, steps
+            b = _vec_small()
+            for a in range(p):
+                b[a] = -d0[P[a]]
+            x = face_substitute(L, b, p)
+            r = _vec_small()
+            for a in range(p):
+                t = b[a]
+                for c in range(p):
+                    t -= W[P[a], P[c]] * x[c]
+                r[a] = t
+            x2 = face_substitute(L, r, p)
+            for a in range(p):
+                s[P[a]] = x[a] + x2[a]
+            low = int(0)
+            alpha = F64(0.0)
+            for a in range(p):  # the ratio test over the rows of P the face solution leaves <= 0
+                i = P[a]
+                if s[i] <= zero:
+                    gap = lam[i] - s[i]
+                    ratio = zero
+                    if gap > zero:
+                        ratio = lam[i] / gap
+                    if low == 0 or ratio < alpha:
+                        alpha = ratio
+                    low = 1
+            if low != 0:  # to the boundary: the rows of P reaching 0 first leave it
+                if alpha <= zero and joined >= 0:
+                    if s[joined] <= zero and passive[joined] != 0:
+                        gj = lam[joined] - s[joined]
+                        rj = zero
+                        if gj > zero:
+                            rj = lam[joined] / gj
+                        if rj <= alpha:
+                            return lam, steps
+                leave = _ivec_small()
+                for a in range(p):
+                    i = P[a]
+                    if s[i] <= zero:
+                        gap = lam[i] - s[i]
+                        ratio = zero
+                        if gap > zero:
+                            ratio = lam[i] / gap
+                        if ratio <= alpha:
+                            leave[i] = 1
+                for i in range(m):
+                    lam[i] = lam[i] + alpha * (s[i] - lam[i])
+                    if leave[i] != 0:
+                        lam[i] = zero
+                        passive[i] = 0
+                joined = -1
+                continue
+        lam = s
+        dv = small_delta(W, d0, lam, m)
+        j = int(-1)
+        best = F64(0.0)
+        for i in range(m):
+            if passive[i] == 0:
+                w = -dv[i]
+                if j < 0 or w > best:
+                    j = i
+                    best = w
+        if j < 0 or best <= tolerance:
+            return lam, steps
+        passive[j] = 1
+        joined = j
+    return lam, steps
+
+
+@wp.kernel
+def device_pgs_small_kernel(
+    W: wp.array2d(dtype=wp.float64),
+    d0: wp.array(dtype=wp.float64),
+    lam0: wp.array(dtype=wp.float64),
+    sizes: wp.array(dtype=wp.int32),
+    max_iterations: int,
+    tolerance: wp.float64,
+    first_sweeps: int,
+    L: wp.array2d(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    delta: wp.array(dtype=wp.float64),
+    info: wp.array(dtype=wp.float64),
+):
+    """:func:`device_pgs_kernel` for a frictionless LCP of at most :data:`SMALL` rows (each row a
+    contact), lambda and delta = W lambda + d0 held in the thread's own memory instead of read
+    and written in the device's, which a sweep does m^2 times; the same check, and the host's
+    :meth:`.pgs.PGS.solve` for a frictionless LCP: up to ``first_sweeps`` sweeps, then (not
+    converged) the active-set method with what is left of ``max_iterations`` as its steps, the
+    better of the two kept, then sweeps for the rest. ``first_sweeps`` >= ``max_iterations``:
+    sweeps only (:func:`device_pgs_kernel`'s lambda and sweeps). One thread."""
+    m = sizes[0]
+    zero = F64(0.0)
+    for i in range(m):
+        lam[i] = zero
+    info[0] = zero
+    info[1] = zero
+    info[2] = zero
+    if positive_definite_rows(W, L, m) == 0:
+        return
+    info[2] = F64(1.0)
+    lv = _vec_small()
+    for i in range(m):
+        lv[i] = lam0[i]
+    first = wp.min(first_sweeps, max_iterations)
+    lv, dv, it, res = small_sweeps(W, d0, lv, m, first, tolerance)
+    if res > tolerance and first < max_iterations and it < max_iterations:
+        la, steps = small_active_set(W, d0, L, lv, m, tolerance, max_iterations - it)
+        it += steps
+        da = small_delta(W, d0, la, m)
+        ra = small_residual(W, la, da, m)
+        if ra < res:
+            lv = la
+            dv = da
+            res = ra
+        if res > tolerance and it < max_iterations:
+            lv, dv, more, res = small_sweeps(W, d0, lv, m, max_iterations - it, tolerance)
+            it += more
     for i in range(m):
         lam[i] = lv[i]
         delta[i] = dv[i]
@@ -257,17 +426,19 @@ class DeviceLCP:
         return (inner.graph_key(), inner.delassus_key(), free.ptr, dx.ptr, float(dt), *options)
 
     def launch(self, inner, free: wp.array, dt: float, max_iterations: int, tolerance: float,
-               pyramid: bool, frictionless: bool = False) -> wp.array:
+               pyramid: bool, frictionless: bool = False, first_sweeps: int = FIRST_SWEEPS) -> wp.array:
         """W, the LCP and dx = dt^2 P^-1 H^T lambda (eq. 2) on the free nodes: launches only.
         Returns dx (a (n,) vec3d array kept between steps). ``frictionless``: every row is a
-        contact's normal (then, within :data:`SMALL` rows, the sweeps run in the thread's own
-        memory: :func:`device_pgs_small_kernel`)."""
+        contact's normal (then, within :data:`SMALL` rows, :func:`device_pgs_small_kernel`
+        sweeps in the thread's own memory and finishes by the active-set method after
+        ``first_sweeps``)."""
         d = self.device
         dx = self._dx.view(free.shape[0])
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
         if frictionless and self.rows <= SMALL:
             wp.launch(device_pgs_small_kernel, 1, [self.W, self.d0, self.lam0, self.sizes, int(max_iterations),
-                                                   float(tolerance), self.L, self.lam, self.delta, self.info], device=d)
+                                                   float(tolerance), int(first_sweeps), self.L, self.lam, self.delta,
+                                                   self.info], device=d)
         else:
             wp.launch(device_pgs_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
                                              self.sizes, int(max_iterations), float(tolerance), int(bool(pyramid)),
@@ -277,9 +448,13 @@ class DeviceLCP:
 
 
 def launch_args(options: dict, frictionless: bool) -> tuple:
-    """:meth:`DeviceLCP.launch`'s arguments after dt from the contact options (part of a graph's key)."""
+    """:meth:`DeviceLCP.launch`'s arguments after dt from the contact options (part of a graph's
+    key): the frictionless LCP finished by the active-set method after the host's first sweeps
+    (option ``active_set``), else sweeps only."""
     o = options
-    return int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid", bool(frictionless)
+    first = FIRST_SWEEPS if o["active_set"] else int(o["max_iterations"])
+    return (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid", bool(frictionless),
+            first)
 
 
 class PendingLCP:

@@ -36,6 +36,8 @@ from scipy.linalg.lapack import dpotrf, dpotrs
 
 from .geometry import F64
 
+FIRST_SWEEPS = 10  # the frictionless LCP's sweeps before the active-set finish (PGS)
+
 
 @wp.func
 def contact_update(
@@ -305,7 +307,7 @@ class PGS:
     Warp array and makes one launch.
     """
 
-    def __init__(self, active_set: bool = True, first_sweeps: int = 10):
+    def __init__(self, active_set: bool = True, first_sweeps: int = FIRST_SWEEPS):
         self.active_set = bool(active_set)
         self.first_sweeps = int(first_sweeps)
         self.rows_cap = self.contacts_cap = 0

@@ -113,7 +113,11 @@ def test_beyond_the_row_limit_the_step_is_redone_on_the_host_and_the_next_built_
     assert not any(dev[k][0].get("rows_device") for k in many)
     assert not dev[many[0] + 1][0].get("rows_device") and not dev[many[-1]][0].get("lcp_device")
     for (sh, xh, *_), (sd, xd, *_) in zip(host, dev):
-        assert sd.get("contacts") == sh.get("contacts") and sd.get("gs_iterations") == sh.get("gs_iterations")
+        assert sd.get("contacts") == sh.get("contacts")
+        # on a GPU the device steps' rounding (see EXACT) can move a long host solve of a later
+        # step (160 sweeps to the tolerance) by a sweep
+        slack = 0 if DEVICE == "cpu" else 2
+        assert abs(sd.get("gs_iterations", 0) - sh.get("gs_iterations", 0)) <= slack
         np.testing.assert_allclose(xd, xh, rtol=0, atol=EXACT)
 
 

@@ -148,7 +148,7 @@ class AsyncDevicePreconditioner:
     uses_build_rotations = True  # begin_step takes the node rotations the integrator's build launched
 
     def __init__(self, backend, meta_fn, device, *, rotate=True, refresh_every=1, deterministic=False, lag=0,
-                 reserve_sms=0, name="async_ldlt"):
+                 reserve_sms=0, refresh_iterations=0, name="async_ldlt"):
         if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
             raise ValueError(f"lag must be a whole number of steps >= 0, got {lag!r}")
         if lag and not deterministic:
@@ -159,6 +159,9 @@ class AsyncDevicePreconditioner:
         self.name = name
         self.rotate = bool(rotate)
         self.refresh_every = max(1, int(refresh_every))
+        # > 0: a factor is requested (every refresh_every steps) only after a step whose PCG took
+        # more than this many iterations
+        self.refresh_iterations = int(refresh_iterations)
         self.deterministic = bool(deterministic)
         self.lag = int(lag)
         # the factor's stream: on a GPU confined to all but `reserve_sms` SMs where the driver can
@@ -337,6 +340,15 @@ class AsyncDevicePreconditioner:
             wp.synchronize_event(t.done)
         self._install(t)
 
+    def _due(self, system) -> bool:
+        """Whether this step requests a new factor: ``refresh_every`` steps after the last request
+        and, with ``refresh_iterations``, after a step whose PCG took more iterations than that
+        (``system.last_iterations``; none yet: due)."""
+        if self.step - self.last_request_step < self.refresh_every:
+            return False
+        its = getattr(system, "last_iterations", None)
+        return self.refresh_iterations <= 0 or its is None or its > self.refresh_iterations
+
     def begin_step(self, system) -> None:
         fem = system.fem
         R = fem.current_node_rotations()  # launched by the integrator's build (node_rotations_in_build)
@@ -347,13 +359,13 @@ class AsyncDevicePreconditioner:
             if self._held is not None and self.step >= self._held[0]:
                 self._install(self._held[1])
                 self._held = None
-            if self._held is None and self.step - self.last_request_step >= self.refresh_every:
+            if self._held is None and self._due(system):
                 t = self._request(system)
                 if t.done is not None:
                     wp.synchronize_event(t.done)
                 self._held = (self.step + self.lag, t)
         elif self.deterministic:
-            if self.step - self.last_request_step >= self.refresh_every:
+            if self._due(system):
                 self._refresh_now(system)
         else:
             t = self._pending
@@ -362,7 +374,7 @@ class AsyncDevicePreconditioner:
                 self._install(t)
             if not self.factorizing():
                 graphs.release()  # nothing long in flight: replaced graphs go now, before the next request
-            if self._pending is None and self.step - self.last_request_step >= self.refresh_every:
+            if self._pending is None and self._due(system):
                 self._pending = self._request(system, background=True)
         if self.backend.n3 != 3 * fem.n_nodes:  # a size change no modification announced
             self._refresh_now(system)

@@ -239,6 +239,7 @@ class BackwardEuler:
         self.cg = PCG(fem.n_nodes, fem.device, tolerance, max_iterations, warm_start)
         self.step_index = 0
         self.time = 0.0
+        self.last_iterations: int | None = None  # the last step's PCG iterations (the refresh policy reads them)
         # read_guard: a device solve's step also launches the divergence guard (launch_guard) at
         # the new state and reads it with the solve's scalars: guard_reading (kinetic energy,
         # non-finite nodes) of the last step, None where it was not read so
@@ -472,6 +473,7 @@ class BackwardEuler:
         self.time += self.dt
         if after:
             self.after_solve_reading = ((self.state_version, self.step_index), after)
+        self.last_iterations = iterations
         ps = self.preconditioner.stats()
         stats = StepStats(
             step=self.step_index,

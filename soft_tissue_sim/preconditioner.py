@@ -46,7 +46,8 @@ PRECONDITIONERS = ("none", "jacobi", "async_ldlt", "direct")
 BACKENDS = ("auto", "cholmod", "dense", "cudss")
 DENSE_MAX_DOFS = 12_000  # auto: the dense inverse up to this size on a GPU (bench backends, docs/benchmarks.md)
 _RETIRED = {"apply_on", "columns_on", "lanes", "tail_width", "tail_block", "cols_lanes", "min_device_columns"}
-_LDLT_KEYS = {"backend", "rotate", "refresh_every", "device_refresh_every", "deterministic", "lag", "mode",
+_LDLT_KEYS = {"backend", "rotate", "refresh_every", "device_refresh_every", "device_refresh_iterations",
+              "deterministic", "lag", "mode",
               "ordering", "worker", "release_gil", "dense_max_dofs", "reserve_sms", "apply_precision"}
 RESERVE_SMS = 16  # auto: SMs a GPU factorization leaves to the steps (sm_partition; docs/benchmarks.md)
 
@@ -180,6 +181,11 @@ def make_preconditioner(kind: str, options: dict, snapshot_fn, meta_fn=None, dev
         if isinstance(every, bool) or not isinstance(every, int) or every < 1:
             raise ParameterError(f"ldlt device_refresh_every must be a whole number >= 1, got {every!r}")
         sched["refresh_every"] = every
+    if not direct:  # and only where the steps need it (a factorization in flight slows the steps beside it)
+        its = options.get("device_refresh_iterations", 0)
+        if isinstance(its, bool) or not isinstance(its, int) or its < 0:
+            raise ParameterError(f"ldlt device_refresh_iterations must be a whole number >= 0, got {its!r}")
+        sched["refresh_iterations"] = its
     reserve = options.get("reserve_sms", "auto")
     if reserve == "auto":
         reserve = RESERVE_SMS

@@ -702,6 +702,7 @@ class Simulation:
         self.mesh_version = 0
         self.integrator.set_state(self._initial_mesh.points.copy(), np.zeros_like(self._initial_mesh.points))
         self.integrator.step_index = 0
+        self.integrator.last_iterations = None
         self.integrator.time = 0.0
         self.last_stats = None
 

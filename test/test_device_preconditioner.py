@@ -285,6 +285,49 @@ def test_device_refresh_every_sets_the_interval_of_the_device_backends_only():
                 "preconditioner": "async_ldlt", "ldlt": {**ldlt, "device_refresh_every": bad}}})
 
 
+def test_device_refresh_iterations_requests_a_factor_only_after_a_step_that_needed_more():
+    """``device_refresh_iterations``: a factor is requested every ``device_refresh_every`` steps
+    only after a step whose PCG took more iterations than the threshold (the small scene's
+    steps take 1 to 8). Made in the step that asks (deterministic): each factor after the first
+    follows a step above the threshold, and every step due by both rules gets one; with a
+    threshold above every step no factor follows the first; 0 is the interval alone. A bad
+    value is refused."""
+    ldlt = {"backend": "dense", "device_refresh_every": 2, "deterministic": True}
+    runs = {}
+    for its in (0, 4, 1000):
+        with load_scene("test_small.yaml", device=DEVICE, overrides={"solver": {
+                "preconditioner": "async_ldlt", "ldlt": {**ldlt, "device_refresh_iterations": its}}}) as sim:
+            steps = [sim.step() for _ in range(16)]
+            runs[its] = ([s.iterations for s in steps], list(sim.preconditioner.swaps))
+    assert runs[0][1] == list(range(0, 16, 2))
+    n, swaps = runs[4]
+    assert swaps[0] == 0 and all(n[k - 1] > 4 for k in swaps[1:])
+    due = [k for k in range(1, 16) if n[k - 1] > 4 and k - max(s for s in swaps if s < k) >= 2]
+    assert due and set(due) <= set(swaps)
+    assert len(swaps) < len(runs[0][1])
+    assert runs[1000][1] == [0] and max(runs[1000][0]) > max(runs[4][0])  # the factor ages, the steps need more
+    with pytest.raises(ParameterError, match="device_refresh_iterations"):
+        load_scene("test_small.yaml", device=DEVICE, overrides={"solver": {
+            "preconditioner": "async_ldlt", "ldlt": {**ldlt, "device_refresh_iterations": -1}}})
+
+
+def test_the_refresh_waits_for_a_step_above_the_iteration_threshold():
+    """The policy alone (:meth:`AsyncDevicePreconditioner._due`): the interval first, then the
+    last step's iterations against the threshold; none known yet: due."""
+    from types import SimpleNamespace
+
+    from soft_tissue_sim.device_preconditioner import AsyncDevicePreconditioner
+
+    pre = AsyncDevicePreconditioner.__new__(AsyncDevicePreconditioner)
+    pre.refresh_every, pre.refresh_iterations, pre.last_request_step, pre.step = 3, 4, 10, 12
+    assert not pre._due(SimpleNamespace(last_iterations=9))  # within the interval
+    pre.step = 13
+    assert pre._due(SimpleNamespace(last_iterations=5)) and pre._due(SimpleNamespace(last_iterations=None))
+    assert not pre._due(SimpleNamespace(last_iterations=4))
+    pre.refresh_iterations = 0
+    assert pre._due(SimpleNamespace(last_iterations=1))
+
+
 def test_lag_installs_each_factor_lag_steps_later_on_the_device():
     ov = {"solver": _solver(backend="dense", refresh_every=2, lag=3, tol=1e-8)}
     with load_scene("test_small.yaml", device=DEVICE, overrides=ov) as sim:

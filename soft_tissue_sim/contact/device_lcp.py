@@ -47,6 +47,38 @@ def scaled_free_kernel(y: wp.array(dtype=wp.vec3d), s: wp.float64, free: wp.arra
     out[i] = (s * free[i]) * y[i]
 
 
+SMALL = 32  # the most rows device_pgs_small_kernel holds in the thread's own memory
+_vec_small = wp.types.vector(length=SMALL, dtype=wp.float64)
+_ivec_small = wp.types.vector(length=SMALL, dtype=wp.int32)
+
+
+@wp.func
+def cholesky_rows(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: _ivec_small, p: int,
+                  shift: wp.float64, gathered: int):
+    """The Cholesky factor of W's rows and columns (P[0..p) where ``gathered``, else 0..p) plus
+    shift I into L's leading p x p block; 1, or 0 where it is not positive definite."""
+    for j in range(p):
+        rj = j
+        if gathered != 0:
+            rj = P[j]
+        s = W[rj, rj] + shift
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not (s > F64(0.0)) or not wp.isfinite(s):
+            return 0
+        ljj = wp.sqrt(s)
+        L[j, j] = ljj
+        for i in range(j + 1, p):
+            ri = i
+            if gathered != 0:
+                ri = P[i]
+            t = W[ri, rj]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / ljj
+    return 1
+
+
 @wp.func
 def positive_definite_rows(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), m: int):
     """1 if the leading m x m block of the symmetric W is usable by Gauss-Seidel (finite, positive
@@ -58,21 +90,7 @@ def positive_definite_rows(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=
         if not (d > F64(0.0)) or not wp.isfinite(d):
             return 0
         dmax = wp.max(dmax, d)
-    shift = F64(1e-10) * dmax
-    for j in range(m):
-        s = W[j, j] + shift
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not (s > F64(0.0)) or not wp.isfinite(s):
-            return 0
-        ljj = wp.sqrt(s)
-        L[j, j] = ljj
-        for i in range(j + 1, m):
-            t = W[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / ljj
-    return 1
+    return cholesky_rows(W, L, _ivec_small(), m, F64(1e-10) * dmax, 0)
 
 
 @wp.kernel
@@ -110,11 +128,6 @@ def device_pgs_kernel(
     it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, max_iterations, tolerance, pyramid, lam, delta)
     info[0] = F64(it)
     info[1] = res
-
-
-SMALL = 32  # the most rows device_pgs_small_kernel holds in the thread's own memory
-_vec_small = wp.types.vector(length=SMALL, dtype=wp.float64)
-_ivec_small = wp.types.vector(length=SMALL, dtype=wp.int32)
 
 
 @wp.func
@@ -176,27 +189,6 @@ def small_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64)
 
 
 @wp.func
-def face_factor(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: _ivec_small, p: int,
-                shift: wp.float64):
-    """The Cholesky factor of W_PP + shift I (the rows P[0..p)) into L's leading p x p block;
-    1, or 0 where it is not positive definite."""
-    for j in range(p):
-        s = W[P[j], P[j]] + shift
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not (s > F64(0.0)) or not wp.isfinite(s):
-            return 0
-        ljj = wp.sqrt(s)
-        L[j, j] = ljj
-        for i in range(j + 1, p):
-            t = W[P[i], P[j]]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / ljj
-    return 1
-
-
-@wp.func
 def face_substitute(L: wp.array2d(dtype=wp.float64), b: _vec_small, p: int):
     """x with L L^T x = b (L's leading p x p block, lower)."""
     y = _vec_small()
@@ -243,7 +235,7 @@ def small_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.floa
         s = _vec_small()
         if p > 0:
             steps += 1
-            if face_factor(W, L, P, p, shift) == 0:
+            if cholesky_rows(W, L, P, p, shift, 1) == 0:
                 return lam, steps
             b = _vec_small()
             for a in range(p):
@@ -258,40 +250,27 @@ def small_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.floa
             x2 = face_substitute(L, r, p)
             for a in range(p):
                 s[P[a]] = x[a] + x2[a]
-            low = int(0)
+            rat = _vec_small()  # the ratio test over the rows of P the face solution leaves <= 0
+            low = _ivec_small()
+            nlow = int(0)
             alpha = F64(0.0)
-            for a in range(p):  # the ratio test over the rows of P the face solution leaves <= 0
+            for a in range(p):
                 i = P[a]
                 if s[i] <= zero:
                     gap = lam[i] - s[i]
-                    ratio = zero
                     if gap > zero:
-                        ratio = lam[i] / gap
-                    if low == 0 or ratio < alpha:
-                        alpha = ratio
-                    low = 1
-            if low != 0:  # to the boundary: the rows of P reaching 0 first leave it
+                        rat[i] = lam[i] / gap
+                    if nlow == 0 or rat[i] < alpha:
+                        alpha = rat[i]
+                    low[i] = 1
+                    nlow += 1
+            if nlow > 0:  # to the boundary: the rows of P reaching 0 first leave it
                 if alpha <= zero and joined >= 0:
-                    if s[joined] <= zero and passive[joined] != 0:
-                        gj = lam[joined] - s[joined]
-                        rj = zero
-                        if gj > zero:
-                            rj = lam[joined] / gj
-                        if rj <= alpha:
-                            return lam, steps
-                leave = _ivec_small()
-                for a in range(p):
-                    i = P[a]
-                    if s[i] <= zero:
-                        gap = lam[i] - s[i]
-                        ratio = zero
-                        if gap > zero:
-                            ratio = lam[i] / gap
-                        if ratio <= alpha:
-                            leave[i] = 1
+                    if low[joined] != 0 and rat[joined] <= alpha:
+                        return lam, steps
                 for i in range(m):
                     lam[i] = lam[i] + alpha * (s[i] - lam[i])
-                    if leave[i] != 0:
+                    if low[i] != 0 and rat[i] <= alpha:
                         lam[i] = zero
                         passive[i] = 0
                 joined = -1

@@ -93,6 +93,23 @@ def positive_definite_rows(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=
     return cholesky_rows(W, L, _ivec_small(), m, F64(1e-10) * dmax, 0)
 
 
+@wp.func
+def checked_start(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), m: int,
+                  lam: wp.array(dtype=wp.float64), info: wp.array(dtype=wp.float64)):
+    """A device LCP's start: lambda and info = [sweeps, residual, W usable] zeroed, W checked
+    (:func:`positive_definite_rows`, its factor in L); 1 (info[2] = 1) where W is usable, else 0
+    (lambda stays 0)."""
+    for i in range(m):
+        lam[i] = F64(0.0)
+    info[0] = F64(0.0)
+    info[1] = F64(0.0)
+    info[2] = F64(0.0)
+    if positive_definite_rows(W, L, m) == 0:
+        return 0
+    info[2] = F64(1.0)
+    return 1
+
+
 @wp.kernel
 def device_pgs_kernel(
     W: wp.array2d(dtype=wp.float64),
@@ -115,14 +132,8 @@ def device_pgs_kernel(
     1 if W was usable else 0]; an unusable W leaves lambda = 0. One thread."""
     m = sizes[0]
     nc = sizes[1]
-    for i in range(m):
-        lam[i] = F64(0.0)
-    info[0] = F64(0.0)
-    info[1] = F64(0.0)
-    info[2] = F64(0.0)
-    if positive_definite_rows(W, L, m) == 0:
+    if checked_start(W, L, m, lam, info) == 0:
         return
-    info[2] = F64(1.0)
     for i in range(m):
         lam[i] = lam0[i]
     it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, max_iterations, tolerance, pyramid, lam, delta)
@@ -314,15 +325,8 @@ def device_pgs_small_kernel(
     better of the two kept, then sweeps for the rest. ``first_sweeps`` >= ``max_iterations``:
     sweeps only (:func:`device_pgs_kernel`'s lambda and sweeps). One thread."""
     m = sizes[0]
-    zero = F64(0.0)
-    for i in range(m):
-        lam[i] = zero
-    info[0] = zero
-    info[1] = zero
-    info[2] = zero
-    if positive_definite_rows(W, L, m) == 0:
+    if checked_start(W, L, m, lam, info) == 0:
         return
-    info[2] = F64(1.0)
     lv = _vec_small()
     for i in range(m):
         lv[i] = lam0[i]

@@ -241,6 +241,7 @@ class DeviceRows:
         self._warm_force = GrowArray(wp.vec3d, d)
         self._warm_stamp = GrowArray(wp.int32, d)
         self.serial = None  # the surface whose tables are up
+        self.kept = False  # whether the last step kept forces for the next one's warm start
 
     def surface(self, topo) -> None:
         """The slot tables of ``topo`` (a :class:`.detection.SurfaceTopology`) on the device, where
@@ -261,10 +262,15 @@ class DeviceRows:
         self.warm_stamp.fill_(-1)
         self.epoch.zero_()
         self.serial = topo.serial
+        self.kept = False
 
     def forget(self) -> None:
-        """The kept forces are not the last step's any more (a step solved on the host)."""
-        wp.launch(advance_epoch_kernel, 1, [self.epoch], device=self.device)
+        """The kept forces are not the last step's any more (a step solved on the host): the
+        epoch advanced, where the last step kept any (:attr:`kept`, set by the host after a step
+        solved here)."""
+        if self.kept:
+            wp.launch(advance_epoch_kernel, 1, [self.epoch], device=self.device)
+            self.kept = False
 
     def key(self, limit: int) -> tuple:
         return (self.serial, int(limit), self.count.ptr, self.list.ptr, self.record.ptr, self.header.ptr,

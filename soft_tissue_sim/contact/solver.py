@@ -375,6 +375,7 @@ class ContactSolver:
             self._last_rows = max(int(header[0]), self._last_rows)
             return None
         self._last_rows = m
+        self._device_rows.kept = header[5] > 0.0  # pressed contacts' forces kept at their slots
         for oi, obj in enumerate(self.objects):
             obj.force, obj.torque = wrench[oi, :3].copy(), wrench[oi, 3:].copy()
         if m == 0:

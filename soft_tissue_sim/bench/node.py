@@ -160,7 +160,7 @@ def main(argv=None) -> int:
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
     rclpy.init()
     client = RobotClient(f"/{ns}/soft_tissue_sim", instrument=instrument, node_name="bench_robot")
-    spinner = Spinner(client)
+    spinner = Spinner(client, threads=1)
     figures = {"scene": scene_name, "dt": dt, "instrument": instrument, "rate_hz": args.rate_hz,
                "pose_rate_hz": args.pose_rate_hz, "window_s": args.seconds, "load_average_start": list(load0)}
     rc = 1

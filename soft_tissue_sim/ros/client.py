@@ -11,7 +11,11 @@ service calls and sets the node's parameters. It measures what the node promises
 - poses sent, and how many a step used (distinct stamps seen on wrenches);
 - per burst, how many calls were answered and how many succeeded.
 
-It does not spin itself: add it to an executor running in another thread (:class:`Spinner`).
+Its wrench subscription is served by a thread of its own (:class:`InputThread`, as the node
+serves its poses): a wrench a step at 1 kHz is more than rclpy's executors deliver (the
+MultiThreadedExecutor falls to a few messages a second and starves the pose stream). Everything
+else (diagnostics, surface, service responses) needs an executor running in another thread
+(:class:`Spinner`); one thread is enough for the client alone.
 """
 
 from __future__ import annotations
@@ -23,12 +27,14 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from rcl_interfaces.srv import SetParameters
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker, MarkerArray
+
+from .input_thread import InputThread, ThreadServedGroup
 
 BURST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 POSE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -36,10 +42,13 @@ WRENCH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability
 
 
 class Spinner:
-    """An executor spinning the given nodes in a background thread until :meth:`close`."""
+    """An executor spinning the given nodes in a background thread until :meth:`close`; a
+    SingleThreadedExecutor for ``threads=1``, else a MultiThreadedExecutor (nodes whose callbacks
+    wait, such as the simulation node's services)."""
 
     def __init__(self, *nodes, context=None, threads: int = 4):
-        self.executor = MultiThreadedExecutor(num_threads=threads, context=context)
+        self.executor = (SingleThreadedExecutor(context=context) if threads == 1
+                         else MultiThreadedExecutor(num_threads=threads, context=context))
         for n in nodes:
             self.executor.add_node(n)
         self._thread = threading.Thread(target=self._spin, daemon=True, name="spinner")
@@ -87,10 +96,19 @@ class RobotClient(Node):
         if instrument is not None:
             base = f"{self.sim_node}/instruments/{instrument}"
             self.pose_pub = self.create_publisher(PoseStamped, f"{base}/pose", POSE_QOS)
-            self.create_subscription(WrenchStamped, f"{base}/wrench", self._on_wrench, WRENCH_QOS)
+            sub = self.create_subscription(WrenchStamped, f"{base}/wrench", self._on_wrench, WRENCH_QOS,
+                                           callback_group=ThreadServedGroup())
+            self._wrench_input = InputThread(self.context, [sub], name=f"{node_name} wrenches")
+            self._wrench_input.start()
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 50)
         self._surface_sub = self._markers_sub = None
         self._service_clients = {}
+
+    def destroy_node(self):
+        self.stop_stream()
+        if getattr(self, "_wrench_input", None) is not None:
+            self._wrench_input.stop()
+        return super().destroy_node()
 
     # ------------------------------------------------------------ counters
     def reset_counters(self):

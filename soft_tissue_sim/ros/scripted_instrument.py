@@ -134,12 +134,13 @@ def path(script: Script, n: int = 200) -> tuple[np.ndarray, np.ndarray]:
 
 
 def script_over_surface(points: np.ndarray, up_axis: int = 2, long_axis: int | None = None,
-                        fractions=(0.15, 0.35), clearance: float = 0.0, **kw) -> Script:
+                        fractions=(0.15, 0.35), clearance: float = 0.0, near: int = 8, **kw) -> Script:
     """A script whose sweep runs along the top of a point cloud (e.g. the tissue's rest positions):
     along its longest horizontal axis from ``fractions[0]`` to ``fractions[1]`` of its extent,
-    ``clearance`` above the top (the tip sphere's radius: its surface then just touches), near the
-    middle of the other horizontal axis but halfway between two node coordinates: a structured
-    mesh often has a node plane in the middle, and a blade sweeping in it cuts no element."""
+    ``clearance`` above the top there (the highest of the ``near`` points horizontally nearest to
+    the start, and to the end: on a domed body the tip sphere's surface then just touches at both),
+    near the middle of the other horizontal axis but halfway between two node coordinates: a
+    structured mesh often has a node plane in the middle, and a blade sweeping in it cuts no element."""
     pts = np.asarray(points, dtype=float)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     horiz = [a for a in range(3) if a != up_axis]
@@ -154,6 +155,10 @@ def script_over_surface(points: np.ndarray, up_axis: int = 2, long_axis: int | N
         start[side] = end[side] = mids[np.argmin(np.abs(mids - start[side]))]
     start[long_axis] = lo[long_axis] + fractions[0] * (hi[long_axis] - lo[long_axis])
     end[long_axis] = lo[long_axis] + fractions[1] * (hi[long_axis] - lo[long_axis])
+    for p in (start, end):
+        d = np.linalg.norm(pts[:, horiz] - p[horiz], axis=1)
+        closest = np.argsort(d)[:max(1, int(near))]
+        p[up_axis] = pts[closest, up_axis].max() + float(clearance)
     down = np.zeros(3)
     down[up_axis] = -1.0
     return Script(start=tuple(start), end=tuple(end), down=tuple(down), **kw)

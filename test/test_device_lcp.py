@@ -13,7 +13,7 @@ import pytest
 import warp as wp
 
 from soft_tissue_sim import load_scene
-from soft_tissue_sim.contact.device_lcp import device_pgs_kernel, device_pgs_small_kernel
+from soft_tissue_sim.contact.device_lcp import device_pgs_kernel, device_pgs_small_friction_kernel, device_pgs_small_kernel
 from soft_tissue_sim.contact.pgs import FIRST_SWEEPS, PGS
 from soft_tissue_sim.dense_inverse import DenseInverse
 from soft_tissue_sim.material import ParameterError
@@ -22,9 +22,9 @@ from test_contact import FLOOR_Z, scene
 DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 
 
-def _floor_scene(rows, friction=0.0, cone="disk", graph=False, tol=1e-8, active_set=True):
+def _floor_scene(rows, friction=0.0, cone="disk", graph=False, tol=1e-8, active_set=True, mesh=None):
     floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
-    cfg = scene(obstacles=[floor], contact={"tolerance": tol, "device_lcp_rows": rows, "friction": friction,
+    cfg = scene(mesh, obstacles=[floor], contact={"tolerance": tol, "device_lcp_rows": rows, "friction": friction,
                                             "friction_cone": cone, "active_set": active_set})
     cfg["device"] = DEVICE
     cfg["solver"]["ldlt"].update(backend="dense")
@@ -40,16 +40,19 @@ def _run(cfg, steps=40):
 
 @pytest.mark.parametrize("graph", [False, True])
 @pytest.mark.parametrize("friction, cone, rows", [(0.0, "disk", 32), (0.0, "disk", 64), (0.4, "disk", 64),
-                                                  (0.4, "pyramid", 64)])
+                                                  (0.4, "pyramid", 64), (0.4, "disk", 32)])
 def test_the_device_solve_takes_the_host_solves_steps(friction, cone, rows, graph):
     """A block landing on a floor (0 to 12 contacts, 36 rows with friction): the LCP solved on
     the device, in the correction's graph, gives the host solve's positions, velocities,
     forces and sweeps (the sweeps alone on both: the host's active-set finish is the next
     test's); the statistics say where it was solved."""
     cpu = DEVICE == "cpu"
-    host = _run(_floor_scene(0, friction, cone, graph, active_set=False))
-    dev = _run(_floor_scene(rows, friction, cone, graph, active_set=False))  # 32 frictionless: the small kernel
-    assert any(s.get("contacts", 0) == 12 for s in dev[3])
+    # within 32 rows the small kernels; with friction a smaller block (4 contacts, 12 rows)
+    small = friction > 0.0 and rows <= 32
+    mesh = {"generator": "beam", "n_long": 2, "n_cross": 2, "spacing": 0.01} if small else None
+    host = _run(_floor_scene(0, friction, cone, graph, active_set=False, mesh=mesh))
+    dev = _run(_floor_scene(rows, friction, cone, graph, active_set=False, mesh=mesh))
+    assert any(s.get("contacts", 0) == (4 if small else 12) for s in dev[3])
     for sh, sd in zip(host[3], dev[3]):
         assert "lcp_device" not in sh
         if sd.get("contacts", 0):
@@ -219,8 +222,8 @@ def test_device_lcp_rows_is_validated(bad):
 def test_the_device_kernel_solves_the_hosts_problems():
     """device_pgs_kernel against the host PGS on random LCPs (frictionless and with friction
     rows, both cones), a padded capacity and the sizes read on the device; an indefinite W is
-    refused with lambda = 0; on the frictionless ones device_pgs_small_kernel gives the same
-    lambda, sweeps and residual."""
+    refused with lambda = 0; device_pgs_small_friction_kernel gives the same lambda, sweeps and
+    residual on all of them, device_pgs_small_kernel on the frictionless ones."""
     rng = np.random.default_rng(11)
     cap = 24
     pgs = PGS(active_set=False)
@@ -249,6 +252,18 @@ def test_the_device_kernel_solves_the_hosts_problems():
                                          wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam,
                                          wp.zeros(cap, dtype=wp.float64, device=DEVICE), info], device=DEVICE)
         got, inf = lam.numpy()[:m], info.numpy()
+        # the kernel holding lambda and delta in the thread's own memory: the same check and sweeps
+        # (to the bit on the CPU; on a GPU the compiler may fuse another multiply-add)
+        exact = DEVICE == "cpu"
+        lam_f, info_f = wp.zeros(cap, dtype=wp.float64, device=DEVICE), wp.zeros(3, dtype=wp.float64, device=DEVICE)
+        wp.launch(device_pgs_small_friction_kernel, 1, [
+            arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(pad(row_start), wp.int32), arr(pad(rows), wp.int32),
+            arr(pad(mu)), arr(np.array([m, nc], np.int32), wp.int32), 200, 1e-10, int(pyramid),
+            wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam_f,
+            wp.zeros(cap, dtype=wp.float64, device=DEVICE), info_f], device=DEVICE)
+        np.testing.assert_allclose(lam_f.numpy(), lam.numpy(), rtol=0 if exact else 1e-12, atol=0)
+        assert info_f.numpy()[0] == inf[0] and info_f.numpy()[2] == inf[2]
+        assert info_f.numpy()[1] == pytest.approx(inf[1], rel=0 if exact else 1e-9, abs=0 if exact else 1e-20)
         if trial == 7:
             assert inf[2] == 0.0 and not got.any()
             continue
@@ -256,15 +271,13 @@ def test_the_device_kernel_solves_the_hosts_problems():
         assert inf[2] == 1.0 and int(inf[0]) == its
         np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-15)
         assert inf[1] == pytest.approx(res, rel=1e-6, abs=1e-18)
-        if trial % 2 == 0:  # frictionless: the small kernel's sweeps alone are the same (to the bit on the CPU;
-            # on a GPU the compiler may fuse another multiply-add)
+        if trial % 2 == 0:  # frictionless: the small kernel's sweeps alone are the same
             lam_s, info_s = wp.zeros(cap, dtype=wp.float64, device=DEVICE), wp.zeros(3, dtype=wp.float64, device=DEVICE)
             wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)),
                                                    arr(np.array([m, nc], np.int32), wp.int32), 200, 1e-10, 200,
                                                    wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam_s,
                                                    wp.zeros(cap, dtype=wp.float64, device=DEVICE), info_s],
                       device=DEVICE)
-            exact = DEVICE == "cpu"
             np.testing.assert_allclose(lam_s.numpy(), lam.numpy(), rtol=0 if exact else 1e-12, atol=0)
             assert info_s.numpy()[0] == inf[0] and info_s.numpy()[2] == inf[2]
             assert info_s.numpy()[1] == pytest.approx(inf[1], rel=0 if exact else 1e-9, abs=0 if exact else 1e-20)

@@ -15,7 +15,10 @@ correction, the penetration detection and the guard (one graph a step):
    :mod:`.pgs` on one thread, from the warm start; a frictionless set within :data:`SMALL`
    rows goes to :func:`device_pgs_small_kernel`, which holds lambda and delta in the thread's
    own memory and, as the host does, finishes sweeps that stall by the active-set method
-   (:func:`small_active_set`, the host's :func:`.pgs.active_set` on one thread);
+   (:func:`small_active_set`, the host's :func:`.pgs.active_set` on one thread); a set with
+   friction within :data:`SMALL` rows to :func:`device_pgs_small_friction_kernel`, the same
+   sweeps with lambda and delta in the thread's own memory (a sweep reads and writes them
+   m^2 times: in the device's memory each is a round trip);
 4. dx = dt^2 P^-1 H^T lambda (eq. 2), zeroed on the fixed nodes, from the columns of the rows'
    nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in double precision as
    W is gathered).
@@ -200,6 +203,102 @@ def small_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64)
 
 
 @wp.func
+def small_contact_update(W: wp.array2d(dtype=wp.float64), dv: _vec_small, lv: _vec_small, r: int, rows: int,
+                         mu: wp.float64, pyramid: int):
+    """:func:`.pgs.contact_update` with lambda and delta in the thread's own memory: the same
+    operations in the same order; returns (lambda_n, lambda_t1, lambda_t2, change)."""
+    zero = F64(0.0)
+    dn = dv[r]
+    ln = wp.max(zero, lv[r] - dn / W[r, r])
+    change = W[r, r] * wp.abs(ln - lv[r])
+    l1 = zero
+    l2 = zero
+    if rows == 3:
+        dln = ln - lv[r]
+        t1 = dv[r + 1] + W[r + 1, r] * dln
+        t2 = dv[r + 2] + W[r + 2, r] * dln
+        a11 = W[r + 1, r + 1]
+        a22 = W[r + 2, r + 2]
+        a12 = F64(0.5) * (W[r + 1, r + 2] + W[r + 2, r + 1])
+        det = a11 * a22 - a12 * a12
+        l1 = lv[r + 1]
+        l2 = lv[r + 2]
+        if det > zero:
+            l1 = l1 - (a22 * t1 - a12 * t2) / det
+            l2 = l2 - (a11 * t2 - a12 * t1) / det
+        lim = mu * ln
+        if pyramid != 0:
+            l1 = wp.clamp(l1, -lim, lim)
+            l2 = wp.clamp(l2, -lim, lim)
+        else:
+            lt = wp.sqrt(l1 * l1 + l2 * l2)
+            if lt > lim:
+                s = zero
+                if lt > zero:
+                    s = lim / lt
+                l1 = l1 * s
+                l2 = l2 * s
+        change = wp.max(change, wp.max(a11 * wp.abs(l1 - lv[r + 1]), a22 * wp.abs(l2 - lv[r + 2])))
+    return ln, l1, l2, change
+
+
+@wp.func
+def small_friction_residual(W: wp.array2d(dtype=wp.float64), dv: _vec_small, lv: _vec_small,
+                            row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
+                            mu: wp.array(dtype=wp.float64), pyramid: int, nc: int):
+    """:func:`.pgs.pgs_residual` from ``lv`` with delta ``dv`` (exact)."""
+    res = F64(0.0)
+    for c in range(nc):
+        ln, l1, l2, ch = small_contact_update(W, dv, lv, row_start[c], n_rows[c], mu[c], pyramid)
+        res = wp.max(res, ch)
+    return res
+
+
+@wp.func
+def small_friction_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
+                          row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
+                          mu: wp.array(dtype=wp.float64), lv: _vec_small, m: int, nc: int, max_iterations: int,
+                          tolerance: wp.float64, pyramid: int):
+    """:func:`.pgs.pgs_sweeps` (contacts of one or three rows) with lambda and delta in the
+    thread's own memory: the same operations in the same order; returns (lambda, delta,
+    sweeps, residual)."""
+    zero = F64(0.0)
+    dv = small_delta(W, d0, lv, m)
+    it = int(0)
+    res = F64(-1.0)
+    for sweep in range(max_iterations):
+        change = zero
+        for c in range(nc):
+            r = row_start[c]
+            k = n_rows[c]
+            ln, l1, l2, ch = small_contact_update(W, dv, lv, r, k, mu[c], pyramid)
+            for q in range(k):  # :func:`.pgs.move` of each of the contact's rows, in order
+                j = r + q
+                value = ln
+                if q == 1:
+                    value = l1
+                elif q == 2:
+                    value = l2
+                d = value - lv[j]
+                if d != zero:
+                    for i in range(m):
+                        dv[i] += W[j, i] * d
+                    lv[j] = value
+            change = wp.max(change, ch)
+        it = sweep + 1
+        res = F64(-1.0)
+        if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
+            dv = small_delta(W, d0, lv, m)
+            res = small_friction_residual(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
+            if res <= tolerance:
+                break
+    if res < zero:
+        dv = small_delta(W, d0, lv, m)
+        res = small_friction_residual(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
+    return lv, dv, it, res
+
+
+@wp.func
 def face_substitute(L: wp.array2d(dtype=wp.float64), b: _vec_small, p: int):
     """x with L L^T x = b (L's leading p x p block, lower)."""
     y = _vec_small()
@@ -351,6 +450,42 @@ def device_pgs_small_kernel(
     info[1] = res
 
 
+@wp.kernel
+def device_pgs_small_friction_kernel(
+    W: wp.array2d(dtype=wp.float64),
+    d0: wp.array(dtype=wp.float64),
+    lam0: wp.array(dtype=wp.float64),
+    row_start: wp.array(dtype=wp.int32),
+    n_rows: wp.array(dtype=wp.int32),
+    mu: wp.array(dtype=wp.float64),
+    sizes: wp.array(dtype=wp.int32),
+    max_iterations: int,
+    tolerance: wp.float64,
+    pyramid: int,
+    L: wp.array2d(dtype=wp.float64),
+    lam: wp.array(dtype=wp.float64),
+    delta: wp.array(dtype=wp.float64),
+    info: wp.array(dtype=wp.float64),
+):
+    """:func:`device_pgs_kernel` (any contacts, friction rows included) for at most
+    :data:`SMALL` rows, lambda and delta held in the thread's own memory: the same check, the
+    same sweeps. One thread."""
+    m = sizes[0]
+    nc = sizes[1]
+    if checked_start(W, L, m, lam, info) == 0:
+        return
+    lv = _vec_small()
+    for i in range(m):
+        lv[i] = lam0[i]
+    lv, dv, it, res = small_friction_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, max_iterations, tolerance,
+                                            pyramid)
+    for i in range(m):
+        lam[i] = lv[i]
+        delta[i] = dv[i]
+    info[0] = F64(it)
+    info[1] = res
+
+
 class DeviceLCP:
     """The buffers of the device solve for up to ``rows`` constraint rows (as many contacts),
     kept between steps at fixed addresses (captured graphs stay valid), and the launches.
@@ -414,7 +549,8 @@ class DeviceLCP:
         Returns dx (a (n,) vec3d array kept between steps). ``frictionless``: every row is a
         contact's normal (then, within :data:`SMALL` rows, :func:`device_pgs_small_kernel`
         sweeps in the thread's own memory and finishes by the active-set method after
-        ``first_sweeps``)."""
+        ``first_sweeps``); with friction rows, within :data:`SMALL` rows,
+        :func:`device_pgs_small_friction_kernel` sweeps in the thread's own memory."""
         d = self.device
         dx = self._dx.view(free.shape[0])
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
@@ -423,7 +559,8 @@ class DeviceLCP:
                                                    float(tolerance), int(first_sweeps), self.L, self.lam, self.delta,
                                                    self.info], device=d)
         else:
-            wp.launch(device_pgs_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
+            kernel = device_pgs_small_friction_kernel if self.rows <= SMALL else device_pgs_kernel
+            wp.launch(kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
                                              self.sizes, int(max_iterations), float(tolerance), int(bool(pyramid)),
                                              self.L, self.lam, self.delta, self.info], device=d)
         inner.apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx)

@@ -263,7 +263,8 @@ def test_the_device_kernel_solves_the_hosts_problems():
             wp.zeros(cap, dtype=wp.float64, device=DEVICE), info_f], device=DEVICE)
         np.testing.assert_allclose(lam_f.numpy(), lam.numpy(), rtol=0 if exact else 1e-12, atol=0)
         assert info_f.numpy()[0] == inf[0] and info_f.numpy()[2] == inf[2]
-        assert info_f.numpy()[1] == pytest.approx(inf[1], rel=0 if exact else 1e-9, abs=0 if exact else 1e-20)
+        # (the residual, a difference of nearly equal terms, moves with the rounding on a GPU)
+        assert info_f.numpy()[1] == pytest.approx(inf[1], rel=0 if exact else 1e-6, abs=0 if exact else 1e-18)
         if trial == 7:
             assert inf[2] == 0.0 and not got.any()
             continue

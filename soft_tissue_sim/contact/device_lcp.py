@@ -39,7 +39,7 @@ import warp as wp
 
 from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
-from .pgs import FIRST_SWEEPS, pgs_sweeps
+from .pgs import FIRST_SWEEPS, contact_update, pgs_sweeps
 
 
 @wp.kernel
@@ -203,53 +203,13 @@ def small_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64)
 
 
 @wp.func
-def small_contact_update(W: wp.array2d(dtype=wp.float64), dv: _vec_small, lv: _vec_small, r: int, rows: int,
-                         mu: wp.float64, pyramid: int):
-    """:func:`.pgs.contact_update` with lambda and delta in the thread's own memory: the same
-    operations in the same order; returns (lambda_n, lambda_t1, lambda_t2, change)."""
-    zero = F64(0.0)
-    dn = dv[r]
-    ln = wp.max(zero, lv[r] - dn / W[r, r])
-    change = W[r, r] * wp.abs(ln - lv[r])
-    l1 = zero
-    l2 = zero
-    if rows == 3:
-        dln = ln - lv[r]
-        t1 = dv[r + 1] + W[r + 1, r] * dln
-        t2 = dv[r + 2] + W[r + 2, r] * dln
-        a11 = W[r + 1, r + 1]
-        a22 = W[r + 2, r + 2]
-        a12 = F64(0.5) * (W[r + 1, r + 2] + W[r + 2, r + 1])
-        det = a11 * a22 - a12 * a12
-        l1 = lv[r + 1]
-        l2 = lv[r + 2]
-        if det > zero:
-            l1 = l1 - (a22 * t1 - a12 * t2) / det
-            l2 = l2 - (a11 * t2 - a12 * t1) / det
-        lim = mu * ln
-        if pyramid != 0:
-            l1 = wp.clamp(l1, -lim, lim)
-            l2 = wp.clamp(l2, -lim, lim)
-        else:
-            lt = wp.sqrt(l1 * l1 + l2 * l2)
-            if lt > lim:
-                s = zero
-                if lt > zero:
-                    s = lim / lt
-                l1 = l1 * s
-                l2 = l2 * s
-        change = wp.max(change, wp.max(a11 * wp.abs(l1 - lv[r + 1]), a22 * wp.abs(l2 - lv[r + 2])))
-    return ln, l1, l2, change
-
-
-@wp.func
 def small_friction_residual(W: wp.array2d(dtype=wp.float64), dv: _vec_small, lv: _vec_small,
                             row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
                             mu: wp.array(dtype=wp.float64), pyramid: int, nc: int):
     """:func:`.pgs.pgs_residual` from ``lv`` with delta ``dv`` (exact)."""
     res = F64(0.0)
     for c in range(nc):
-        ln, l1, l2, ch = small_contact_update(W, dv, lv, row_start[c], n_rows[c], mu[c], pyramid)
+        ln, l1, l2, ch = contact_update(W, dv, lv, row_start[c], n_rows[c], mu[c], pyramid)
         res = wp.max(res, ch)
     return res
 
@@ -271,7 +231,7 @@ def small_friction_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp
         for c in range(nc):
             r = row_start[c]
             k = n_rows[c]
-            ln, l1, l2, ch = small_contact_update(W, dv, lv, r, k, mu[c], pyramid)
+            ln, l1, l2, ch = contact_update(W, dv, lv, r, k, mu[c], pyramid)
             for q in range(k):  # :func:`.pgs.move` of each of the contact's rows, in order
                 j = r + q
                 value = ln

@@ -30,6 +30,8 @@ sticking and sliding is itself degenerate.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import warp as wp
 from scipy.linalg.lapack import dpotrf, dpotrs
@@ -42,15 +44,16 @@ FIRST_SWEEPS = 10  # the frictionless LCP's sweeps before the active-set finish 
 @wp.func
 def contact_update(
     W: wp.array2d(dtype=wp.float64),
-    delta: wp.array(dtype=wp.float64),
-    lam: wp.array(dtype=wp.float64),
+    delta: Any,
+    lam: Any,
     r: int,
     rows: int,
     mu: wp.float64,
     pyramid: int,
 ):
     """Projected Gauss-Seidel update of the contact whose normal row is r, from the current
-    lambda and delta = W lambda + d0 (neither written). Returns (lambda_n, lambda_t1,
+    lambda and delta = W lambda + d0 (neither written; float64 arrays, or vectors in the
+    thread's own memory as :mod:`.device_lcp`'s small kernels hold them). Returns (lambda_n, lambda_t1,
     lambda_t2, change), the change being the largest W_rr |new - old| of its rows [m]; for an
     active normal row that is |delta_n|."""
     zero = F64(0.0)

@@ -15,10 +15,9 @@ correction, the penetration detection and the guard (one graph a step):
    :mod:`.pgs` on one thread, from the warm start; a frictionless set within :data:`SMALL`
    rows goes to :func:`device_pgs_small_kernel`, which holds lambda and delta in the thread's
    own memory and, as the host does, finishes sweeps that stall by the active-set method
-   (:func:`small_active_set`, the host's :func:`.pgs.active_set` on one thread); a set with
-   friction within :data:`SMALL` rows to :func:`device_pgs_small_friction_kernel`, the same
-   sweeps with lambda and delta in the thread's own memory (a sweep reads and writes them
-   m^2 times: in the device's memory each is a round trip);
+   (:func:`small_active_set`, the host's :func:`.pgs.active_set` on one thread); with
+   friction, :func:`device_pgs_kernel` also holds them in the thread's memory within
+   :data:`SMALL` rows (a sweep reads and writes them m^2 times);
 4. dx = dt^2 P^-1 H^T lambda (eq. 2), zeroed on the fixed nodes, from the columns of the rows'
    nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in double precision as
    W is gathered).
@@ -132,10 +131,24 @@ def device_pgs_kernel(
 ):
     """The LCP of :func:`.pgs.pgs_kernel` with m = sizes[0] rows and nc = sizes[1] contacts read
     on the device, W checked first (:func:`positive_definite_rows`). info = [sweeps, residual,
-    1 if W was usable else 0]; an unusable W leaves lambda = 0. One thread."""
+    1 if W was usable else 0]; an unusable W leaves lambda = 0. Within :data:`SMALL` rows
+    lambda and delta are held in the thread's own memory (:func:`small_friction_sweeps`, the
+    same sweeps), beyond in the device's. One thread."""
     m = sizes[0]
     nc = sizes[1]
     if checked_start(W, L, m, lam, info) == 0:
+        return
+    if m <= SMALL:
+        lv = _vec_small()
+        for i in range(m):
+            lv[i] = lam0[i]
+        lv, dv, it, res = small_friction_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, max_iterations, tolerance,
+                                                pyramid)
+        for i in range(m):
+            lam[i] = lv[i]
+            delta[i] = dv[i]
+        info[0] = F64(it)
+        info[1] = res
         return
     for i in range(m):
         lam[i] = lam0[i]
@@ -410,42 +423,6 @@ def device_pgs_small_kernel(
     info[1] = res
 
 
-@wp.kernel
-def device_pgs_small_friction_kernel(
-    W: wp.array2d(dtype=wp.float64),
-    d0: wp.array(dtype=wp.float64),
-    lam0: wp.array(dtype=wp.float64),
-    row_start: wp.array(dtype=wp.int32),
-    n_rows: wp.array(dtype=wp.int32),
-    mu: wp.array(dtype=wp.float64),
-    sizes: wp.array(dtype=wp.int32),
-    max_iterations: int,
-    tolerance: wp.float64,
-    pyramid: int,
-    L: wp.array2d(dtype=wp.float64),
-    lam: wp.array(dtype=wp.float64),
-    delta: wp.array(dtype=wp.float64),
-    info: wp.array(dtype=wp.float64),
-):
-    """:func:`device_pgs_kernel` (any contacts, friction rows included) for at most
-    :data:`SMALL` rows, lambda and delta held in the thread's own memory: the same check, the
-    same sweeps. One thread."""
-    m = sizes[0]
-    nc = sizes[1]
-    if checked_start(W, L, m, lam, info) == 0:
-        return
-    lv = _vec_small()
-    for i in range(m):
-        lv[i] = lam0[i]
-    lv, dv, it, res = small_friction_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, max_iterations, tolerance,
-                                            pyramid)
-    for i in range(m):
-        lam[i] = lv[i]
-        delta[i] = dv[i]
-    info[0] = F64(it)
-    info[1] = res
-
-
 class DeviceLCP:
     """The buffers of the device solve for up to ``rows`` constraint rows (as many contacts),
     kept between steps at fixed addresses (captured graphs stay valid), and the launches.
@@ -509,8 +486,7 @@ class DeviceLCP:
         Returns dx (a (n,) vec3d array kept between steps). ``frictionless``: every row is a
         contact's normal (then, within :data:`SMALL` rows, :func:`device_pgs_small_kernel`
         sweeps in the thread's own memory and finishes by the active-set method after
-        ``first_sweeps``); with friction rows, within :data:`SMALL` rows,
-        :func:`device_pgs_small_friction_kernel` sweeps in the thread's own memory."""
+        ``first_sweeps``); otherwise :func:`device_pgs_kernel`."""
         d = self.device
         dx = self._dx.view(free.shape[0])
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
@@ -519,8 +495,7 @@ class DeviceLCP:
                                                    float(tolerance), int(first_sweeps), self.L, self.lam, self.delta,
                                                    self.info], device=d)
         else:
-            kernel = device_pgs_small_friction_kernel if self.rows <= SMALL else device_pgs_kernel
-            wp.launch(kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
+            wp.launch(device_pgs_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
                                              self.sizes, int(max_iterations), float(tolerance), int(bool(pyramid)),
                                              self.L, self.lam, self.delta, self.info], device=d)
         inner.apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx)

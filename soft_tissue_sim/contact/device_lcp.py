@@ -132,7 +132,7 @@ def device_pgs_kernel(
     """The LCP of :func:`.pgs.pgs_kernel` with m = sizes[0] rows and nc = sizes[1] contacts read
     on the device, W checked first (:func:`positive_definite_rows`). info = [sweeps, residual,
     1 if W was usable else 0]; an unusable W leaves lambda = 0. Within :data:`SMALL` rows
-    lambda and delta are held in the thread's own memory (:func:`small_friction_sweeps`, the
+    lambda and delta are held in the thread's own memory (:func:`small_pgs_sweeps`, the
     same sweeps), beyond in the device's. One thread."""
     m = sizes[0]
     nc = sizes[1]
@@ -142,7 +142,7 @@ def device_pgs_kernel(
         lv = _vec_small()
         for i in range(m):
             lv[i] = lam0[i]
-        lv, dv, it, res = small_friction_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, max_iterations, tolerance,
+        lv, dv, it, res = small_pgs_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, max_iterations, tolerance,
                                                 pyramid)
         for i in range(m):
             lam[i] = lv[i]
@@ -216,7 +216,7 @@ def small_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64)
 
 
 @wp.func
-def small_friction_residual(W: wp.array2d(dtype=wp.float64), dv: _vec_small, lv: _vec_small,
+def small_pgs_residual(W: wp.array2d(dtype=wp.float64), dv: _vec_small, lv: _vec_small,
                             row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
                             mu: wp.array(dtype=wp.float64), pyramid: int, nc: int):
     """:func:`.pgs.pgs_residual` from ``lv`` with delta ``dv`` (exact)."""
@@ -228,13 +228,13 @@ def small_friction_residual(W: wp.array2d(dtype=wp.float64), dv: _vec_small, lv:
 
 
 @wp.func
-def small_friction_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
+def small_pgs_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                           row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
                           mu: wp.array(dtype=wp.float64), lv: _vec_small, m: int, nc: int, max_iterations: int,
                           tolerance: wp.float64, pyramid: int):
-    """:func:`.pgs.pgs_sweeps` (contacts of one or three rows) with lambda and delta in the
-    thread's own memory: the same operations in the same order; returns (lambda, delta,
-    sweeps, residual)."""
+    """:func:`.pgs.pgs_sweeps` (contacts of one or three rows: friction or not) with lambda and
+    delta in the thread's own memory: the same operations in the same order; returns (lambda,
+    delta, sweeps, residual)."""
     zero = F64(0.0)
     dv = small_delta(W, d0, lv, m)
     it = int(0)
@@ -262,12 +262,12 @@ def small_friction_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp
         res = F64(-1.0)
         if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
             dv = small_delta(W, d0, lv, m)
-            res = small_friction_residual(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
+            res = small_pgs_residual(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
             if res <= tolerance:
                 break
     if res < zero:
         dv = small_delta(W, d0, lv, m)
-        res = small_friction_residual(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
+        res = small_pgs_residual(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
     return lv, dv, it, res
 
 

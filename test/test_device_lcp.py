@@ -144,8 +144,10 @@ def test_the_small_kernels_active_set_finish_is_the_hosts():
         pad = lambda a: np.concatenate([a, np.zeros(cap - len(a))])  # noqa: E731
         arr = lambda a, t=wp.float64: wp.array(a, dtype=t, device=DEVICE)  # noqa: E731
         lam, info = wp.zeros(cap, dtype=wp.float64, device=DEVICE), wp.zeros(3, dtype=wp.float64, device=DEVICE)
-        wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(np.array([m, m], np.int32),
-                                               wp.int32), 200, tol, FIRST_SWEEPS,
+        one = np.arange(m, dtype=np.int32)  # each row a contact
+        wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(pad(one), wp.int32),
+                                               arr(pad(np.ones(m, np.int32)), wp.int32), arr(np.zeros(cap)),
+                                               arr(np.array([m, m], np.int32), wp.int32), 200, tol, FIRST_SWEEPS,
                                                wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam,
                                                wp.zeros(cap, dtype=wp.float64, device=DEVICE), info], device=DEVICE)
         got, inf = lam.numpy()[:m], info.numpy()
@@ -263,7 +265,8 @@ def test_the_device_kernel_solves_the_hosts_problems():
         assert inf[1] == pytest.approx(res, rel=1e-6, abs=1e-18)
         if trial % 2 == 0:  # frictionless: the small kernel's sweeps alone are the same
             lam_s, info_s = wp.zeros(cap, dtype=wp.float64, device=DEVICE), wp.zeros(3, dtype=wp.float64, device=DEVICE)
-            wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)),
+            wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(pad(row_start), wp.int32),
+                                                   arr(pad(rows), wp.int32), arr(pad(mu)),
                                                    arr(np.array([m, nc], np.int32), wp.int32), 200, 1e-10, 200,
                                                    wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam_s,
                                                    wp.zeros(cap, dtype=wp.float64, device=DEVICE), info_s],

@@ -170,52 +170,6 @@ def small_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
 
 
 @wp.func
-def small_residual(W: wp.array2d(dtype=wp.float64), lv: _vec_small, dv: _vec_small, m: int):
-    """The largest change a (Jacobi) sweep would make from ``lv`` with delta ``dv`` (exact), for
-    frictionless rows (:func:`.pgs.pgs_residual`)."""
-    zero = F64(0.0)
-    res = zero
-    for r in range(m):
-        wrr = W[r, r]
-        res = wp.max(res, wrr * wp.abs(wp.max(zero, lv[r] - dv[r] / wrr) - lv[r]))
-    return res
-
-
-@wp.func
-def small_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lv: _vec_small, m: int,
-                 max_iterations: int, tolerance: wp.float64):
-    """Up to ``max_iterations`` frictionless sweeps from ``lv`` (:func:`.pgs.pgs_sweeps`, the same
-    operations in the same order), lambda and delta in the thread's own memory; returns
-    (lambda, delta, sweeps, residual)."""
-    zero = F64(0.0)
-    dv = small_delta(W, d0, lv, m)
-    it = int(0)
-    res = F64(-1.0)
-    for sweep in range(max_iterations):
-        change = zero
-        for r in range(m):
-            wrr = W[r, r]
-            ln = wp.max(zero, lv[r] - dv[r] / wrr)
-            change = wp.max(change, wrr * wp.abs(ln - lv[r]))
-            dl = ln - lv[r]
-            if dl != zero:
-                for i in range(m):
-                    dv[i] += W[r, i] * dl
-                lv[r] = ln
-        it = sweep + 1
-        res = F64(-1.0)
-        if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-            dv = small_delta(W, d0, lv, m)
-            res = small_residual(W, lv, dv, m)
-            if res <= tolerance:
-                break
-    if res < zero:
-        dv = small_delta(W, d0, lv, m)
-        res = small_residual(W, lv, dv, m)
-    return lv, dv, it, res
-
-
-@wp.func
 def small_pgs_residual(W: wp.array2d(dtype=wp.float64), dv: _vec_small, lv: _vec_small,
                             row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
                             mu: wp.array(dtype=wp.float64), pyramid: int, nc: int):
@@ -380,6 +334,9 @@ def device_pgs_small_kernel(
     W: wp.array2d(dtype=wp.float64),
     d0: wp.array(dtype=wp.float64),
     lam0: wp.array(dtype=wp.float64),
+    row_start: wp.array(dtype=wp.int32),
+    n_rows: wp.array(dtype=wp.int32),
+    mu: wp.array(dtype=wp.float64),
     sizes: wp.array(dtype=wp.int32),
     max_iterations: int,
     tolerance: wp.float64,
@@ -397,24 +354,26 @@ def device_pgs_small_kernel(
     better of the two kept, then sweeps for the rest. ``first_sweeps`` >= ``max_iterations``:
     sweeps only (:func:`device_pgs_kernel`'s lambda and sweeps). One thread."""
     m = sizes[0]
+    nc = sizes[1]
     if checked_start(W, L, m, lam, info) == 0:
         return
     lv = _vec_small()
     for i in range(m):
         lv[i] = lam0[i]
     first = wp.min(first_sweeps, max_iterations)
-    lv, dv, it, res = small_sweeps(W, d0, lv, m, first, tolerance)
+    lv, dv, it, res = small_pgs_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, first, tolerance, 0)
     if res > tolerance and first < max_iterations and it < max_iterations:
         la, steps = small_active_set(W, d0, L, lv, m, tolerance, max_iterations - it)
         it += steps
         da = small_delta(W, d0, la, m)
-        ra = small_residual(W, la, da, m)
+        ra = small_pgs_residual(W, da, la, row_start, n_rows, mu, 0, nc)
         if ra < res:
             lv = la
             dv = da
             res = ra
         if res > tolerance and it < max_iterations:
-            lv, dv, more, res = small_sweeps(W, d0, lv, m, max_iterations - it, tolerance)
+            lv, dv, more, res = small_pgs_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, max_iterations - it,
+                                                 tolerance, 0)
             it += more
     for i in range(m):
         lam[i] = lv[i]
@@ -491,7 +450,8 @@ class DeviceLCP:
         dx = self._dx.view(free.shape[0])
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
         if frictionless and self.rows <= SMALL:
-            wp.launch(device_pgs_small_kernel, 1, [self.W, self.d0, self.lam0, self.sizes, int(max_iterations),
+            wp.launch(device_pgs_small_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
+                                                   self.sizes, int(max_iterations),
                                                    float(tolerance), int(first_sweeps), self.L, self.lam, self.delta,
                                                    self.info], device=d)
         else:

@@ -92,6 +92,7 @@ from . import parameters
 from .input_thread import InputThread, ThreadServedGroup
 from .physics_loop import PhysicsLoop
 from .surface_marker import SurfaceMarkerEncoder, surface_template
+from .wrench_message import WrenchEncoder
 
 REJECT_REASONS = ("non_finite", "bad_quaternion", "unknown_frame", "stale", "outside_workspace", "too_fast",
                   "invalid", "error")
@@ -262,9 +263,7 @@ class SimNode(Node):
         self.wrenches_published = 0
         self._applied = {}  # name -> (position, quaternion) last applied
         self._used_stamp = {name: 0 for name in self.names}
-        self._wrench_msgs = {name: WrenchStamped() for name in self.names}
-        for m in self._wrench_msgs.values():
-            m.header.frame_id = self.frame_id
+        self._wrench_encoder = WrenchEncoder(self.frame_id)
         # display
         self._snapshot_wanted = False
         self._snapshot = None
@@ -464,15 +463,11 @@ class SimNode(Node):
                 self.get_logger().warning(f"no wrench for '{name}': {exc}", throttle_duration_sec=1.0)
                 continue
             self.last_wrench[name] = (f, t)
-            msg = self._wrench_msgs[name]
             stamp = self._used_stamp[name]
             if not stamp:
                 now = self._now_ns() if now is None else now
                 stamp = now
-            msg.header.stamp = _time_msg(stamp)
-            msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = float(f[0]), float(f[1]), float(f[2])
-            msg.wrench.torque.x, msg.wrench.torque.y, msg.wrench.torque.z = float(t[0]), float(t[1]), float(t[2])
-            pub.publish(msg)
+            pub.publish(self._wrench_encoder.encode(f, t, stamp))
             self.wrenches_published += 1
 
     def publish_clock(self):

@@ -5,7 +5,8 @@ Threads and callback groups: the physics steps on its own thread (:mod:`.physics
 simulation: requests (services, a snapshot for display) run on it between two steps. Every
 step uses the newest accepted pose (and twist) of each instrument, kept per instrument
 (keep-last 1: a newer pose replaces one no step has used yet, counted as superseded), and
-publishes every instrument's wrench. Instrument input, services, display and diagnostics are
+publishes every instrument's wrench (pre-serialized, :mod:`.wrench_message`). Instrument input
+is taken by a thread of its own (:mod:`.input_thread`); services, display and diagnostics are
 executor callbacks in their own callback groups (``main`` spins a MultiThreadedExecutor); the
 display asks the physics thread for a snapshot (positions, mesh, instrument geometry) at
 ``display_rate_hz`` and builds and publishes from it, so it never holds up a step. The

@@ -20,14 +20,14 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rclpy.parameter import Parameter
-from rclpy.serialization import deserialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from soft_tissue_sim.contact.records import ContactResponse
 from soft_tissue_sim.paths import SCENES_DIR
 from soft_tissue_sim.ros.client import RobotClient, Spinner, wait_for
-from soft_tissue_sim.ros.node import SimNode
+from soft_tissue_sim.ros.node import InputRejected, SimNode, read_stamped
 from soft_tissue_sim.ros.scripted_instrument import Script, ScriptedInstrument, path, sample, script_over_surface
 from soft_tissue_sim.ros.surface_marker import SurfaceMarkerEncoder, surface_template
 from soft_tissue_sim.ros.wrench_message import WrenchEncoder
@@ -204,6 +204,31 @@ def test_pre_serialized_wrench_reads_back_as_the_wrench():
             f, t = m.wrench.force, m.wrench.torque
             assert (f.x, f.y, f.z) == tuple(float(c) for c in force)
             assert (t.x, t.y, t.z) == tuple(float(c) for c in torque)
+
+
+def test_instrument_messages_are_read_from_their_serialized_bytes():
+    """read_stamped gives a PoseStamped's and a TwistStamped's frame, stamp and values as the
+    message has them, for frame ids of every length modulo 8 (the doubles' alignment); bytes
+    that are not such a message are rejected with the reason "error"."""
+    for k in range(10):
+        frame = "f" * k
+        p = PoseStamped()
+        p.header.frame_id, p.header.stamp.sec, p.header.stamp.nanosec = frame, 1_700_000_000 + k, 999_999_999 - k
+        p.pose.position.x, p.pose.position.y, p.pose.position.z = 0.1 * k, -2.5, float("nan")
+        p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w = 0.0, 0.6, 0.0, 0.8
+        got = read_stamped(serialize_message(p), PoseStamped)
+        assert got[:2] == (frame, (1_700_000_000 + k) * 1_000_000_000 + 999_999_999 - k)
+        np.testing.assert_array_equal(got[2], [0.1 * k, -2.5, float("nan"), 0.0, 0.6, 0.0, 0.8])
+        t = TwistStamped()
+        t.header.frame_id = frame
+        t.twist.linear.x, t.twist.angular.z = 1e-3 * k, -4.0
+        got = read_stamped(serialize_message(t), TwistStamped)
+        assert got[:2] == (frame, 0) and got[2] == (1e-3 * k, 0.0, 0.0, 0.0, 0.0, -4.0)
+    raw = serialize_message(PoseStamped())
+    for bad in (raw[:20], raw[:12] + b"\xff\xff\x00\x00" + raw[16:]):
+        with pytest.raises(InputRejected) as err:
+            read_stamped(bad, PoseStamped)
+        assert err.value.reason == "error"
 
 
 # --------------------------------------------------------------------------- node basics

@@ -66,6 +66,7 @@ ROS_AUTOMATIC_DISCOVERY_RANGE: real users discover across machines.
 from __future__ import annotations
 
 import math
+import struct
 import sys
 import threading
 import time
@@ -84,6 +85,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker, MarkerArray
@@ -113,15 +115,46 @@ class InputRejected(ValueError):
         self.reason = reason
 
 
-def check_header(header, frame_id: str, now_ns: int, timeout_s: float) -> None:
+_CDR_LE = b"\x00\x01"  # encapsulation: plain CDR, little endian
+_HEAD = struct.Struct("<iII")  # header.stamp.sec, .nanosec, the frame id's length (with its NUL)
+_DOUBLES = {6: struct.Struct("<6d"), 7: struct.Struct("<7d")}
+
+
+def read_stamped(raw: bytes, msg_type) -> tuple[str, int, tuple]:
+    """(frame id, stamp [ns], the float64 fields) of a serialized PoseStamped (7: position,
+    orientation xyzw) or TwistStamped (6: linear, angular): a std_msgs/Header and then only
+    float64. Read from the CDR bytes as they came (little endian; other encodings through
+    ``deserialize_message``): taking a message as a Python object costs tens of microseconds,
+    at kHz rates on the thread the physics needs. InputRejected ("error") for bytes that are
+    not such a message."""
+    n = 7 if msg_type is PoseStamped else 6
+    try:
+        if raw[:2] != _CDR_LE:
+            m = deserialize_message(raw, msg_type)
+            v = ((m.pose.position.x, m.pose.position.y, m.pose.position.z, m.pose.orientation.x,
+                  m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w) if n == 7 else
+                 (m.twist.linear.x, m.twist.linear.y, m.twist.linear.z, m.twist.angular.x, m.twist.angular.y,
+                  m.twist.angular.z))
+            return m.header.frame_id, _stamp_ns(m.header), v
+        sec, nsec, length = _HEAD.unpack_from(raw, 4)
+        end = 16 + length
+        if length < 1 or raw[end - 1] != 0:
+            raise ValueError("frame id not terminated")
+        frame = raw[16:end - 1].decode()
+        at = end + (-(end - 4)) % 8  # float64 aligned to 8 from the encapsulation's end
+        return frame, sec * 1_000_000_000 + nsec, _DOUBLES[n].unpack_from(raw, at)
+    except Exception as exc:  # noqa: BLE001 - too short, bad string...: not this message type
+        raise InputRejected("error", f"unreadable {msg_type.__name__}: {type(exc).__name__}: {exc}") from None
+
+
+def check_header(frame: str, stamp_ns: int, frame_id: str, now_ns: int, timeout_s: float) -> None:
     """Raise InputRejected when a header's frame is foreign or its stamp too far from ``now_ns``.
 
     An empty frame_id means the node's frame. A zero stamp means "now". ``now_ns == 0`` (a
     simulated clock that has not started) or ``timeout_s <= 0`` turns the age check off.
     """
-    if header.frame_id not in ("", frame_id):
-        raise InputRejected("unknown_frame", f"frame '{header.frame_id}' is not '{frame_id}'")
-    stamp_ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    if frame not in ("", frame_id):
+        raise InputRejected("unknown_frame", f"frame '{frame}' is not '{frame_id}'")
     if stamp_ns == 0 or now_ns == 0 or not timeout_s > 0:
         return
     age = (now_ns - stamp_ns) * 1e-9
@@ -131,16 +164,16 @@ def check_header(header, frame_id: str, now_ns: int, timeout_s: float) -> None:
         raise InputRejected("stale", f"stamp is {-age:.3f} s in the future (pose_timeout_s {timeout_s:g})")
 
 
-def check_pose(msg: PoseStamped, frame_id: str, now_ns: int, timeout_s: float, quaternion_tolerance: float = 0.1,
+def check_pose(raw: bytes, frame_id: str, now_ns: int, timeout_s: float, quaternion_tolerance: float = 0.1,
                workspace=None):
-    """(position, unit quaternion xyzw) of a PoseStamped, or InputRejected naming what is wrong.
-    ``workspace``: (centre, radius) of the sphere the position must lie in, or None.
-    Plain floats until the end: this runs for every message, up to kHz rates."""
-    p, q = msg.pose.position, msg.pose.orientation
-    pos, quat = (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)
-    if not all(map(math.isfinite, pos + quat)):
+    """(position, unit quaternion xyzw, stamp [ns]) of a serialized PoseStamped, or InputRejected
+    naming what is wrong. ``workspace``: (centre, radius) of the sphere the position must lie
+    in, or None. Plain floats until the end: this runs for every message, up to kHz rates."""
+    frame, stamp_ns, v = read_stamped(raw, PoseStamped)
+    pos, quat = v[:3], v[3:]
+    if not all(map(math.isfinite, v)):
         raise InputRejected("non_finite", f"NaN or inf in pose: position {list(pos)}, orientation {list(quat)}")
-    check_header(msg.header, frame_id, now_ns, timeout_s)
+    check_header(frame, stamp_ns, frame_id, now_ns, timeout_s)
     if workspace is not None:
         dist = math.dist(pos, workspace[0])
         if not dist <= workspace[1]:
@@ -152,17 +185,17 @@ def check_pose(msg: PoseStamped, frame_id: str, now_ns: int, timeout_s: float, q
     if abs(norm - 1.0) > quaternion_tolerance:
         raise InputRejected("bad_quaternion", f"orientation quaternion norm {norm:.4g} is not ~1 "
                                               f"(tolerance {quaternion_tolerance:g})")
-    return np.array(pos), np.array(quat) / norm
+    return np.array(pos), np.array(quat) / norm, stamp_ns
 
 
-def check_twist(msg: TwistStamped, frame_id: str, now_ns: int, timeout_s: float,
+def check_twist(raw: bytes, frame_id: str, now_ns: int, timeout_s: float,
                 max_speed: float = math.inf, max_angular_speed: float = math.inf):
-    """(linear, angular) velocity of a TwistStamped (world frame), or InputRejected."""
-    tl, ta = msg.twist.linear, msg.twist.angular
-    lin, ang = (tl.x, tl.y, tl.z), (ta.x, ta.y, ta.z)
-    if not all(map(math.isfinite, lin + ang)):
+    """(linear, angular) velocity of a serialized TwistStamped (world frame), or InputRejected."""
+    frame, stamp_ns, v = read_stamped(raw, TwistStamped)
+    lin, ang = v[:3], v[3:]
+    if not all(map(math.isfinite, v)):
         raise InputRejected("non_finite", f"NaN or inf in twist: linear {list(lin)}, angular {list(ang)}")
-    check_header(msg.header, frame_id, now_ns, timeout_s)
+    check_header(frame, stamp_ns, frame_id, now_ns, timeout_s)
     v, w = math.hypot(*lin), math.hypot(*ang)
     if v > max_speed:
         raise InputRejected("too_fast", f"linear speed {v:.4g} m/s is over max_speed {max_speed:g} m/s")
@@ -285,12 +318,13 @@ class SimNode(Node):
         inputs = []
         for name in self.names:
             # the twist first: when both wait, the input thread takes them in this order
+            # taken as serialized bytes (read_stamped)
             inputs.append(self.create_subscription(TwistStamped, f"~/instruments/{name}/twist",
                                                    lambda msg, n=name: self._on_twist(n, msg), INPUT_QOS,
-                                                   callback_group=self._input_group))
+                                                   callback_group=self._input_group, raw=True))
             inputs.append(self.create_subscription(PoseStamped, f"~/instruments/{name}/pose",
                                                    lambda msg, n=name: self._on_pose(n, msg), INPUT_QOS,
-                                                   callback_group=self._input_group))
+                                                   callback_group=self._input_group, raw=True))
             self.wrench_pubs[name] = self.create_publisher(WrenchStamped, f"~/instruments/{name}/wrench", 100)
         self.input_thread = InputThread(self.context, inputs, name=f"{node_name} input",
                                         on_error=lambda t: self.get_logger().error(t, throttle_duration_sec=1.0))
@@ -368,16 +402,17 @@ class SimNode(Node):
         s = self._settings
         return tuple(float(c) for c in s["workspace_center"]), float(s["workspace_radius"])
 
-    def _on_pose(self, name, msg: PoseStamped):
+    def _on_pose(self, name, msg: bytes):
         s = self._settings
         try:
-            pos, quat = check_pose(msg, self.frame_id, self._now_ns(), s["pose_timeout_s"], s["quaternion_tolerance"],
+            pos, quat, stamp_ns = check_pose(msg, self.frame_id, self._now_ns(), s["pose_timeout_s"],
+                                             s["quaternion_tolerance"],
                                    self._workspace())
         except InputRejected as exc:
             return self._reject("pose", name, exc.reason, str(exc))
         except Exception as exc:  # noqa: BLE001
             return self._reject("pose", name, "error", f"{type(exc).__name__}: {exc}")
-        entry = (pos, quat, _stamp_ns(msg.header), time.monotonic())
+        entry = (pos, quat, stamp_ns, time.monotonic())
         with self._in_lock:
             slot = self._inputs[name]
             if slot.pose is not None and slot.pose_seq != slot.used_pose_seq:
@@ -386,7 +421,7 @@ class SimNode(Node):
             slot.pose_seq += 1
             self.accepted["pose"] += 1
 
-    def _on_twist(self, name, msg: TwistStamped):
+    def _on_twist(self, name, msg: bytes):
         s = self._settings
         try:
             lin, ang = check_twist(msg, self.frame_id, self._now_ns(), s["pose_timeout_s"], s["max_speed"],

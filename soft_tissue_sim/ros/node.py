@@ -6,8 +6,9 @@ simulation: requests (services, a snapshot for display) run on it between two st
 step uses the newest accepted pose (and twist) of each instrument, kept per instrument
 (keep-last 1: a newer pose replaces one no step has used yet, counted as superseded), and
 publishes every instrument's wrench (pre-serialized, :mod:`.wrench_message`). Instrument input
-is taken by a thread of its own (:mod:`.input_thread`); services, display and diagnostics are
-executor callbacks in their own callback groups (``main`` spins a MultiThreadedExecutor); the
+is taken by a thread of its own (:mod:`.input_thread`) as serialized bytes
+(:func:`read_stamped`); services, display and diagnostics are executor callbacks in their own
+callback groups (``main`` spins a MultiThreadedExecutor); the
 display asks the physics thread for a snapshot (positions, mesh, instrument geometry) at
 ``display_rate_hz`` and builds and publishes from it, so it never holds up a step. The
 surface goes out pre-serialized (:mod:`.surface_marker`).

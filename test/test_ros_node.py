@@ -637,15 +637,15 @@ def test_scripted_trajectory_is_continuous_presses_sweeps_and_retracts():
     s = script_over_surface(pts)
     assert s.start == pytest.approx((0.0165, -0.005, 0.01)) and s.end == pytest.approx((0.0385, -0.005, 0.01))
     assert script_over_surface(pts, clearance=0.004).start[2] == pytest.approx(0.014)
-    # on a dome the sweep starts and ends on the top there (the highest of the nearest points:
-    # within a grid spacing's rise), not at the dome's summit
+    # on a dome z = 1 - x^2 (grid spacing 0.1) the sweep starts and ends on the top there: the
+    # highest of the 8 nearest points, one grid step up the slope (x = -0.6 and -0.2), plus the
+    # clearance; not at the summit (1.01)
     g = np.linspace(-1.0, 1.0, 21)
     x, y = (a.ravel() for a in np.meshgrid(g, 0.5 * g))
     dome = np.column_stack([x, y, 1.0 - x * x])
     d = script_over_surface(dome, clearance=0.01)
-    assert d.start[0] == pytest.approx(-0.7) and d.end[0] == pytest.approx(-0.3)
-    assert 1.0 - 0.7 ** 2 + 0.01 <= d.start[2] <= 1.0 - 0.6 ** 2 + 0.01 + 1e-12
-    assert 1.0 - 0.3 ** 2 + 0.01 <= d.end[2] <= 1.0 - 0.2 ** 2 + 0.01 + 1e-12
+    assert d.start == pytest.approx((-0.7, -0.025, 1.0 - 0.6 ** 2 + 0.01))
+    assert d.end == pytest.approx((-0.3, -0.025, 1.0 - 0.2 ** 2 + 0.01))
 
 
 def test_scripted_instrument_drives_the_node_on_simulation_time(ros):

@@ -38,7 +38,7 @@ import warp as wp
 
 from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
-from .pgs import FIRST_SWEEPS, contact_update, pgs_sweeps
+from .pgs import FIRST_SWEEPS, contact_update, jacobi_change, pgs_sweeps
 
 
 @wp.kernel
@@ -170,18 +170,6 @@ def small_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
 
 
 @wp.func
-def small_pgs_residual(W: wp.array2d(dtype=wp.float64), dv: _vec_small, lv: _vec_small,
-                            row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
-                            mu: wp.array(dtype=wp.float64), pyramid: int, nc: int):
-    """:func:`.pgs.pgs_residual` from ``lv`` with delta ``dv`` (exact)."""
-    res = F64(0.0)
-    for c in range(nc):
-        ln, l1, l2, ch = contact_update(W, dv, lv, row_start[c], n_rows[c], mu[c], pyramid)
-        res = wp.max(res, ch)
-    return res
-
-
-@wp.func
 def small_pgs_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                           row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
                           mu: wp.array(dtype=wp.float64), lv: _vec_small, m: int, nc: int, max_iterations: int,
@@ -216,12 +204,12 @@ def small_pgs_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.floa
         res = F64(-1.0)
         if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
             dv = small_delta(W, d0, lv, m)
-            res = small_pgs_residual(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
+            res = jacobi_change(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
             if res <= tolerance:
                 break
     if res < zero:
         dv = small_delta(W, d0, lv, m)
-        res = small_pgs_residual(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
+        res = jacobi_change(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
     return lv, dv, it, res
 
 
@@ -366,7 +354,7 @@ def device_pgs_small_kernel(
         la, steps = small_active_set(W, d0, L, lv, m, tolerance, max_iterations - it)
         it += steps
         da = small_delta(W, d0, la, m)
-        ra = small_pgs_residual(W, da, la, row_start, n_rows, mu, 0, nc)
+        ra = jacobi_change(W, da, la, row_start, n_rows, mu, 0, nc)
         if ra < res:
             lv = la
             dv = da

@@ -115,6 +115,26 @@ def move(W: wp.array2d(dtype=wp.float64), delta: wp.array(dtype=wp.float64), lam
 
 
 @wp.func
+def jacobi_change(
+    W: wp.array2d(dtype=wp.float64),
+    delta: Any,
+    lam: Any,
+    row_start: wp.array(dtype=wp.int32),
+    n_rows: wp.array(dtype=wp.int32),
+    mu: wp.array(dtype=wp.float64),
+    pyramid: int,
+    nc: int,
+):
+    """The largest change of :func:`contact_update` over the nc contacts from lambda and delta
+    as they are (arrays, or the thread's vectors), none applied [m]."""
+    res = F64(0.0)
+    for c in range(nc):
+        ln, l1, l2, ch = contact_update(W, delta, lam, row_start[c], n_rows[c], mu[c], pyramid)
+        res = wp.max(res, ch)
+    return res
+
+
+@wp.func
 def pgs_residual(
     W: wp.array2d(dtype=wp.float64),
     d0: wp.array(dtype=wp.float64),
@@ -130,11 +150,7 @@ def pgs_residual(
     """Largest change a (Jacobi) sweep would make: 0 exactly at a solution of the LCP [m].
     delta is first summed afresh from lambda."""
     exact_delta(W, d0, lam, delta, m)
-    res = F64(0.0)
-    for c in range(nc):
-        ln, l1, l2, ch = contact_update(W, delta, lam, row_start[c], n_rows[c], mu[c], pyramid)
-        res = wp.max(res, ch)
-    return res
+    return jacobi_change(W, delta, lam, row_start, n_rows, mu, pyramid, nc)
 
 
 @wp.func

@@ -95,7 +95,7 @@ from ..scene import load_scene
 from . import parameters
 from .input_thread import InputThread, ThreadServedGroup
 from .physics_loop import PhysicsLoop
-from .surface_marker import SurfaceMarkerEncoder, surface_template
+from .surface_marker import CDR_LE, SurfaceMarkerEncoder, surface_template
 from .wrench_message import WrenchEncoder
 
 REJECT_REASONS = ("non_finite", "bad_quaternion", "unknown_frame", "stale", "outside_workspace", "too_fast",
@@ -116,7 +116,6 @@ class InputRejected(ValueError):
         self.reason = reason
 
 
-_CDR_LE = b"\x00\x01"  # encapsulation: plain CDR, little endian
 _HEAD = struct.Struct("<iII")  # header.stamp.sec, .nanosec, the frame id's length (with its NUL)
 _DOUBLES = {6: struct.Struct("<6d"), 7: struct.Struct("<7d")}
 
@@ -130,7 +129,7 @@ def read_stamped(raw: bytes, msg_type) -> tuple[str, int, tuple]:
     not such a message."""
     n = 7 if msg_type is PoseStamped else 6
     try:
-        if raw[:2] != _CDR_LE:
+        if raw[:2] != CDR_LE:
             m = deserialize_message(raw, msg_type)
             v = ((m.pose.position.x, m.pose.position.y, m.pose.position.z, m.pose.orientation.x,
                   m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w) if n == 7 else

@@ -23,7 +23,7 @@ from rclpy.serialization import serialize_message
 from visualization_msgs.msg import Marker
 
 _SENTINEL = (1.2345678901234567e-300, -7.654321098765432e-299, 3.1415926535897931e-297)
-_CDR_LE = b"\x00\x01"  # encapsulation: plain CDR, little endian
+CDR_LE = b"\x00\x01"  # encapsulation: plain CDR, little endian (the serialized messages of the node)
 
 
 def surface_template(frame_id: str) -> Marker:
@@ -47,7 +47,7 @@ class SurfaceMarkerEncoder:
         m.header.stamp.sec, m.header.stamp.nanosec = 0, 0
         m.points = [Point(x=_SENTINEL[0], y=_SENTINEL[1], z=_SENTINEL[2])]
         raw = serialize_message(m)
-        if raw[:2] != _CDR_LE:
+        if raw[:2] != CDR_LE:
             raise RuntimeError(f"unexpected CDR encapsulation {raw[:4]!r}")
         data = np.array(_SENTINEL, dtype="<f8").tobytes()
         at = raw.find(data)

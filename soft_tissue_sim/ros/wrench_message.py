@@ -18,9 +18,10 @@ import struct
 from geometry_msgs.msg import WrenchStamped
 from rclpy.serialization import serialize_message
 
+from .surface_marker import CDR_LE
+
 _SENTINEL = (1.2345678901234567e-300, -7.654321098765432e-299, 3.1415926535897931e-297,
              2.718281828459045e-296, -1.4142135623730951e-295, 1.7320508075688772e-294)
-_CDR_LE = b"\x00\x01"  # encapsulation: plain CDR, little endian
 _SIX = struct.Struct("<6d")
 _STAMP = struct.Struct("<iI")
 
@@ -34,7 +35,7 @@ class WrenchEncoder:
         f, t = m.wrench.force, m.wrench.torque
         f.x, f.y, f.z, t.x, t.y, t.z = _SENTINEL
         raw = serialize_message(m)
-        if raw[:2] != _CDR_LE:
+        if raw[:2] != CDR_LE:
             raise RuntimeError(f"unexpected CDR encapsulation {raw[:4]!r}")
         data = _SIX.pack(*_SENTINEL)
         at = raw.find(data)

@@ -13,7 +13,7 @@ import pytest
 import warp as wp
 
 from soft_tissue_sim import load_scene
-from soft_tissue_sim.contact.device_lcp import device_pgs_kernel, device_pgs_small_kernel
+from soft_tissue_sim.contact.device_lcp import SMALL, device_pgs_kernel
 from soft_tissue_sim.contact.pgs import FIRST_SWEEPS, PGS
 from soft_tissue_sim.dense_inverse import DenseInverse
 from soft_tissue_sim.material import ParameterError
@@ -36,6 +36,25 @@ def _run(cfg, steps=40):
     with load_scene(cfg) as sim:
         stats = [sim.step().extra for _ in range(steps)]
         return sim.positions(), sim.velocities(), sim.contact.wrench("floor"), stats
+
+
+def _device_pgs(W, d0, lam0, row_start, rows, mu, cap, tol, pyramid=False, first=FIRST_SWEEPS, max_iterations=200,
+                device=None):
+    """device_pgs_kernel on one LCP padded to ``cap`` rows (sizes read on the device): (lambda,
+    info = [sweeps, residual, W usable], delta)."""
+    d = device or DEVICE
+    m, nc = len(d0), len(row_start)
+    Wd = np.zeros((cap, cap))
+    Wd[:m, :m] = W
+    pad = lambda a: np.concatenate([a, np.zeros(cap - len(a), np.asarray(a).dtype)])  # noqa: E731
+    arr = lambda a, t=wp.float64: wp.array(a, dtype=t, device=d)  # noqa: E731
+    lam, delta, info = (wp.zeros(cap, dtype=wp.float64, device=d), wp.zeros(cap, dtype=wp.float64, device=d),
+                        wp.zeros(3, dtype=wp.float64, device=d))
+    wp.launch_tiled(device_pgs_kernel, dim=[1], inputs=[
+        arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(pad(row_start), wp.int32), arr(pad(rows), wp.int32), arr(pad(mu)),
+        arr(np.array([m, nc], np.int32), wp.int32), max_iterations, tol, int(pyramid), first,
+        wp.zeros((cap, cap), dtype=wp.float64, device=d), lam, delta, info], block_dim=SMALL, device=d)
+    return lam.numpy()[:m], info.numpy(), delta.numpy()[:m]
 
 
 @pytest.mark.parametrize("graph", [False, True])
@@ -123,8 +142,8 @@ def test_sweeps_that_end_above_the_tolerance_are_finished_on_the_device_as_on_th
     assert np.abs(runs[False][0] - host[0]).max() > 0.0 or DEVICE != "cpu"
 
 
-def test_the_small_kernels_active_set_finish_is_the_hosts():
-    """device_pgs_small_kernel with the active-set finish against the host's PGS (sweeps, then
+def test_the_device_kernels_active_set_finish_is_the_hosts():
+    """device_pgs_kernel with the active-set finish against the host's PGS (sweeps, then
     :func:`~soft_tissue_sim.contact.pgs.active_set`) on random frictionless LCPs up to 32 rows,
     W of low rank plus a small multiple of I (the nearly repeated rows that stall the sweeps):
     the same sweeps and face solves, and lambda to the face solves' rounding."""
@@ -137,20 +156,9 @@ def test_the_small_kernels_active_set_finish_is_the_hosts():
         W = B @ B.T / m + 10.0 ** rng.uniform(-9, -2) * np.eye(m)
         d0 = rng.standard_normal(m) * 1e-3
         lam0 = np.abs(rng.standard_normal(m)) * 1e-4 * (rng.random(m) < 0.5)
-        ref, its, res = pgs.solve(W, d0, np.arange(m, dtype=np.int32), np.ones(m, np.int32), np.zeros(m), 200, tol,
-                                  False, lam0)
-        Wd = np.zeros((cap, cap))
-        Wd[:m, :m] = W
-        pad = lambda a: np.concatenate([a, np.zeros(cap - len(a))])  # noqa: E731
-        arr = lambda a, t=wp.float64: wp.array(a, dtype=t, device=DEVICE)  # noqa: E731
-        lam, info = wp.zeros(cap, dtype=wp.float64, device=DEVICE), wp.zeros(3, dtype=wp.float64, device=DEVICE)
         one = np.arange(m, dtype=np.int32)  # each row a contact
-        wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(pad(one), wp.int32),
-                                               arr(pad(np.ones(m, np.int32)), wp.int32), arr(np.zeros(cap)),
-                                               arr(np.array([m, m], np.int32), wp.int32), 200, tol, FIRST_SWEEPS,
-                                               wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam,
-                                               wp.zeros(cap, dtype=wp.float64, device=DEVICE), info], device=DEVICE)
-        got, inf = lam.numpy()[:m], info.numpy()
+        ref, its, res = pgs.solve(W, d0, one, np.ones(m, np.int32), np.zeros(m), 200, tol, False, lam0)
+        got, inf, _ = _device_pgs(W, d0, lam0, one, np.ones(m, np.int32), np.zeros(m), cap, tol)
         assert inf[2] == 1.0 and int(inf[0]) == its and (got >= 0.0).all()
         assert res <= tol and inf[1] <= tol
         np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
@@ -221,59 +229,64 @@ def test_device_lcp_rows_is_validated(bad):
         load_scene(_floor_scene(bad))
 
 
-def test_the_device_kernel_solves_the_hosts_problems():
-    """device_pgs_kernel against the host PGS on random LCPs (frictionless and with friction
-    rows, both cones), a padded capacity and the sizes read on the device; an indefinite W is
-    refused with lambda = 0 (within 32 rows: lambda and delta in the thread's memory; the
-    landing block's 36 rows with friction take the device's); on the frictionless ones
-    device_pgs_small_kernel gives the same lambda, sweeps and residual."""
-    rng = np.random.default_rng(11)
-    cap = 24
-    pgs = PGS(active_set=False)
-    for trial in range(8):
-        nc = int(rng.integers(2, 7))
+def _random_lcps(seed, count, most_contacts=7, fewest=2):
+    """Random LCPs of contacts of one or three rows (friction 0.3; every other one frictionless),
+    W = B B^T / m + 0.05 I: (W, d0, lam0, row_start, rows, mu, pyramid)."""
+    rng = np.random.default_rng(seed)
+    for trial in range(count):
+        nc = int(rng.integers(fewest, most_contacts))
         rows = np.where(rng.random(nc) < 0.5, 3, 1).astype(np.int32) if trial % 2 else np.ones(nc, np.int32)
         row_start = (np.cumsum(rows) - rows).astype(np.int32)
         m = int(rows.sum())
         B = rng.standard_normal((m, m + 2))
         W = B @ B.T / m + 0.05 * np.eye(m)
-        if trial == 7:
-            W[0, 0] = -1.0
         d0 = rng.standard_normal(m) * 1e-3
-        mu = np.full(nc, 0.3)
         lam0 = np.abs(rng.standard_normal(m)) * 1e-4 * (rows.repeat(rows) == 1)
-        pyramid = trial % 4 == 3
-        Wd = np.zeros((cap, cap))
-        Wd[:m, :m] = W
-        pad = lambda a, n=cap: np.concatenate([a, np.zeros(n - len(a), a.dtype)])  # noqa: E731
-        arr = lambda a, t=wp.float64: wp.array(a, dtype=t, device=DEVICE)  # noqa: E731
-        lam = wp.zeros(cap, dtype=wp.float64, device=DEVICE)
-        info = wp.zeros(3, dtype=wp.float64, device=DEVICE)
-        wp.launch(device_pgs_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(pad(row_start), wp.int32),
-                                         arr(pad(rows), wp.int32), arr(pad(mu)),
-                                         arr(np.array([m, nc], np.int32), wp.int32), 200, 1e-10, int(pyramid),
-                                         wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam,
-                                         wp.zeros(cap, dtype=wp.float64, device=DEVICE), info], device=DEVICE)
-        got, inf = lam.numpy()[:m], info.numpy()
-        exact = DEVICE == "cpu"
-        if trial == 7:
-            assert inf[2] == 0.0 and not got.any()
-            continue
-        ref, its, res = pgs.solve(W, d0, row_start, rows, mu, 200, 1e-10, pyramid, lam0)
-        assert inf[2] == 1.0 and int(inf[0]) == its
-        np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-15)
-        assert inf[1] == pytest.approx(res, rel=1e-6, abs=1e-18)
-        if trial % 2 == 0:  # frictionless: the small kernel's sweeps alone are the same
-            lam_s, info_s = wp.zeros(cap, dtype=wp.float64, device=DEVICE), wp.zeros(3, dtype=wp.float64, device=DEVICE)
-            wp.launch(device_pgs_small_kernel, 1, [arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(pad(row_start), wp.int32),
-                                                   arr(pad(rows), wp.int32), arr(pad(mu)),
-                                                   arr(np.array([m, nc], np.int32), wp.int32), 200, 1e-10, 200,
-                                                   wp.zeros((cap, cap), dtype=wp.float64, device=DEVICE), lam_s,
-                                                   wp.zeros(cap, dtype=wp.float64, device=DEVICE), info_s],
-                      device=DEVICE)
-            np.testing.assert_allclose(lam_s.numpy(), lam.numpy(), rtol=0 if exact else 1e-12, atol=0)
-            assert info_s.numpy()[0] == inf[0] and info_s.numpy()[2] == inf[2]
-            assert info_s.numpy()[1] == pytest.approx(inf[1], rel=0 if exact else 1e-9, abs=0 if exact else 1e-20)
+        yield W, d0, lam0, row_start, rows, np.full(nc, 0.3), trial % 4 == 3
+
+
+def test_the_device_kernel_solves_the_hosts_problems():
+    """device_pgs_kernel against the host PGS (sweeps only) on random LCPs (frictionless and
+    with friction rows, both cones), a padded capacity and the sizes read on the device: the
+    same sweeps, residual and lambda (within 32 rows by the block's lanes, beyond by one lane in
+    the device's memory); an indefinite W is refused with lambda = 0."""
+    pgs = PGS(active_set=False)
+    for cap, seed, fewest, most in ((24, 11, 2, 7), (64, 12, 12, 20)):
+        sizes = []
+        for trial, (W, d0, lam0, row_start, rows, mu, pyramid) in enumerate(_random_lcps(seed, 8, most, fewest)):
+            if trial == 7:
+                W[0, 0] = -1.0
+            got, inf, _ = _device_pgs(W, d0, lam0, row_start, rows, mu, cap, 1e-10, pyramid, first=200)
+            if trial == 7:
+                assert inf[2] == 0.0 and not got.any()
+                continue
+            ref, its, res = pgs.solve(W, d0, row_start, rows, mu, 200, 1e-10, pyramid, lam0)
+            assert inf[2] == 1.0 and int(inf[0]) == its
+            np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-15)
+            assert inf[1] == pytest.approx(res, rel=1e-6, abs=1e-18)
+            sizes.append(len(d0))
+        assert max(sizes) > SMALL or cap < SMALL  # the larger capacity had a set beyond the block's
+
+
+def test_the_blocks_lanes_give_the_one_lanes_lambda():
+    """The block's lanes share delta in shared memory and wait for each other where one reads
+    what another writes: with Warp's CPU blocks on (real lanes, switching at the block's
+    barriers) the kernel gives one lane's lambda, sweeps and delta to the bit. A read of delta
+    racing a write (no barrier) changes them."""
+    if DEVICE != "cpu":
+        pytest.skip("the CPU's lanes; on a GPU the test above compares the block with the host")
+    problems = list(_random_lcps(21, 12, 11))
+    one = [_device_pgs(*p[:6], SMALL, 1e-10, p[6]) for p in problems]
+    before = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = True
+    try:
+        lanes = [_device_pgs(*p[:6], SMALL, 1e-10, p[6]) for p in problems]
+    finally:
+        wp.config.enable_cpu_blocks = before
+    for (l1, i1, d1), (l2, i2, d2) in zip(one, lanes):
+        np.testing.assert_array_equal(l2, l1)
+        np.testing.assert_array_equal(i2, i1)
+        np.testing.assert_array_equal(d2, d1)
 
 
 def test_the_correction_from_the_rows_columns_is_the_inverse_applied_to_h_transpose_lambda():

@@ -10,14 +10,17 @@ correction, the penetration detection and the guard (one graph a step):
 2. W = dt^2 H P^-1 H^T is gathered into a matrix of the buffers' capacity, the row count read
    on the device (:func:`~soft_tissue_sim.dense_inverse.delassus_matrix_kernel`), so that one
    captured graph serves every contact count;
-3. :func:`device_pgs_kernel` checks W as :func:`.compliance.positive_definite` does (a Cholesky
-   factorization of W + 1e-10 max(diag W) I) and runs the projected Gauss-Seidel sweeps of
-   :mod:`.pgs` on one thread, from the warm start; a frictionless set within :data:`SMALL`
-   rows goes to :func:`device_pgs_small_kernel`, which holds lambda and delta in the thread's
-   own memory and, as the host does, finishes sweeps that stall by the active-set method
-   (:func:`small_active_set`, the host's :func:`.pgs.active_set` on one thread); with
-   friction, :func:`device_pgs_kernel` also holds them in the thread's memory within
-   :data:`SMALL` rows (a sweep reads and writes them m^2 times);
+3. :func:`device_pgs_kernel`, one block of :data:`SMALL` lanes, checks W as
+   :func:`.compliance.positive_definite` does (a Cholesky factorization of W + 1e-10 max(diag
+   W) I) and runs the projected Gauss-Seidel sweeps of :mod:`.pgs` from the warm start. Within
+   :data:`SMALL` rows every lane makes each contact's update (the same values from the same
+   reads) and the lanes move delta = W lambda + d0, held in the block's shared memory, by the
+   changed rows' columns of W together, each lane its own elements (:func:`block_pgs_sweeps`);
+   a frictionless set (as many contacts as rows) is finished, as the host does, by the
+   active-set method where the sweeps stall (:func:`small_active_set`, the host's
+   :func:`.pgs.active_set`). The same operations in the same order as the host's kernel, so
+   the same lambda to the bit where no multiply-add is fused differently. A larger set is
+   swept by one lane in the device's memory;
 4. dx = dt^2 P^-1 H^T lambda (eq. 2), zeroed on the fixed nodes, from the columns of the rows'
    nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in double precision as
    W is gathered).
@@ -26,12 +29,14 @@ lambda, the sweeps, the residual and the check's verdict are read with the guard
 correction. Where W is not positive definite the device solve makes lambda = 0 (no
 correction) and says so: the caller restores the free motion and solves the step's contacts
 on the host, with the block diagonal of A (as :meth:`.solver.ContactSolver._respond` does).
-Sweeps with friction that end above the tolerance stand, as they do on the host. One thread
-sweeps in O(m^2) a sweep: the row limit keeps a sweep within microseconds; larger sets are
-solved on the host.
+Sweeps with friction that end above the tolerance stand, as they do on the host. A sweep
+costs O(m^2) (O(m) a lane within :data:`SMALL` rows): the row limit keeps it within
+microseconds; larger sets are solved on the host.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -39,6 +44,10 @@ import warp as wp
 from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
 from .pgs import FIRST_SWEEPS, contact_update, jacobi_change, pgs_sweeps
+
+SMALL = 32  # the lanes of device_pgs_kernel's block: the most rows swept by all of them together
+# no gradients are taken here; one block size for every launch of the module (one compilation)
+wp.set_module_options({"enable_backward": False, "block_dim": SMALL})
 
 
 @wp.kernel
@@ -49,7 +58,6 @@ def scaled_free_kernel(y: wp.array(dtype=wp.vec3d), s: wp.float64, free: wp.arra
     out[i] = (s * free[i]) * y[i]
 
 
-SMALL = 32  # the most rows device_pgs_small_kernel holds in the thread's own memory
 _vec_small = wp.types.vector(length=SMALL, dtype=wp.float64)
 _ivec_small = wp.types.vector(length=SMALL, dtype=wp.int32)
 
@@ -112,51 +120,6 @@ def checked_start(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float6
     return 1
 
 
-@wp.kernel
-def device_pgs_kernel(
-    W: wp.array2d(dtype=wp.float64),
-    d0: wp.array(dtype=wp.float64),
-    lam0: wp.array(dtype=wp.float64),
-    row_start: wp.array(dtype=wp.int32),
-    n_rows: wp.array(dtype=wp.int32),
-    mu: wp.array(dtype=wp.float64),
-    sizes: wp.array(dtype=wp.int32),
-    max_iterations: int,
-    tolerance: wp.float64,
-    pyramid: int,
-    L: wp.array2d(dtype=wp.float64),
-    lam: wp.array(dtype=wp.float64),
-    delta: wp.array(dtype=wp.float64),
-    info: wp.array(dtype=wp.float64),
-):
-    """The LCP of :func:`.pgs.pgs_kernel` with m = sizes[0] rows and nc = sizes[1] contacts read
-    on the device, W checked first (:func:`positive_definite_rows`). info = [sweeps, residual,
-    1 if W was usable else 0]; an unusable W leaves lambda = 0. Within :data:`SMALL` rows
-    lambda and delta are held in the thread's own memory (:func:`small_pgs_sweeps`, the
-    same sweeps), beyond in the device's. One thread."""
-    m = sizes[0]
-    nc = sizes[1]
-    if checked_start(W, L, m, lam, info) == 0:
-        return
-    if m <= SMALL:
-        lv = _vec_small()
-        for i in range(m):
-            lv[i] = lam0[i]
-        lv, dv, it, res = small_pgs_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, max_iterations, tolerance,
-                                                pyramid)
-        for i in range(m):
-            lam[i] = lv[i]
-            delta[i] = dv[i]
-        info[0] = F64(it)
-        info[1] = res
-        return
-    for i in range(m):
-        lam[i] = lam0[i]
-    it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, max_iterations, tolerance, pyramid, lam, delta)
-    info[0] = F64(it)
-    info[1] = res
-
-
 @wp.func
 def small_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lv: _vec_small, m: int):
     """delta = W lambda + d0 over the first m rows, summed afresh (:func:`.pgs.exact_delta`)."""
@@ -167,50 +130,6 @@ def small_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
             d += W[i, j] * lv[j]
         dv[i] = d
     return dv
-
-
-@wp.func
-def small_pgs_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
-                          row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
-                          mu: wp.array(dtype=wp.float64), lv: _vec_small, m: int, nc: int, max_iterations: int,
-                          tolerance: wp.float64, pyramid: int):
-    """:func:`.pgs.pgs_sweeps` (contacts of one or three rows: friction or not) with lambda and
-    delta in the thread's own memory: the same operations in the same order; returns (lambda,
-    delta, sweeps, residual)."""
-    zero = F64(0.0)
-    dv = small_delta(W, d0, lv, m)
-    it = int(0)
-    res = F64(-1.0)
-    for sweep in range(max_iterations):
-        change = zero
-        for c in range(nc):
-            r = row_start[c]
-            k = n_rows[c]
-            ln, l1, l2, ch = contact_update(W, dv, lv, r, k, mu[c], pyramid)
-            for q in range(k):  # :func:`.pgs.move` of each of the contact's rows, in order
-                j = r + q
-                value = ln
-                if q == 1:
-                    value = l1
-                elif q == 2:
-                    value = l2
-                d = value - lv[j]
-                if d != zero:
-                    for i in range(m):
-                        dv[i] += W[j, i] * d
-                    lv[j] = value
-            change = wp.max(change, ch)
-        it = sweep + 1
-        res = F64(-1.0)
-        if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-            dv = small_delta(W, d0, lv, m)
-            res = jacobi_change(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
-            if res <= tolerance:
-                break
-    if res < zero:
-        dv = small_delta(W, d0, lv, m)
-        res = jacobi_change(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
-    return lv, dv, it, res
 
 
 @wp.func
@@ -317,8 +236,79 @@ def small_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.floa
     return lam, steps
 
 
+@wp.func
+def barrier(gate: Any):
+    """Every lane of the block waits here (``gate``: a shared tile of zeros, each lane adding 0
+    to its own elements)."""
+    wp.tile_axpy(F64(0.0), gate, gate)
+
+
+@wp.func
+def block_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lv: _vec_small, m: int,
+                lane: int, bd: int, dv: Any, gate: Any):
+    """delta = W lambda + d0 over the first m rows into the shared tile ``dv`` (0 beyond), each
+    lane its own rows (i = lane + k block_dim, as the tile's operations divide it), each summed
+    as :func:`small_delta` does (lambda: every lane's copy). Every lane assigns in every round:
+    an element's assignment waits at the block's barrier (as the lanes wait before the first)."""
+    barrier(gate)
+    for base in range(0, SMALL, bd):
+        i = base + lane
+        d = F64(0.0)
+        if i < m:
+            d = d0[i]
+            for j in range(m):
+                d += W[i, j] * lv[j]
+        dv[i] = d
+
+
+@wp.func
+def block_pgs_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
+                     row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
+                     mu: wp.array(dtype=wp.float64), lv: _vec_small, m: int, nc: int, max_iterations: int,
+                     tolerance: wp.float64, pyramid: int, lane: int, bd: int, dv: Any, gate: Any):
+    """:func:`.pgs.pgs_sweeps` (contacts of one or three rows) by a block, from lambda ``lv``
+    (every lane's own copy): every lane makes each contact's update (the same values from the
+    same reads), and a changed row's column of W goes into delta (the shared tile ``dv``) by
+    all of them, each lane its own elements; the same operations in the same order. Returns
+    (lambda, sweeps, residual); delta stays in ``dv``."""
+    zero = F64(0.0)
+    block_delta(W, d0, lv, m, lane, bd, dv, gate)
+    it = int(0)
+    res = F64(-1.0)
+    for sweep in range(max_iterations):
+        change = zero
+        for c in range(nc):
+            r = row_start[c]
+            k = n_rows[c]
+            ln, l1, l2, ch = contact_update(W, dv, lv, r, k, mu[c], pyramid)
+            barrier(gate)  # every lane has read delta before any writes it
+            for q in range(k):
+                j = r + q
+                value = ln
+                if q == 1:
+                    value = l1
+                elif q == 2:
+                    value = l2
+                d = value - lv[j]
+                if d != zero:
+                    wp.tile_axpy(d, wp.tile_load(W[j], shape=SMALL), dv)
+                    lv[j] = value
+            change = wp.max(change, ch)
+        it = sweep + 1
+        res = F64(-1.0)
+        if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
+            block_delta(W, d0, lv, m, lane, bd, dv, gate)
+            res = jacobi_change(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
+            if res <= tolerance:
+                break
+    if res < zero:  # the sweeps ran out: the residual of where they stopped
+        block_delta(W, d0, lv, m, lane, bd, dv, gate)
+        res = jacobi_change(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
+    return lv, it, res
+
+
 @wp.kernel
-def device_pgs_small_kernel(
+def device_pgs_kernel(
     W: wp.array2d(dtype=wp.float64),
     d0: wp.array(dtype=wp.float64),
     lam0: wp.array(dtype=wp.float64),
@@ -328,46 +318,68 @@ def device_pgs_small_kernel(
     sizes: wp.array(dtype=wp.int32),
     max_iterations: int,
     tolerance: wp.float64,
+    pyramid: int,
     first_sweeps: int,
     L: wp.array2d(dtype=wp.float64),
     lam: wp.array(dtype=wp.float64),
     delta: wp.array(dtype=wp.float64),
     info: wp.array(dtype=wp.float64),
 ):
-    """:func:`device_pgs_kernel` for a frictionless LCP of at most :data:`SMALL` rows (each row a
-    contact), lambda and delta = W lambda + d0 held in the thread's own memory instead of read
-    and written in the device's, which a sweep does m^2 times; the same check, and the host's
-    :meth:`.pgs.PGS.solve` for a frictionless LCP: up to ``first_sweeps`` sweeps, then (not
-    converged) the active-set method with what is left of ``max_iterations`` as its steps, the
-    better of the two kept, then sweeps for the rest. ``first_sweeps`` >= ``max_iterations``:
-    sweeps only (:func:`device_pgs_kernel`'s lambda and sweeps). One thread."""
+    """The LCP of :func:`.pgs.pgs_kernel` with m = sizes[0] rows and nc = sizes[1] contacts read
+    on the device, by one block (``wp.launch_tiled``, :data:`SMALL` lanes), W checked first
+    (:func:`positive_definite_rows`). info = [sweeps, residual, 1 if W was usable else 0]; an
+    unusable W leaves lambda = 0. Within :data:`SMALL` rows :func:`block_pgs_sweeps`, and a
+    frictionless set (nc == m) as the host's :meth:`.pgs.PGS.solve` makes it: up to
+    ``first_sweeps`` sweeps, then (not converged) the active-set method with what is left of
+    ``max_iterations`` as its steps, the better of the two kept, then sweeps for the rest
+    (``first_sweeps`` >= ``max_iterations``: sweeps only). Beyond, :func:`.pgs.pgs_sweeps` on
+    lane 0 in the device's memory. Every lane runs the scalar work alike (their writes to the
+    device's memory are the same values)."""
+    _b, lane = wp.tid()
+    bd = wp.block_dim()
     m = sizes[0]
     nc = sizes[1]
+    dv = wp.tile_zeros(shape=SMALL, dtype=wp.float64, storage="shared")
+    gate = wp.tile_zeros(shape=SMALL, dtype=wp.float64, storage="shared")
     if checked_start(W, L, m, lam, info) == 0:
+        return
+    if m > SMALL:
+        if lane == 0:
+            for i in range(m):
+                lam[i] = lam0[i]
+            it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, max_iterations, tolerance, pyramid, lam, delta)
+            info[0] = F64(it)
+            info[1] = res
         return
     lv = _vec_small()
     for i in range(m):
         lv[i] = lam0[i]
-    first = wp.min(first_sweeps, max_iterations)
-    lv, dv, it, res = small_pgs_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, first, tolerance, 0)
-    if res > tolerance and first < max_iterations and it < max_iterations:
+    frictionless = int(nc == m)
+    first = max_iterations
+    if frictionless != 0:
+        first = wp.min(first_sweeps, max_iterations)
+    lv, it, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, first, tolerance, pyramid, lane, bd, dv,
+                                   gate)
+    if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
         la, steps = small_active_set(W, d0, L, lv, m, tolerance, max_iterations - it)
         it += steps
         da = small_delta(W, d0, la, m)
         ra = jacobi_change(W, da, la, row_start, n_rows, mu, 0, nc)
         if ra < res:
             lv = la
-            dv = da
             res = ra
+            block_delta(W, d0, lv, m, lane, bd, dv, gate)
         if res > tolerance and it < max_iterations:
-            lv, dv, more, res = small_pgs_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, max_iterations - it,
-                                                 tolerance, 0)
+            lv, more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, max_iterations - it,
+                                             tolerance, 0, lane, bd, dv, gate)
             it += more
-    for i in range(m):
-        lam[i] = lv[i]
+    for i in range(lane, m, bd):
         delta[i] = dv[i]
-    info[0] = F64(it)
-    info[1] = res
+    if lane == 0:
+        for i in range(m):
+            lam[i] = lv[i]
+        info[0] = F64(it)
+        info[1] = res
 
 
 class DeviceLCP:
@@ -428,36 +440,28 @@ class DeviceLCP:
         return (inner.graph_key(), inner.delassus_key(), free.ptr, dx.ptr, float(dt), *options)
 
     def launch(self, inner, free: wp.array, dt: float, max_iterations: int, tolerance: float,
-               pyramid: bool, frictionless: bool = False, first_sweeps: int = FIRST_SWEEPS) -> wp.array:
-        """W, the LCP and dx = dt^2 P^-1 H^T lambda (eq. 2) on the free nodes: launches only.
-        Returns dx (a (n,) vec3d array kept between steps). ``frictionless``: every row is a
-        contact's normal (then, within :data:`SMALL` rows, :func:`device_pgs_small_kernel`
-        sweeps in the thread's own memory and finishes by the active-set method after
-        ``first_sweeps``); otherwise :func:`device_pgs_kernel`."""
+               pyramid: bool, first_sweeps: int = FIRST_SWEEPS) -> wp.array:
+        """W, the LCP (:func:`device_pgs_kernel`: a frictionless set finished by the active-set
+        method after ``first_sweeps``) and dx = dt^2 P^-1 H^T lambda (eq. 2) on the free nodes:
+        launches only. Returns dx (a (n,) vec3d array kept between steps)."""
         d = self.device
         dx = self._dx.view(free.shape[0])
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
-        if frictionless and self.rows <= SMALL:
-            wp.launch(device_pgs_small_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
-                                                   self.sizes, int(max_iterations),
-                                                   float(tolerance), int(first_sweeps), self.L, self.lam, self.delta,
-                                                   self.info], device=d)
-        else:
-            wp.launch(device_pgs_kernel, 1, [self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu,
-                                             self.sizes, int(max_iterations), float(tolerance), int(bool(pyramid)),
-                                             self.L, self.lam, self.delta, self.info], device=d)
+        wp.launch_tiled(device_pgs_kernel, dim=[1],
+                        inputs=[self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu, self.sizes,
+                                int(max_iterations), float(tolerance), int(bool(pyramid)), int(first_sweeps), self.L,
+                                self.lam, self.delta, self.info], block_dim=SMALL, device=d)
         inner.apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx)
         return dx
 
 
-def launch_args(options: dict, frictionless: bool) -> tuple:
+def launch_args(options: dict) -> tuple:
     """:meth:`DeviceLCP.launch`'s arguments after dt from the contact options (part of a graph's
     key): the frictionless LCP finished by the active-set method after the host's first sweeps
     (option ``active_set``), else sweeps only."""
     o = options
     first = FIRST_SWEEPS if o["active_set"] else int(o["max_iterations"])
-    return (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid", bool(frictionless),
-            first)
+    return int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid", first
 
 
 class PendingLCP:
@@ -465,10 +469,9 @@ class PendingLCP:
     correction (:meth:`key`, :meth:`launch`, its output read with the guard) and hands the
     read output to :meth:`finish`."""
 
-    def __init__(self, lcp: DeviceLCP, inner, free: wp.array, dt: float, options: dict, m: int, finish,
-                 frictionless: bool = False):
+    def __init__(self, lcp: DeviceLCP, inner, free: wp.array, dt: float, options: dict, m: int, finish):
         self.lcp, self.inner, self.free, self.dt, self.m = lcp, inner, free, float(dt), int(m)
-        self._args = launch_args(options, frictionless)
+        self._args = launch_args(options)
         self._finish = finish
 
     def key(self) -> tuple:

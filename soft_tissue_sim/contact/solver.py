@@ -520,7 +520,7 @@ class ContactSolver:
             self._device_lcp.stage(H.nodes, H.coef, d0, lam, row_start, rows, mu)
             stats.lcp_device = True
             stats.compliance_fallbacks = self.compliance_fallbacks
-            return PendingLCP(self._device_lcp, inner, body.fem.free, dt, o, m, finish, frictionless=not friction)
+            return PendingLCP(self._device_lcp, inner, body.fem.free, dt, o, m, finish)
         W0, apply_y, kind = compliance(H, o["compliance"], body.preconditioner, integ, body.fem)
         W = W0 + W0.T
         W *= dt * dt * 0.5
@@ -591,7 +591,7 @@ class DeviceStep:
         self.solver, self.body, self.inner, self.limit = solver, body, inner, int(limit)
         o = solver.options
         self.lcp, self.rows = solver._device_lcp, solver._device_rows
-        self._args = launch_args(o, frictionless=True)
+        self._args = launch_args(o)
         self.dt = float(body.integrator.dt)
 
     def key(self) -> tuple:

@@ -41,6 +41,8 @@ import warp as wp
 from . import graphs
 from .buffers import GrowArray
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
 
 @wp.kernel
 def _axpy2_kernel(

@@ -35,6 +35,8 @@ from .material import MaterialTable
 from .mesh import TetMesh, all_four
 from .transfer import to_host
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
 _F64 = wp.float64
 
 

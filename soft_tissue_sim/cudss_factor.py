@@ -23,6 +23,8 @@ import warp as wp
 
 from .dense_inverse import rotate_in_kernel
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
 
 @wp.kernel
 def csr_scatter_kernel(rows: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.mat33d),

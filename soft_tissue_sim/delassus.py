@@ -48,6 +48,8 @@ import warp as wp
 
 from .blas_threads import one_thread
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
 _HOST = "cpu"
 GROUP = 16  # columns solved together by one thread: L's entries are read once per group
 vec_group = wp.types.vector(length=GROUP, dtype=wp.float64)

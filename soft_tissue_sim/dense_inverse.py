@@ -44,6 +44,8 @@ from .buffers import GrowArray, PackedArrays, typed_view
 from .cg import block_sum
 from .transfer import PINNED, to_host
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
 BLOCK = 256  # threads per node in the matrix-vector product on CUDA
 
 

@@ -44,6 +44,8 @@ from .sherman_morrison import Modification, perturbation
 from .sm_partition import partitioned_stream
 from .transfer import Staged
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
 
 @wp.kernel
 def relative_rotation_kernel(R: wp.array(dtype=wp.mat33d), R_ref: wp.array(dtype=wp.mat33d),

@@ -41,6 +41,8 @@ from .material import Damping, ParameterError
 from .stats import ContactStats, CutStats, GuardStats
 from .transfer import Readback, to_host
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
 
 @wp.kernel
 def _gravity_kernel(mass: wp.array(dtype=wp.float64), g: wp.vec3d, ext: wp.array(dtype=wp.vec3d),

@@ -24,6 +24,8 @@ from .geometry import (
     triangle_closest_bary,
 )
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
 
 @wp.struct
 class Slots:

@@ -35,6 +35,8 @@ import warp as wp
 
 from ..buffers import GrowArray, PackedArrays
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
 F64 = wp.float64
 
 # one record row per contact: slot, node, obj, point (3), normal (3), gap, tri (3), bary (3)

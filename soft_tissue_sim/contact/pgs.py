@@ -38,6 +38,8 @@ from scipy.linalg.lapack import dpotrf, dpotrs
 
 from .geometry import F64
 
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
 FIRST_SWEEPS = 10  # the frictionless LCP's sweeps before the active-set finish (PGS)
 
 

@@ -217,16 +217,25 @@ class Instrument:
         self._step_velocity = (self.linear_velocity, self.angular_velocity)
         self.linear_velocity = self.angular_velocity = None
 
-    def point_displacement(self, points: np.ndarray, dt: float) -> np.ndarray:
-        """Displacement during the last step of the tool's material points now at ``points`` (k, 3)."""
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    def displacement_map(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(M, c): the displacement during the last step of the tool's material point now at p is
+        M p + c (from the step's velocities where they were given, else from the pose change:
+        p - (R_prev R^T (p - x) + x_prev))."""
         lv, av = self._step_velocity
         if lv is not None or av is not None:
-            lv = np.zeros(3) if lv is None else lv
-            av = np.zeros(3) if av is None else av
-            return dt * (lv + np.cross(av, points - self.step_pose.position))
-        before = self.previous_step_pose.apply(self.step_pose.inverse_apply(points))
-        return points - before
+            lv = np.zeros(3) if lv is None else np.asarray(lv, dtype=np.float64)
+            av = np.zeros(3) if av is None else np.asarray(av, dtype=np.float64)
+            S = dt * np.array([[0.0, -av[2], av[1]], [av[2], 0.0, -av[0]], [-av[1], av[0], 0.0]])
+            return S, dt * lv - S @ self.step_pose.position
+        A = self.previous_step_pose.R @ self.step_pose.R.T
+        return np.eye(3) - A, A @ self.step_pose.position - self.previous_step_pose.position
+
+    def point_displacement(self, points: np.ndarray, dt: float) -> np.ndarray:
+        """Displacement during the last step of the tool's material points now at ``points`` (k, 3)
+        (:meth:`displacement_map`)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        M, c = self.displacement_map(dt)
+        return points @ M.T + c
 
     # --------------------------------------------------------------- geometry
     def segment_world(self, pose: Pose | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -277,6 +286,9 @@ class PlaneObstacle:
     def origin(self) -> np.ndarray:
         return self.point
 
+    def displacement_map(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros((3, 3)), np.zeros(3)  # static
+
     def point_displacement(self, points, dt) -> np.ndarray:
         return np.zeros((len(points), 3))
 
@@ -299,6 +311,9 @@ class MeshObstacle:
     @property
     def origin(self) -> np.ndarray:
         return np.zeros(3)
+
+    def displacement_map(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros((3, 3)), np.zeros(3)  # static
 
     def point_displacement(self, points, dt) -> np.ndarray:
         return np.zeros((len(points), 3))

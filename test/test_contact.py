@@ -979,3 +979,36 @@ def test_edge_ownership_gives_each_surface_edge_to_its_lowest_face(scale):
                 expect[f, k] = 1
     np.testing.assert_array_equal(own, expect)
     assert own.dtype == np.int32
+
+
+def test_an_instruments_displacement_map_moves_its_material_points_as_its_poses_and_twist_do():
+    """Instrument.displacement_map (the tangent rows' motion of the other surface, on the host
+    and on the device): M p + c is p - R_prev R^T (p - x) - x_prev after a pose change, and
+    dt (v + w x (p - x)) where the step's velocities were given; static obstacles do not move."""
+    from scipy.spatial.transform import Rotation
+
+    from soft_tissue_sim.instrument import Instrument, PlaneObstacle
+
+    rng = np.random.default_rng(7)
+    inst = Instrument.from_config({"name": "tool", "shape": "capsule", "radius": 0.002, "length": 0.05}, 0,
+                                  [0.0, 0.0, 0.1])
+    q0, q1 = Rotation.random(2, random_state=3).as_quat()
+    x0, x1 = rng.standard_normal(3) * 0.05, rng.standard_normal(3) * 0.05
+    inst.set_pose(x0, q0)
+    inst.begin_step()
+    inst.set_pose(x1, q1)
+    inst.begin_step()
+    points = rng.standard_normal((5, 3)) * 0.03
+    R0, R1 = Rotation.from_quat(q0).as_matrix(), Rotation.from_quat(q1).as_matrix()
+    before = (points - x1) @ R1 @ R0.T + x0  # the same material points at the previous pose
+    M, c = inst.displacement_map(0.01)
+    np.testing.assert_allclose(points @ M.T + c, points - before, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(inst.point_displacement(points, 0.01), points - before, rtol=0, atol=1e-15)
+    v, w = np.array([0.1, -0.2, 0.05]), np.array([0.3, 1.0, -2.0])
+    inst.set_pose(x1, q1, linear_velocity=v, angular_velocity=w)
+    inst.begin_step()
+    M, c = inst.displacement_map(0.01)
+    np.testing.assert_allclose(points @ M.T + c, 0.01 * (v + np.cross(w, points - x1)), rtol=0, atol=1e-16)
+    plane = PlaneObstacle("floor", [0.0, 0.0, 0.0], [0.0, 0.0, 1.0])
+    M, c = plane.displacement_map(0.01)
+    assert not M.any() and not c.any()

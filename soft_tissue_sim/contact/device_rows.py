@@ -4,25 +4,27 @@ between (one read a step).
 
 :meth:`.solver.ContactSolver.step` reads the detection to the host, builds the constraint rows
 (H in node form, delta^0, the warm start) with NumPy and stages them for the device LCP
-(:mod:`.device_lcp`). For the contact sets the device LCP solves anyway (frictionless, at most
+(:mod:`.device_lcp`). For the contact sets the device LCP solves anyway (at most
 ``contact.device_lcp_rows`` rows, no mesh obstacle) the same rows are made here, launched
-right after the detection:
+right after the detection, the tangent rows of friction with them:
 
 1. :func:`active_slots_kernel` lists the active output slots (an atomic counter; the list is
    sorted by slot in step 2, so the rows come in the host's order, slot order);
-2. :func:`device_rows_kernel` (one thread, at most ``limit`` contacts) reads each slot's
+2. :func:`device_rows_kernel` (one thread, at most ``limit`` rows) reads each slot's
    contact as :func:`.detection.collect` does (node, object, triangle of the surface, the
    barycentric weights), moves a self-collision contact's point and gap to the free motion
    (the triangle's point follows its nodes), drops the contacts whose nodes are all fixed,
-   and writes the LCP's inputs into :class:`.device_lcp.DeviceLCP`'s device arrays and one
-   record row per contact for the host; more contacts than ``limit`` set the overflow flag
+   and writes the LCP's inputs into :class:`.device_lcp.DeviceLCP`'s device arrays (with a
+   positive friction coefficient, the two tangent rows after the normal one: the tissue
+   point's motion in the step against the other surface's, :meth:`DeviceRows.objects`) and
+   one record row per contact for the host; more rows than ``limit`` set the overflow flag
    (nothing is solved; the host redoes the step's contacts, as it does beyond the row limit);
 3. the warm start: the last step's force of the same slot (an object's node or face, a
    node's self-collision: the host's contact names within one surface), where that step was
    solved here (a stamp per slot against an epoch counter, both on the device);
-4. :func:`device_forces_kernel`, after the LCP, makes the contacts' forces, the objects'
-   wrenches and the counts the statistics report, keeps the pressed contacts' forces for the
-   next step and advances the epoch.
+4. :func:`device_forces_kernel`, after the LCP, makes the contacts' forces (into the record),
+   the objects' wrenches and the counts the statistics report, keeps the pressed contacts'
+   forces for the next step and advances the epoch.
 
 The host reads the header, the wrenches and the LCP's output with the guard after the
 correction; the contact record and the host's warm start are made from the read record only
@@ -34,13 +36,18 @@ from __future__ import annotations
 import warp as wp
 
 from ..buffers import GrowArray, PackedArrays
+from ..transfer import Staged
+from .geometry import tangent_frame
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
 F64 = wp.float64
 
-# one record row per contact: slot, node, obj, point (3), normal (3), gap, tri (3), bary (3)
-RECORD = 16
+# one record row per contact: slot, node, obj, point (3), normal (3), gap, tri (3), bary (3), then
+# (after the LCP) its force on the tissue (3) and its normal force lambda_n
+RECORD = 20
+HEADER = 7  # active slots, contacts kept, overflow, self contacts, face contacts, pressed, rows
+MOTION = 5  # per object: the rows of M, c (its material point at p moved by M p + c in the step), (mu, 0, 0)
 _KIND_NODE, _KIND_FACE, _KIND_SELF = 0, 1, 2  # as detection.SlotMap.kind
 
 
@@ -71,7 +78,10 @@ def device_rows_kernel(
     tri: wp.array(dtype=wp.int32),
     bary: wp.array(dtype=wp.vec3d),
     x: wp.array(dtype=wp.vec3d),
+    x_start: wp.array(dtype=wp.vec3d),
     free: wp.array(dtype=wp.float64),
+    motion: wp.array(dtype=wp.vec3d),
+    scene_mu: wp.float64,
     warm_force: wp.array(dtype=wp.vec3d),
     warm_stamp: wp.array(dtype=wp.int32),
     epoch: wp.array(dtype=wp.int32),
@@ -86,14 +96,20 @@ def device_rows_kernel(
     record: wp.array2d(dtype=wp.float64),
     header: wp.array(dtype=wp.float64),
 ):
-    """The frictionless LCP's rows from the active slots (see the module docstring). One thread.
-    header[:3] = [active slots, contacts kept (= rows), overflow (1: more than ``limit``)]."""
+    """The LCP's rows from the active slots (see the module docstring): a contact's normal row
+    and, where its coefficient (``motion``'s per object, ``scene_mu`` for a self contact) is
+    positive, its two tangent rows, whose delta^0 is the tissue point's motion in the step
+    (``x`` against ``x_start``) against the other surface's (an object's M p + c), as
+    :meth:`.solver.ContactSolver._respond` makes them. One thread. header[:3] = [active slots,
+    contacts kept, overflow (1: more than ``limit`` rows)], header[6] = the rows (on overflow,
+    at least the rows that did not fit)."""
     found = count[0]
     sizes[0] = 0
     sizes[1] = 0
     header[0] = F64(float(found))
     header[1] = F64(0.0)
     header[2] = F64(0.0)
+    header[6] = F64(float(found))
     if found > limit:
         header[2] = F64(1.0)
         return
@@ -110,6 +126,7 @@ def device_rows_kernel(
         slots[j] = v
     e = epoch[0]
     m = int(0)
+    rows = int(0)
     for i in range(found):
         s = slots[i]
         kind = slot_kind[s]
@@ -129,34 +146,73 @@ def device_rows_kernel(
             sign = F64(-1.0)
             p = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]]
             g = wp.dot(n, x[node] - p)
-        # the tissue point's weights on (node, triangle nodes), zeroed where a node is absent
-        # and, for the Jacobian, on fixed nodes
+        # the tissue point's weights on (node, triangle nodes) in its relative displacement (ws4,
+        # zero where a node is absent) and, for the Jacobian, zeroed on fixed nodes (w4)
+        ws4 = wp.vec4d(F64(0.0), F64(0.0), F64(0.0), F64(0.0))
         w4 = wp.vec4d(F64(0.0), F64(0.0), F64(0.0), F64(0.0))
         if node >= 0:
+            ws4[0] = F64(1.0)
             w4[0] = free[node]
         for k in range(3):
             if t[k] >= 0:
-                w4[k + 1] = sign * w[k] * free[t[k]]
+                ws4[k + 1] = sign * w[k]
+                w4[k + 1] = ws4[k + 1] * free[t[k]]
         if wp.dot(w4, w4) > F64(0.0):
-            if m >= limit:
+            obj = slot_obj[s]
+            mu_c = scene_mu
+            if obj >= 0:
+                mu_c = motion[MOTION * obj + 4][0]
+            k_rows = 1
+            if mu_c > F64(0.0):
+                k_rows = 3
+            if rows + k_rows > limit:
                 header[2] = F64(1.0)
+                header[6] = F64(float(rows + k_rows))
                 return
-            nodes[m, 0] = node
-            for k in range(3):
-                nodes[m, k + 1] = t[k]
-            for k in range(4):
-                coef[m, k] = w4[k] * n
-            d0[m] = g
-            row_start[m] = m
-            n_rows[m] = 1
+            t1, t2 = tangent_frame(n)
+            for q in range(k_rows):
+                d = n
+                if q == 1:
+                    d = t1
+                elif q == 2:
+                    d = t2
+                nodes[rows + q, 0] = node
+                for k in range(3):
+                    nodes[rows + q, k + 1] = t[k]
+                for k in range(4):
+                    coef[rows + q, k] = w4[k] * d
+            d0[rows] = g
+            row_start[m] = rows
+            n_rows[m] = k_rows
             mu[m] = F64(0.0)
+            warm = warm_stamp[s] == e
             lam = F64(0.0)
-            if warm_stamp[s] == e:
+            if warm:
                 lam = wp.max(F64(0.0), wp.dot(warm_force[s], n))
-            lam0[m] = lam
+            lam0[rows] = lam
+            if k_rows == 3:
+                mu[m] = mu_c
+                v0 = wp.max(node, 0)
+                rel = ws4[0] * (x[v0] - x_start[v0])
+                for k in range(3):
+                    v = wp.max(t[k], 0)
+                    rel = rel + ws4[k + 1] * (x[v] - x_start[v])
+                if obj >= 0:
+                    b = MOTION * obj
+                    rel = rel - (wp.vec3d(wp.dot(motion[b], p), wp.dot(motion[b + 1], p), wp.dot(motion[b + 2], p))
+                                 + motion[b + 3])
+                d0[rows + 1] = wp.dot(t1, rel)
+                d0[rows + 2] = wp.dot(t2, rel)
+                l1 = F64(0.0)
+                l2 = F64(0.0)
+                if warm:
+                    l1 = wp.dot(warm_force[s], t1)
+                    l2 = wp.dot(warm_force[s], t2)
+                lam0[rows + 1] = l1
+                lam0[rows + 2] = l2
             record[m, 0] = F64(float(s))
             record[m, 1] = F64(float(node))
-            record[m, 2] = F64(float(slot_obj[s]))
+            record[m, 2] = F64(float(obj))
             for k in range(3):
                 record[m, 3 + k] = p[k]
                 record[m, 6 + k] = n[k]
@@ -164,23 +220,27 @@ def device_rows_kernel(
                 record[m, 13 + k] = w[k]
             record[m, 9] = g
             m += 1
-    sizes[0] = m
+            rows += k_rows
+    sizes[0] = rows
     sizes[1] = m
     header[1] = F64(float(m))
+    header[6] = F64(float(rows))
 
 
 @wp.kernel
-def device_forces_kernel(sizes: wp.array(dtype=wp.int32), record: wp.array2d(dtype=wp.float64),
+def device_forces_kernel(sizes: wp.array(dtype=wp.int32), row_start: wp.array(dtype=wp.int32),
+                         n_rows: wp.array(dtype=wp.int32), record: wp.array2d(dtype=wp.float64),
                          out: wp.array(dtype=wp.float64), origins: wp.array(dtype=wp.vec3d),
                          warm_force: wp.array(dtype=wp.vec3d), warm_stamp: wp.array(dtype=wp.int32),
                          epoch: wp.array(dtype=wp.int32), wrench: wp.array2d(dtype=wp.float64),
                          header: wp.array(dtype=wp.float64)):
     """After the LCP (``out`` = [sweeps, residual, W usable | lambda]): each contact's force on the
-    tissue f = lambda n; the wrench on each object, F = -sum f, T = sum (p - o) x (-f) about its
-    origin o (``wrench`` rows: force, torque); the counts header[3:6] = [self contacts, face
-    contacts, pressed contacts]; each pressed contact's force kept at its slot for the next
-    step's warm start, stamped with the next epoch; then the epoch advances (the other slots'
-    forces are no longer current). One thread."""
+    tissue f = lambda_n n (+ lambda_t1 t1 + lambda_t2 t2 with its tangent rows), kept in its
+    record row with lambda_n; the wrench on each object, F = -sum f, T = sum (p - o) x (-f)
+    about its origin o (``wrench`` rows: force, torque); the counts header[3:6] = [self
+    contacts, face contacts, pressed contacts]; each pressed contact's force kept at its slot
+    for the next step's warm start, stamped with the next epoch; then the epoch advances (the
+    other slots' forces are no longer current). One thread."""
     for oi in range(wrench.shape[0]):
         for k in range(6):
             wrench[oi, k] = F64(0.0)
@@ -188,23 +248,31 @@ def device_forces_kernel(sizes: wp.array(dtype=wp.int32), record: wp.array2d(dty
     n_self = int(0)
     n_face = int(0)
     n_pressed = int(0)
-    for r in range(sizes[0]):
+    for c in range(sizes[1]):
+        r = row_start[c]
         lam = out[3 + r]
-        f = lam * wp.vec3d(record[r, 6], record[r, 7], record[r, 8])
-        obj = int(record[r, 2])
+        n = wp.vec3d(record[c, 6], record[c, 7], record[c, 8])
+        f = lam * n
+        if n_rows[c] == 3:
+            t1, t2 = tangent_frame(n)
+            f = f + (out[3 + r + 1] * t1 + out[3 + r + 2] * t2)
+        for k in range(3):
+            record[c, 16 + k] = f[k]
+        record[c, 19] = lam
+        obj = int(record[c, 2])
         if obj < 0:
             n_self += 1
-        elif int(record[r, 1]) < 0:
+        elif int(record[c, 1]) < 0:
             n_face += 1
         if obj >= 0:
-            p = wp.vec3d(record[r, 3], record[r, 4], record[r, 5])
+            p = wp.vec3d(record[c, 3], record[c, 4], record[c, 5])
             t = wp.cross(p - origins[obj], -f)
             for k in range(3):
                 wrench[obj, k] = wrench[obj, k] - f[k]
                 wrench[obj, 3 + k] = wrench[obj, 3 + k] + t[k]
         if lam > F64(0.0):
             n_pressed += 1
-            s = int(record[r, 0])
+            s = int(record[c, 0])
             warm_force[s] = f
             warm_stamp[s] = e
     header[3] = F64(float(n_self))
@@ -237,8 +305,9 @@ class DeviceRows:
         self.epoch = wp.zeros(1, dtype=wp.int32, device=d)
         self.list = wp.zeros(max(self.rows, 1), dtype=wp.int32, device=d)
         self.record = wp.zeros((max(self.rows, 1), RECORD), dtype=wp.float64, device=d)
-        self.header = wp.zeros(6, dtype=wp.float64, device=d)
+        self.header = wp.zeros(HEADER, dtype=wp.float64, device=d)
         self.wrench = wp.zeros((max(int(n_objects), 1), 6), dtype=wp.float64, device=d)
+        self._motion = Staged(MOTION * max(int(n_objects), 1), wp.vec3d, d)  # the objects' motion, friction
         self._tables = PackedArrays(self.TABLES, d)  # the surface's slot tables, sent in one copy
         self._warm_force = GrowArray(wp.vec3d, d)
         self._warm_stamp = GrowArray(wp.int32, d)
@@ -274,14 +343,29 @@ class DeviceRows:
             wp.launch(advance_epoch_kernel, 1, [self.epoch], device=self.device)
             self.kept = False
 
+    def objects(self, objects: list, dt: float, scene_mu: float) -> None:
+        """The objects' motion in the step (``displacement_map``) and friction coefficient (their
+        own, else ``scene_mu``) for the tangent rows, sent (no wait); outside any capture."""
+        staged = self._motion.view()
+        staged[:] = 0.0
+        for oi, obj in enumerate(objects):
+            M, c = obj.displacement_map(dt)
+            b = MOTION * oi
+            staged[b: b + 3] = M
+            staged[b + 3] = c
+            staged[b + 4, 0] = scene_mu if obj.friction is None else obj.friction
+        self._motion.send()
+
     def key(self, limit: int) -> tuple:
         return (self.serial, int(limit), self.count.ptr, self.list.ptr, self.record.ptr, self.header.ptr,
-                self.wrench.ptr, self.slot_node.ptr, self.tris.ptr, self.warm_force.ptr, self.warm_stamp.ptr)
+                self.wrench.ptr, self.slot_node.ptr, self.tris.ptr, self.warm_force.ptr, self.warm_stamp.ptr,
+                self._motion.array.ptr)
 
-    def launch(self, topo, x: wp.array, free: wp.array, lcp, limit: int) -> None:
-        """Steps 1-2 for the detection just launched into ``topo.out``: the rows of at most
-        ``limit`` contacts at the free motion ``x`` into ``lcp``'s (a
-        :class:`.device_lcp.DeviceLCP`) arrays. Launches only."""
+    def launch(self, topo, x: wp.array, free: wp.array, lcp, limit: int, scene_mu: float) -> None:
+        """Steps 1-2 for the detection just launched into ``topo.out``: the rows (at most
+        ``limit``) of the contacts at the free motion ``x`` (from ``topo.x_start``, the step's
+        start) into ``lcp``'s (a :class:`.device_lcp.DeviceLCP`) arrays, with the objects' motion
+        last given to :meth:`objects`. Launches only."""
         d = self.device
         out = topo.out
         self.count.zero_()
@@ -289,13 +373,13 @@ class DeviceRows:
                   device=d)
         wp.launch(device_rows_kernel, 1,
                   [self.count, self.list, int(limit), self.slot_node, self.slot_obj, self.slot_kind, self.slot_tri_row,
-                   self.tris, out.gap, out.normal, out.point, out.tri, out.bary, x, free, self.warm_force,
-                   self.warm_stamp, self.epoch, lcp.sizes, lcp.row_start, lcp.n_rows, lcp.nodes, lcp.coef, lcp.d0,
+                   self.tris, out.gap, out.normal, out.point, out.tri, out.bary, x, topo.x_start, free,
+                   self._motion.array, float(scene_mu), self.warm_force, self.warm_stamp, self.epoch, lcp.sizes, lcp.row_start, lcp.n_rows, lcp.nodes, lcp.coef, lcp.d0,
                    lcp.lam0, lcp.mu, self.record, self.header], device=d)
 
     def forces(self, lcp, origins: wp.array) -> None:
         """Step 4, after ``lcp``'s launch: the forces, the objects' wrenches about ``origins``
         (one per object), the counts, the warm start kept. Launches only."""
-        wp.launch(device_forces_kernel, 1, [lcp.sizes, self.record, lcp.out, origins, self.warm_force,
-                                            self.warm_stamp, self.epoch, self.wrench, self.header],
+        wp.launch(device_forces_kernel, 1, [lcp.sizes, lcp.row_start, lcp.n_rows, self.record, lcp.out, origins,
+                                            self.warm_force, self.warm_stamp, self.epoch, self.wrench, self.header],
                   device=self.device)

@@ -179,6 +179,17 @@ def segment_triangle_closest(a: wp.vec3d, b: wp.vec3d, va: wp.vec3d, vb: wp.vec3
 _AXES = np.eye(3)[:2]  # e_x, e_y
 
 
+@wp.func
+def tangent_frame(n: wp.vec3d):
+    """:func:`tangent_basis` of one unit normal on the device: (t1, t2)."""
+    a = wp.vec3d(F64(0.0), F64(1.0), F64(0.0))
+    if wp.abs(n[0]) < F64(0.9):
+        a = wp.vec3d(F64(1.0), F64(0.0), F64(0.0))
+    t1 = wp.cross(n, a)
+    t1 = t1 / wp.sqrt(wp.dot(t1, t1))
+    return t1, wp.cross(n, t1)
+
+
 def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit tangents (k, 3) completing the unit normals n (k, 3) to right-handed frames:
     t1 along n x e_x (n x e_y where n is within 0.9 of e_x's direction), t2 = n x t1."""

@@ -18,7 +18,7 @@ Scene options (all optional)::
       max_contacts: 2048     # keep the deepest ones beyond this
       device_lcp_rows: 32    # with a dense factor: solve an LCP of up to this many rows on the
                              # device, with the correction (0: always on the host)
-      device_rows: true      # with the device LCP and no friction or mesh obstacle: build its
+      device_rows: true      # with the device LCP and no mesh obstacle: build its (tangent too)
                              # rows on the device too, so that the detection, the LCP and the
                              # correction follow the free motion in the same read (false: rows
                              # built on the host from the read detection)

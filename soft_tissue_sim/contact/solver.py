@@ -344,13 +344,14 @@ class ContactSolver:
     # ------------------------------------------------- rows on the device
     def device_rows_plan(self, body: BodyView) -> DeviceStep | None:
         """This step's contacts as launches after the free motion (:mod:`.device_rows`: the
-        detection, the rows, the LCP and dx on the device), where they can be: the option on,
-        no friction and no mesh obstacle, the LCP solvable on the device, a surface, and the
-        last step within the row limit (a larger set would overflow and be redone on the host).
-        Call after :meth:`prepare`; None: the host path (:meth:`step`)."""
+        detection, the rows, the LCP and dx on the device), where they can be: the option on, no
+        mesh obstacle, the LCP solvable on the device, a surface, and the last step within the
+        row limit (a larger set would overflow and be redone on the host). The objects' motion
+        and friction for the tangent rows are sent here. Call after :meth:`prepare`; None: the
+        host path (:meth:`step`)."""
         o = self.options
         limit = min(o["device_lcp_rows"], o["max_contacts"])
-        if not o["device_rows"] or not self._frictionless or self._mesh_objects or self._last_rows > limit:
+        if not o["device_rows"] or self._mesh_objects or self._last_rows > limit:
             return None
         inner = self._device_solver(body, 1)
         topo = self._topo
@@ -359,6 +360,7 @@ class ContactSolver:
         if self._device_rows is None or self._device_rows.rows != o["device_lcp_rows"]:
             self._device_rows = DeviceRows(o["device_lcp_rows"], len(self.objects), self.device)
         self._device_rows.surface(topo)
+        self._device_rows.objects(self.objects, float(body.integrator.dt), o["friction"])
         return DeviceStep(self, body, inner, limit)
 
     def finish_device_rows(self, body: BodyView, plan: DeviceStep, reads: list) -> ContactStats | None:
@@ -372,9 +374,9 @@ class ContactSolver:
         out, header, record, wrench = reads
         m = int(header[1])
         if header[2] != 0.0 or (m and out[2] == 0.0):
-            self._last_rows = max(int(header[0]), self._last_rows)
+            self._last_rows = max(int(header[0]), int(header[6]), self._last_rows)
             return None
-        self._last_rows = m
+        self._last_rows = int(header[6])
         self._device_rows.kept = header[5] > 0.0  # pressed contacts' forces kept at their slots
         for oi, obj in enumerate(self.objects):
             obj.force, obj.torque = wrench[oi, :3].copy(), wrench[oi, 3:].copy()
@@ -383,7 +385,7 @@ class ContactSolver:
             self._warm = WarmStart()
             return ContactStats(rows_device=True, contact_ms=1000.0 * (time.perf_counter() - t0))
         self.contacts = self._warm = None  # made from the read when asked for
-        self._device_read = np.array(record[:m]), np.array(out[3:3 + m]), body.node_uids, body.fem.n_nodes
+        self._device_read = np.array(record[:m]), body.node_uids, body.fem.n_nodes
         stats = ContactStats(contacts=m, self_contacts=int(header[3]), face_contacts=int(header[4]),
                              active_contacts=int(header[5]), lcp_device=True, rows_device=True,
                              compliance_fallbacks=self.compliance_fallbacks, compliance="preconditioner",
@@ -396,9 +398,8 @@ class ContactSolver:
         """The last step's contacts with their forces (made from the device rows' record at the
         first ask after a step solved there)."""
         if self._contacts is None:
-            rec, ln, *_ = self._device_read
-            c = _record_contacts(rec)
-            self._contacts = c.responded(ln, ln[:, None] * c.normal)
+            rec = self._device_read[0]
+            self._contacts = _record_contacts(rec).responded(rec[:, 19].copy(), rec[:, 16:19].copy())
         return self._contacts
 
     @contacts.setter
@@ -575,7 +576,8 @@ class ContactSolver:
 
 
 def _record_contacts(rec: np.ndarray) -> Contacts:
-    """The contacts of a device rows' record (:data:`.device_rows.RECORD` columns)."""
+    """The contacts of a device rows' record (:data:`.device_rows.RECORD` columns; their forces
+    are added by the caller)."""
     return Contacts(rec[:, 1].astype(np.int64), rec[:, 2].astype(np.int64), rec[:, 9], rec[:, 6:9], rec[:, 3:6],
                     rec[:, 10:13].astype(np.int64), rec[:, 13:16])
 
@@ -606,7 +608,7 @@ class DeviceStep:
         b = self.body
         self.solver.launch_detection_of(b)
         topo = self.solver._topo
-        self.rows.launch(topo, b.integrator.x, b.fem.free, self.lcp, self.limit)
+        self.rows.launch(topo, b.integrator.x, b.fem.free, self.lcp, self.limit, self.solver.options["friction"])
         dx = self.lcp.launch(self.inner, b.fem.free, self.dt, *self._args)
         self.rows.forces(self.lcp, topo.origins)
         return dx, [self.lcp.out, self.rows.header, self.rows.record, self.rows.wrench]

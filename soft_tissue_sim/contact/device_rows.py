@@ -297,8 +297,15 @@ class DeviceRows:
 
     TABLES = {"node": wp.int32, "obj": wp.int32, "kind": wp.int32, "tri_row": wp.int32, "tris": wp.vec3i}
 
-    def __init__(self, rows: int, n_objects: int, device):
+    def __init__(self, rows: int, objects: list, friction: float, device):
+        """``objects``: the contact solver's (their order is the slots' object index);
+        ``friction``: the scene's coefficient (a self contact's, and an object's without its own)."""
         self.rows = int(rows)
+        n_objects = len(objects)
+        self.friction = float(friction)
+        # any contact with tangent rows: else the objects' motion is never read (their coefficients
+        # stay the staged zeros)
+        self.frictional = self.friction > 0.0 or any((o.friction or 0.0) > 0.0 for o in objects)
         self.device = wp.get_device(device)
         d = self.device
         self.count = wp.zeros(1, dtype=wp.int32, device=d)
@@ -343,9 +350,12 @@ class DeviceRows:
             wp.launch(advance_epoch_kernel, 1, [self.epoch], device=self.device)
             self.kept = False
 
-    def objects(self, objects: list, dt: float, scene_mu: float) -> None:
+    def objects(self, objects: list, dt: float) -> None:
         """The objects' motion in the step (``displacement_map``) and friction coefficient (their
-        own, else ``scene_mu``) for the tangent rows, sent (no wait); outside any capture."""
+        own, else the scene's) for the tangent rows, sent (no wait); outside any capture. Nothing
+        where no contact can have friction."""
+        if not self.frictional:
+            return
         staged = self._motion.view()
         staged[:] = 0.0
         for oi, obj in enumerate(objects):
@@ -353,7 +363,7 @@ class DeviceRows:
             b = MOTION * oi
             staged[b: b + 3] = M
             staged[b + 3] = c
-            staged[b + 4, 0] = scene_mu if obj.friction is None else obj.friction
+            staged[b + 4, 0] = self.friction if obj.friction is None else obj.friction
         self._motion.send()
 
     def key(self, limit: int) -> tuple:
@@ -361,7 +371,7 @@ class DeviceRows:
                 self.wrench.ptr, self.slot_node.ptr, self.tris.ptr, self.warm_force.ptr, self.warm_stamp.ptr,
                 self._motion.array.ptr)
 
-    def launch(self, topo, x: wp.array, free: wp.array, lcp, limit: int, scene_mu: float) -> None:
+    def launch(self, topo, x: wp.array, free: wp.array, lcp, limit: int) -> None:
         """Steps 1-2 for the detection just launched into ``topo.out``: the rows (at most
         ``limit``) of the contacts at the free motion ``x`` (from ``topo.x_start``, the step's
         start) into ``lcp``'s (a :class:`.device_lcp.DeviceLCP`) arrays, with the objects' motion
@@ -374,8 +384,9 @@ class DeviceRows:
         wp.launch(device_rows_kernel, 1,
                   [self.count, self.list, int(limit), self.slot_node, self.slot_obj, self.slot_kind, self.slot_tri_row,
                    self.tris, out.gap, out.normal, out.point, out.tri, out.bary, x, topo.x_start, free,
-                   self._motion.array, float(scene_mu), self.warm_force, self.warm_stamp, self.epoch, lcp.sizes, lcp.row_start, lcp.n_rows, lcp.nodes, lcp.coef, lcp.d0,
-                   lcp.lam0, lcp.mu, self.record, self.header], device=d)
+                   self._motion.array, self.friction, self.warm_force, self.warm_stamp, self.epoch, lcp.sizes,
+                   lcp.row_start, lcp.n_rows, lcp.nodes, lcp.coef, lcp.d0, lcp.lam0, lcp.mu, self.record,
+                   self.header], device=d)
 
     def forces(self, lcp, origins: wp.array) -> None:
         """Step 4, after ``lcp``'s launch: the forces, the objects' wrenches about ``origins``

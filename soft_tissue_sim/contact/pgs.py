@@ -54,10 +54,10 @@ def contact_update(
     pyramid: int,
 ):
     """Projected Gauss-Seidel update of the contact whose normal row is r, from the current
-    lambda and delta = W lambda + d0 (neither written; float64 arrays, or vectors in the
-    thread's own memory as :mod:`.device_lcp`'s small kernels hold them). Returns (lambda_n, lambda_t1,
-    lambda_t2, change), the change being the largest W_rr |new - old| of its rows [m]; for an
-    active normal row that is |delta_n|."""
+    lambda and delta = W lambda + d0 (neither written; float64 arrays, or as :mod:`.device_lcp`'s
+    block holds them: lambda a vector in each lane's memory, delta a shared tile). Returns
+    (lambda_n, lambda_t1, lambda_t2, change), the change being the largest W_rr |new - old| of
+    its rows [m]; for an active normal row that is |delta_n|."""
     zero = F64(0.0)
     dn = delta[r]
     ln = wp.max(zero, lam[r] - dn / W[r, r])
@@ -128,7 +128,7 @@ def jacobi_change(
     nc: int,
 ):
     """The largest change of :func:`contact_update` over the nc contacts from lambda and delta
-    as they are (arrays, or the thread's vectors), none applied [m]."""
+    as they are (arrays, or the block's vector and tile), none applied [m]."""
     res = F64(0.0)
     for c in range(nc):
         ln, l1, l2, ch = contact_update(W, delta, lam, row_start[c], n_rows[c], mu[c], pyramid)

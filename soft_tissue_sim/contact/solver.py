@@ -358,9 +358,9 @@ class ContactSolver:
         if inner is None or topo is None or not topo.matches(body.fem) or not len(topo.surface):
             return None
         if self._device_rows is None or self._device_rows.rows != o["device_lcp_rows"]:
-            self._device_rows = DeviceRows(o["device_lcp_rows"], len(self.objects), self.device)
+            self._device_rows = DeviceRows(o["device_lcp_rows"], self.objects, o["friction"], self.device)
         self._device_rows.surface(topo)
-        self._device_rows.objects(self.objects, float(body.integrator.dt), o["friction"])
+        self._device_rows.objects(self.objects, float(body.integrator.dt))
         return DeviceStep(self, body, inner, limit)
 
     def finish_device_rows(self, body: BodyView, plan: DeviceStep, reads: list) -> ContactStats | None:
@@ -608,7 +608,7 @@ class DeviceStep:
         b = self.body
         self.solver.launch_detection_of(b)
         topo = self.solver._topo
-        self.rows.launch(topo, b.integrator.x, b.fem.free, self.lcp, self.limit, self.solver.options["friction"])
+        self.rows.launch(topo, b.integrator.x, b.fem.free, self.lcp, self.limit)
         dx = self.lcp.launch(self.inner, b.fem.free, self.dt, *self._args)
         self.rows.forces(self.lcp, topo.origins)
         return dx, [self.lcp.out, self.rows.header, self.rows.record, self.rows.wrench]

@@ -406,8 +406,7 @@ class SimNode(Node):
         s = self._settings
         try:
             pos, quat, stamp_ns = check_pose(msg, self.frame_id, self._now_ns(), s["pose_timeout_s"],
-                                             s["quaternion_tolerance"],
-                                   self._workspace())
+                                             s["quaternion_tolerance"], self._workspace())
         except InputRejected as exc:
             return self._reject("pose", name, exc.reason, str(exc))
         except Exception as exc:  # noqa: BLE001

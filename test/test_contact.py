@@ -423,11 +423,12 @@ def test_capsule_lying_across_an_edge_counts_it_once(tmp_path, along):
         topo = sim.contact._topo
         a, b = inst.segment_world()
         sec = topo.out.section(0, "face")
-        wp.launch(capsule_faces_kernel, len(faces),
-                  [wp.array(pts, dtype=wp.vec3d), topo.faces_wp, wp.array(np.ones_like(faces), dtype=wp.vec3i),
-                   wp.array([a, b, a, b], dtype=wp.vec3d), wp.array([r, 1.0, 0.0], dtype=wp.float64), 0.002,
-                   wp.zeros(1, dtype=wp.int32), 0],
-                  outputs=[topo.out.slots(sec)], device="cpu")
+        with wp.ScopedDevice("cpu"):  # the scene's device, whatever Warp's default is
+            wp.launch(capsule_faces_kernel, len(faces),
+                      [wp.array(pts, dtype=wp.vec3d), topo.faces_wp, wp.array(np.ones_like(faces), dtype=wp.vec3i),
+                       wp.array([a, b, a, b], dtype=wp.vec3d), wp.array([r, 1.0, 0.0], dtype=wp.float64), 0.002,
+                       wp.zeros(1, dtype=wp.int32), 0],
+                      outputs=[topo.out.slots(sec)])
         act = topo.out.active.numpy()[sec.base: sec.base + sec.size]
         assert sorted(np.flatnonzero(act).tolist()) == ridge_faces
 
@@ -460,7 +461,7 @@ def test_a_tool_piercing_a_face_pushes_it_back_unless_it_is_a_blade(tilt):
         M = np.linalg.lstsq(np.stack([vb - va, vc - va], axis=1), (S - va).T, rcond=None)[0]
         inside = (M >= 0).all(axis=0) & (M.sum(axis=0) <= 1)
         expected = (S[inside, 2] - 0.01).min() - r
-        x_start = wp.array(pts, dtype=wp.vec3d)
+        x_start = wp.array(pts, dtype=wp.vec3d, device="cpu")
         above = centre + [0.0, 0.0, 0.01]
         for name, before, rows in (("probe", above, 1), ("scalpel", above, 0), ("probe", tip, 0)):
             for other in ("probe", "scalpel"):  # the other tool far away
@@ -541,11 +542,12 @@ def test_segment_triangle_closest_points_agree_with_brute_force_sampling():
     ]
     C = np.array(cases)
     n = len(C)
-    s, w, d2 = wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.vec3d), wp.zeros(n, dtype=wp.float64)
-    crossing = wp.zeros(n, dtype=wp.int32)
-    wp.launch(_closest_kernel, n, [wp.array(C[:, :2].reshape(-1, 3), dtype=wp.vec3d),
-                                   wp.array(C[:, 2:].reshape(-1, 3), dtype=wp.vec3d)],
-              outputs=[s, w, d2, crossing], device="cpu")
+    with wp.ScopedDevice("cpu"):
+        s, w, d2 = wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.vec3d), wp.zeros(n, dtype=wp.float64)
+        crossing = wp.zeros(n, dtype=wp.int32)
+        wp.launch(_closest_kernel, n, [wp.array(C[:, :2].reshape(-1, 3), dtype=wp.vec3d),
+                                       wp.array(C[:, 2:].reshape(-1, 3), dtype=wp.vec3d)],
+                  outputs=[s, w, d2, crossing])
     s, w, d2, crossing = s.numpy(), w.numpy(), d2.numpy(), crossing.numpy()
     for i, (a, b, va, vb, vc) in enumerate(C):
         ref = brute_force_distance(a, b, va, vb, vc)

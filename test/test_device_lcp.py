@@ -13,7 +13,7 @@ import pytest
 import warp as wp
 
 from soft_tissue_sim import load_scene
-from soft_tissue_sim.contact.device_lcp import SMALL, device_pgs_kernel
+from soft_tissue_sim.contact.device_lcp import IWORK_ROWS, LANES, SMALL, WORK_ROWS, pgs_kernel
 from soft_tissue_sim.contact.pgs import FIRST_SWEEPS, PGS
 from soft_tissue_sim.dense_inverse import DenseInverse
 from soft_tissue_sim.material import ParameterError
@@ -50,10 +50,11 @@ def _device_pgs(W, d0, lam0, row_start, rows, mu, cap, tol, pyramid=False, first
     arr = lambda a, t=wp.float64: wp.array(a, dtype=t, device=d)  # noqa: E731
     lam, delta, info = (wp.zeros(cap, dtype=wp.float64, device=d), wp.zeros(cap, dtype=wp.float64, device=d),
                         wp.zeros(3, dtype=wp.float64, device=d))
-    wp.launch_tiled(device_pgs_kernel, dim=[1], inputs=[
+    wp.launch_tiled(pgs_kernel(cap), dim=[1], inputs=[
         arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(pad(row_start), wp.int32), arr(pad(rows), wp.int32), arr(pad(mu)),
         arr(np.array([m, nc], np.int32), wp.int32), max_iterations, tol, int(pyramid), first,
-        wp.zeros((cap, cap), dtype=wp.float64, device=d), lam, delta, info], block_dim=SMALL, device=d)
+        wp.zeros((cap, cap), dtype=wp.float64, device=d), wp.zeros((WORK_ROWS, cap), dtype=wp.float64, device=d),
+        wp.zeros((IWORK_ROWS, cap), dtype=wp.int32, device=d), lam, delta, info], block_dim=LANES, device=d)
     return lam.numpy()[:m], info.numpy(), delta.numpy()[:m]
 
 
@@ -142,20 +143,28 @@ def test_sweeps_that_end_above_the_tolerance_are_finished_on_the_device_as_on_th
     assert np.abs(runs[False][0] - host[0]).max() > 0.0 or DEVICE != "cpu"
 
 
-def test_the_device_kernels_active_set_finish_is_the_hosts():
+def _stalling_lcp(rng, m):
+    """A random frictionless LCP of m rows whose W is of low rank plus a small multiple of I (the
+    nearly repeated rows that stall the sweeps): (W, d0, lam0)."""
+    B = rng.standard_normal((m, int(rng.integers(m // 2 + 1, m + 1))))
+    W = B @ B.T / m + 10.0 ** rng.uniform(-9, -2) * np.eye(m)
+    d0 = rng.standard_normal(m) * 1e-3
+    lam0 = np.abs(rng.standard_normal(m)) * 1e-4 * (rng.random(m) < 0.5)
+    return W, d0, lam0
+
+
+@pytest.mark.parametrize("cap, fewest, trials", [(32, 2, 24), (256, 33, 8)])
+def test_the_device_kernels_active_set_finish_is_the_hosts(cap, fewest, trials):
     """device_pgs_kernel with the active-set finish against the host's PGS (sweeps, then
-    :func:`~soft_tissue_sim.contact.pgs.active_set`) on random frictionless LCPs up to 32 rows,
-    W of low rank plus a small multiple of I (the nearly repeated rows that stall the sweeps):
-    the same sweeps and face solves, and lambda to the face solves' rounding."""
-    rng = np.random.default_rng(5)
-    cap, tol, finished = 32, 1e-10, 0
+    :func:`~soft_tissue_sim.contact.pgs.active_set`) on random frictionless LCPs (up to 32 rows,
+    and from 33 to 256: more rows than the block's lanes) that stall the sweeps: the same
+    sweeps and face solves, and lambda to the face solves' rounding."""
+    rng = np.random.default_rng(5 + cap)
+    tol, finished = 1e-10, 0
     pgs = PGS(active_set=True)
-    for _ in range(24):
-        m = int(rng.integers(2, cap + 1))
-        B = rng.standard_normal((m, int(rng.integers(m // 2 + 1, m + 1))))
-        W = B @ B.T / m + 10.0 ** rng.uniform(-9, -2) * np.eye(m)
-        d0 = rng.standard_normal(m) * 1e-3
-        lam0 = np.abs(rng.standard_normal(m)) * 1e-4 * (rng.random(m) < 0.5)
+    for _ in range(trials):
+        m = int(rng.integers(fewest, cap + 1))
+        W, d0, lam0 = _stalling_lcp(rng, m)
         one = np.arange(m, dtype=np.int32)  # each row a contact
         ref, its, res = pgs.solve(W, d0, one, np.ones(m, np.int32), np.zeros(m), 200, tol, False, lam0)
         got, inf, _ = _device_pgs(W, d0, lam0, one, np.ones(m, np.int32), np.zeros(m), cap, tol)
@@ -163,7 +172,7 @@ def test_the_device_kernels_active_set_finish_is_the_hosts():
         assert res <= tol and inf[1] <= tol
         np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
         finished += its > FIRST_SWEEPS
-    assert finished >= 12  # most needed the finish
+    assert finished >= trials // 2  # most needed the finish
 
 
 @pytest.mark.parametrize("device_rows", [False, True])
@@ -251,7 +260,7 @@ def test_the_device_kernel_solves_the_hosts_problems():
     same sweeps, residual and lambda (within 32 rows by the block's lanes, beyond by one lane in
     the device's memory); an indefinite W is refused with lambda = 0."""
     pgs = PGS(active_set=False)
-    for cap, seed, fewest, most in ((24, 11, 2, 7), (64, 12, 12, 20)):
+    for cap, seed, fewest, most in ((24, 11, 2, 7), (64, 12, 12, 20), (256, 13, 40, 80)):
         sizes = []
         for trial, (W, d0, lam0, row_start, rows, mu, pyramid) in enumerate(_random_lcps(seed, 8, most, fewest)):
             if trial == 7:
@@ -265,21 +274,31 @@ def test_the_device_kernel_solves_the_hosts_problems():
             np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-15)
             assert inf[1] == pytest.approx(res, rel=1e-6, abs=1e-18)
             sizes.append(len(d0))
-        assert max(sizes) > SMALL or cap < SMALL  # the larger capacity had a set beyond the block's
+        assert max(sizes) > LANES or cap < LANES  # the larger capacities had sets of more rows than lanes
 
 
-def test_the_blocks_lanes_give_the_one_lanes_lambda():
-    """The block's lanes share delta in shared memory and wait for each other where one reads
-    what another writes: with Warp's CPU blocks on (real lanes, switching at the block's
-    barriers) the kernel gives one lane's lambda, sweeps and delta to the bit. A read of delta
-    racing a write (no barrier) changes them. On the CPU whatever the test device (a GPU's
-    block is compared with the host above)."""
-    problems = list(_random_lcps(21, 12, 11))
-    one = [_device_pgs(*p[:6], SMALL, 1e-10, p[6], device="cpu") for p in problems]
+@pytest.mark.parametrize("cap", [SMALL, 2 * LANES])
+def test_the_blocks_lanes_give_the_one_lanes_lambda(cap):
+    """The block's lanes share delta in shared memory, W's check a column at a time and the
+    active-set finish of lane 0, and wait for each other where one reads what another writes:
+    with Warp's CPU blocks on (real lanes, switching at the block's barriers) the kernel gives
+    one lane's lambda, sweeps and delta to the bit, the narrow kernel and the wide one (sets of
+    more rows than lanes), with friction and frictionless sets that need the finish. A read
+    racing a write (any of the three barriers left out) changes them. On the CPU whatever the
+    test device (a GPU's block is compared with the host above)."""
+    problems = [p for p in _random_lcps(21, 12, 20, 8) if len(p[1]) <= cap]
+    rng = np.random.default_rng(22)
+    for m in (cap // 2, cap - 7, cap):
+        one = np.arange(m, dtype=np.int32)
+        problems.append((*_stalling_lcp(rng, m), one, np.ones(m, np.int32), np.zeros(m), False))
+    assert max(len(p[1]) for p in problems) > LANES or cap <= LANES
+    solve = lambda p: _device_pgs(*p[:6], cap, 1e-10, p[6], device="cpu")  # noqa: E731
+    one = [solve(p) for p in problems]
+    assert sum(int(i[0]) > FIRST_SWEEPS for _, i, _ in one[-3:]) >= 2  # the finish ran
     before = wp.config.enable_cpu_blocks
     wp.config.enable_cpu_blocks = True
     try:
-        lanes = [_device_pgs(*p[:6], SMALL, 1e-10, p[6], device="cpu") for p in problems]
+        lanes = [solve(p) for p in problems]
     finally:
         wp.config.enable_cpu_blocks = before
     for (l1, i1, d1), (l2, i2, d2) in zip(one, lanes):

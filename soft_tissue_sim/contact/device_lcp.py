@@ -10,17 +10,17 @@ correction, the penetration detection and the guard (one graph a step):
 2. W = dt^2 H P^-1 H^T is gathered into a matrix of the buffers' capacity, the row count read
    on the device (:func:`~soft_tissue_sim.dense_inverse.delassus_matrix_kernel`), so that one
    captured graph serves every contact count;
-3. :func:`device_pgs_kernel`, one block of :data:`SMALL` lanes, checks W as
+3. :func:`device_pgs_kernel`, one block of :data:`LANES` lanes, checks W as
    :func:`.compliance.positive_definite` does (a Cholesky factorization of W + 1e-10 max(diag
-   W) I) and runs the projected Gauss-Seidel sweeps of :mod:`.pgs` from the warm start. Within
-   :data:`SMALL` rows every lane makes each contact's update (the same values from the same
-   reads) and the lanes move delta = W lambda + d0, held in the block's shared memory, by the
-   changed rows' columns of W together, each lane its own elements (:func:`block_pgs_sweeps`);
-   a frictionless set (as many contacts as rows) is finished, as the host does, by the
-   active-set method where the sweeps stall (:func:`small_active_set`, the host's
-   :func:`.pgs.active_set`). The same operations in the same order as the host's kernel, so
-   the same lambda to the bit where no multiply-add is fused differently. A larger set is
-   swept by one lane in the device's memory;
+   W) I, a column at a time, the lanes sharing each column's rows) and runs the projected
+   Gauss-Seidel sweeps of :mod:`.pgs` from the warm start: every lane makes each contact's
+   update (the same values from the same reads) and the lanes move delta = W lambda + d0,
+   held in the block's shared memory, by the changed rows' columns of W together, each lane
+   its own elements (:func:`block_pgs_sweeps`); a frictionless set (as many contacts as rows)
+   is finished, as the host does, by the active-set method where the sweeps stall
+   (:func:`device_active_set` on one lane, the host's :func:`.pgs.active_set`). The same
+   operations in the same order as the host's kernel, so the same lambda to the bit where no
+   multiply-add is fused differently;
 4. dx = dt^2 P^-1 H^T lambda (eq. 2), zeroed on the fixed nodes, from the columns of the rows'
    nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in double precision as
    W is gathered).
@@ -30,8 +30,8 @@ correction. Where W is not positive definite the device solve makes lambda = 0 (
 correction) and says so: the caller restores the free motion and solves the step's contacts
 on the host, with the block diagonal of A (as :meth:`.solver.ContactSolver._respond` does).
 Sweeps with friction that end above the tolerance stand, as they do on the host. A sweep
-costs O(m^2) (O(m) a lane within :data:`SMALL` rows): the row limit keeps it within
-microseconds; larger sets are solved on the host.
+costs O(m) a lane for the rows it changes, the check O(m^3 / LANES); sets beyond the row
+limit (at most :data:`BIG`) are solved on the host.
 """
 
 from __future__ import annotations
@@ -45,9 +45,11 @@ from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
 from .pgs import FIRST_SWEEPS, contact_update, jacobi_change, pgs_sweeps
 
-SMALL = 32  # the lanes of device_pgs_kernel's block: the most rows swept by all of them together
+LANES = 32  # the block of device_pgs_kernel
+SMALL = 32  # the rows of the narrower kernel (the default limit of contact.device_lcp_rows)
+BIG = 256  # the most rows of a device LCP (the limit of contact.device_lcp_rows)
 # no gradients are taken here; one block size for every launch of the module (one compilation)
-wp.set_module_options({"enable_backward": False, "block_dim": SMALL})
+wp.set_module_options({"enable_backward": False, "block_dim": LANES})
 
 
 @wp.kernel
@@ -58,19 +60,13 @@ def scaled_free_kernel(y: wp.array(dtype=wp.vec3d), s: wp.float64, free: wp.arra
     out[i] = (s * free[i]) * y[i]
 
 
-_vec_small = wp.types.vector(length=SMALL, dtype=wp.float64)
-_ivec_small = wp.types.vector(length=SMALL, dtype=wp.int32)
-
-
 @wp.func
-def cholesky_rows(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: _ivec_small, p: int,
-                  shift: wp.float64, gathered: int):
-    """The Cholesky factor of W's rows and columns (P[0..p) where ``gathered``, else 0..p) plus
-    shift I into L's leading p x p block; 1, or 0 where it is not positive definite."""
+def cholesky_rows(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
+                  p: int, shift: wp.float64):
+    """The Cholesky factor of W's rows and columns P[0..p) plus shift I into L's leading p x p
+    block (one lane); 1, or 0 where it is not positive definite."""
     for j in range(p):
-        rj = j
-        if gathered != 0:
-            rj = P[j]
+        rj = P[j]
         s = W[rj, rj] + shift
         for k in range(j):
             s -= L[j, k] * L[j, k]
@@ -79,10 +75,7 @@ def cholesky_rows(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float6
         ljj = wp.sqrt(s)
         L[j, j] = ljj
         for i in range(j + 1, p):
-            ri = i
-            if gathered != 0:
-                ri = P[i]
-            t = W[ri, rj]
+            t = W[P[i], rj]
             for k in range(j):
                 t -= L[i, k] * L[j, k]
             L[i, j] = t / ljj
@@ -90,79 +83,103 @@ def cholesky_rows(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float6
 
 
 @wp.func
-def positive_definite_rows(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), m: int):
+def barrier(gate: Any):
+    """Every lane of the block waits here (``gate``: a shared tile of zeros, each lane adding 0
+    to its own elements); what a lane wrote before it, shared or in the device's memory, the
+    others see after it."""
+    wp.tile_axpy(F64(0.0), gate, gate)
+
+
+@wp.func
+def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), m: int, lane: int,
+                            bd: int, gate: Any):
     """1 if the leading m x m block of the symmetric W is usable by Gauss-Seidel (finite, positive
     diagonal, a Cholesky factorization of W + 1e-10 max(diag W) I into L that succeeds), else 0:
-    :func:`..compliance.positive_definite` on one thread."""
+    :func:`..compliance.positive_definite` by the block, a column at a time (every lane its
+    pivot, each lane its own rows below it; the same sums in the same order as one lane's)."""
     dmax = F64(0.0)
     for i in range(m):
         d = W[i, i]
         if not (d > F64(0.0)) or not wp.isfinite(d):
             return 0
         dmax = wp.max(dmax, d)
-    return cholesky_rows(W, L, _ivec_small(), m, F64(1e-10) * dmax, 0)
-
-
-@wp.func
-def checked_start(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), m: int,
-                  lam: wp.array(dtype=wp.float64), info: wp.array(dtype=wp.float64)):
-    """A device LCP's start: lambda and info = [sweeps, residual, W usable] zeroed, W checked
-    (:func:`positive_definite_rows`, its factor in L); 1 (info[2] = 1) where W is usable, else 0
-    (lambda stays 0)."""
-    for i in range(m):
-        lam[i] = F64(0.0)
-    info[0] = F64(0.0)
-    info[1] = F64(0.0)
-    info[2] = F64(0.0)
-    if positive_definite_rows(W, L, m) == 0:
-        return 0
-    info[2] = F64(1.0)
+    shift = F64(1e-10) * dmax
+    for j in range(m):
+        s = W[j, j] + shift
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not (s > F64(0.0)) or not wp.isfinite(s):
+            return 0
+        ljj = wp.sqrt(s)
+        for i in range(j + 1 + lane, m, bd):
+            t = W[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / ljj
+        barrier(gate)  # column j written before the next pivot reads it
     return 1
 
 
 @wp.func
-def small_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lv: _vec_small, m: int):
-    """delta = W lambda + d0 over the first m rows, summed afresh (:func:`.pgs.exact_delta`)."""
-    dv = _vec_small()
+def rows_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64),
+               m: int, out: wp.array(dtype=wp.float64)):
+    """out = W lambda + d0 over the first m rows, summed afresh (:func:`.pgs.exact_delta`)."""
     for i in range(m):
         d = d0[i]
         for j in range(m):
-            d += W[i, j] * lv[j]
-        dv[i] = d
-    return dv
+            d += W[i, j] * lam[j]
+        out[i] = d
 
 
 @wp.func
-def face_substitute(L: wp.array2d(dtype=wp.float64), b: _vec_small, p: int):
-    """x with L L^T x = b (L's leading p x p block, lower)."""
-    y = _vec_small()
+def face_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
+                    y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64)):
+    """x with L L^T x = b (L's leading p x p block, lower; y: work)."""
     for i in range(p):
         t = b[i]
         for k in range(i):
             t -= L[i, k] * y[k]
         y[i] = t / L[i, i]
-    x = _vec_small()
     for q in range(p):
         i = p - 1 - q
         t = y[i]
         for k in range(i + 1, p):
             t -= L[k, i] * x[k]
         x[i] = t / L[i, i]
-    return x
+
+
+# rows of the active-set method's work arrays (DeviceLCP.work: float64, DeviceLCP.iwork: int32)
+_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA = 0, 1, 2, 3, 4, 5, 6, 7, 8
+_PASSIVE, _P, _LOW = 0, 1, 2
+WORK_ROWS, IWORK_ROWS = 9, 3
 
 
 @wp.func
-def small_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), L: wp.array2d(dtype=wp.float64),
-                     lam0: _vec_small, m: int, tolerance: wp.float64, max_steps: int):
-    """:func:`.pgs.active_set` on one thread (Lawson and Hanson's method from ``lam0``, the face
+def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
+                      L: wp.array2d(dtype=wp.float64), lam0: wp.array(dtype=wp.float64), m: int,
+                      tolerance: wp.float64, max_steps: int, work: wp.array2d(dtype=wp.float64),
+                      iwork: wp.array2d(dtype=wp.int32)):
+    """:func:`.pgs.active_set` on one lane (Lawson and Hanson's method from ``lam0``, the face
     problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
-    refinement against W_PP): the same steps in the same order; returns (lambda, face solves)."""
+    refinement against W_PP): the same steps in the same order. lambda goes to
+    ``work[_LAM]``; returns the face solves made."""
     zero = F64(0.0)
-    lam = _vec_small()
-    passive = _ivec_small()
+    lam = work[_LAM]
+    s = work[_S]
+    b = work[_B]
+    x = work[_X]
+    x2 = work[_X2]
+    y = work[_Y]
+    r = work[_R]
+    rat = work[_RAT]
+    dv = work[_DELTA]
+    passive = iwork[_PASSIVE]
+    P = iwork[_P]
+    low = iwork[_LOW]
     dmax = zero
     for i in range(m):
         lam[i] = wp.max(lam0[i], zero)
+        passive[i] = 0
         if lam[i] > zero:
             passive[i] = 1
         dmax = wp.max(dmax, W[i, i])
@@ -170,37 +187,35 @@ def small_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.floa
     steps = int(0)
     joined = int(-1)
     while steps < max_steps:
-        P = _ivec_small()
         p = int(0)
         for i in range(m):
+            s[i] = zero
             if passive[i] != 0:
                 P[p] = i
                 p += 1
-        s = _vec_small()
         if p > 0:
             steps += 1
-            if cholesky_rows(W, L, P, p, shift, 1) == 0:
-                return lam, steps
-            b = _vec_small()
+            if cholesky_rows(W, L, P, p, shift) == 0:
+                return steps
             for a in range(p):
                 b[a] = -d0[P[a]]
-            x = face_substitute(L, b, p)
-            r = _vec_small()
+            face_substitute(L, b, p, y, x)
             for a in range(p):
                 t = b[a]
                 for c in range(p):
                     t -= W[P[a], P[c]] * x[c]
                 r[a] = t
-            x2 = face_substitute(L, r, p)
+            face_substitute(L, r, p, y, x2)
             for a in range(p):
                 s[P[a]] = x[a] + x2[a]
-            rat = _vec_small()  # the ratio test over the rows of P the face solution leaves <= 0
-            low = _ivec_small()
-            nlow = int(0)
+            nlow = int(0)  # the ratio test over the rows of P the face solution leaves <= 0
             alpha = F64(0.0)
+            for i in range(m):
+                low[i] = 0
             for a in range(p):
                 i = P[a]
                 if s[i] <= zero:
+                    rat[i] = zero
                     gap = lam[i] - s[i]
                     if gap > zero:
                         rat[i] = lam[i] / gap
@@ -211,7 +226,7 @@ def small_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.floa
             if nlow > 0:  # to the boundary: the rows of P reaching 0 first leave it
                 if alpha <= zero and joined >= 0:
                     if low[joined] != 0 and rat[joined] <= alpha:
-                        return lam, steps
+                        return steps
                 for i in range(m):
                     lam[i] = lam[i] + alpha * (s[i] - lam[i])
                     if low[i] != 0 and rat[i] <= alpha:
@@ -219,8 +234,9 @@ def small_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.floa
                         passive[i] = 0
                 joined = -1
                 continue
-        lam = s
-        dv = small_delta(W, d0, lam, m)
+        for i in range(m):
+            lam[i] = s[i]
+        rows_delta(W, d0, lam, m, dv)
         j = int(-1)
         best = F64(0.0)
         for i in range(m):
@@ -230,156 +246,169 @@ def small_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.floa
                     j = i
                     best = w
         if j < 0 or best <= tolerance:
-            return lam, steps
+            return steps
         passive[j] = 1
         joined = j
-    return lam, steps
+    return steps
 
 
-@wp.func
-def barrier(gate: Any):
-    """Every lane of the block waits here (``gate``: a shared tile of zeros, each lane adding 0
-    to its own elements)."""
-    wp.tile_axpy(F64(0.0), gate, gate)
+def _block_solver(width: int) -> wp.Kernel:
+    """:func:`device_pgs` for sets of up to ``width`` rows: delta in a shared tile of that many
+    elements, and a changed row's column of W read as many (one kernel per width, so that the
+    small sets of most steps move no more than their own rows)."""
+
+    @wp.func
+    def block_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64),
+                    m: int, lane: int, bd: int, dv: Any, gate: Any):
+        """delta = W lambda + d0 over the first m rows into the shared tile ``dv`` (0 beyond), each
+        lane its own rows (i = lane + k block_dim, as the tile's operations divide it), each summed
+        as :func:`rows_delta` does. Every lane assigns in every round: an element's assignment
+        waits at the block's barrier (as the lanes wait before the first)."""
+        barrier(gate)
+        for base in range(0, width, bd):
+            i = base + lane
+            d = F64(0.0)
+            if i < m:
+                d = d0[i]
+                for j in range(m):
+                    d += W[i, j] * lam[j]
+            dv[i] = d
 
 
-@wp.func
-def block_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lv: _vec_small, m: int,
-                lane: int, bd: int, dv: Any, gate: Any):
-    """delta = W lambda + d0 over the first m rows into the shared tile ``dv`` (0 beyond), each
-    lane its own rows (i = lane + k block_dim, as the tile's operations divide it), each summed
-    as :func:`small_delta` does (lambda: every lane's copy). Every lane assigns in every round:
-    an element's assignment waits at the block's barrier (as the lanes wait before the first)."""
-    barrier(gate)
-    for base in range(0, SMALL, bd):
-        i = base + lane
-        d = F64(0.0)
-        if i < m:
-            d = d0[i]
-            for j in range(m):
-                d += W[i, j] * lv[j]
-        dv[i] = d
-
-
-@wp.func
-def block_pgs_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
-                     row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
-                     mu: wp.array(dtype=wp.float64), lv: _vec_small, m: int, nc: int, max_iterations: int,
-                     tolerance: wp.float64, pyramid: int, lane: int, bd: int, dv: Any, gate: Any):
-    """:func:`.pgs.pgs_sweeps` (contacts of one or three rows) by a block, from lambda ``lv``
-    (every lane's own copy): every lane makes each contact's update (the same values from the
-    same reads), and a changed row's column of W goes into delta (the shared tile ``dv``) by
-    all of them, each lane its own elements; the same operations in the same order. Returns
-    (lambda, sweeps, residual); delta stays in ``dv``."""
-    zero = F64(0.0)
-    block_delta(W, d0, lv, m, lane, bd, dv, gate)
-    it = int(0)
-    res = F64(-1.0)
-    for sweep in range(max_iterations):
-        change = zero
-        for c in range(nc):
-            r = row_start[c]
-            k = n_rows[c]
-            ln, l1, l2, ch = contact_update(W, dv, lv, r, k, mu[c], pyramid)
-            barrier(gate)  # every lane has read delta before any writes it
-            for q in range(k):
-                j = r + q
-                value = ln
-                if q == 1:
-                    value = l1
-                elif q == 2:
-                    value = l2
-                d = value - lv[j]
-                if d != zero:
-                    wp.tile_axpy(d, wp.tile_load(W[j], shape=SMALL), dv)
-                    lv[j] = value
-            change = wp.max(change, ch)
-        it = sweep + 1
+    @wp.func
+    def block_pgs_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
+                         row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
+                         mu: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64), m: int, nc: int,
+                         max_iterations: int, tolerance: wp.float64, pyramid: int, lane: int, bd: int, dv: Any,
+                         gate: Any):
+        """:func:`.pgs.pgs_sweeps` (contacts of one or three rows) by a block, from lambda in ``lam``
+        (updated in place): every lane makes each contact's update (the same values from the same
+        reads, written alike), and a changed row's column of W goes into delta (the shared tile
+        ``dv``) by all of them, each lane its own elements; the same operations in the same order.
+        Returns (sweeps, residual); delta stays in ``dv``."""
+        zero = F64(0.0)
+        block_delta(W, d0, lam, m, lane, bd, dv, gate)
+        it = int(0)
         res = F64(-1.0)
-        if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-            block_delta(W, d0, lv, m, lane, bd, dv, gate)
-            res = jacobi_change(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
-            if res <= tolerance:
-                break
-    if res < zero:  # the sweeps ran out: the residual of where they stopped
-        block_delta(W, d0, lv, m, lane, bd, dv, gate)
-        res = jacobi_change(W, dv, lv, row_start, n_rows, mu, pyramid, nc)
-    return lv, it, res
+        for sweep in range(max_iterations):
+            change = zero
+            for c in range(nc):
+                r = row_start[c]
+                k = n_rows[c]
+                ln, l1, l2, ch = contact_update(W, dv, lam, r, k, mu[c], pyramid)
+                barrier(gate)  # every lane has read delta and lambda before any writes them
+                for q in range(k):
+                    j = r + q
+                    value = ln
+                    if q == 1:
+                        value = l1
+                    elif q == 2:
+                        value = l2
+                    d = value - lam[j]
+                    if d != zero:
+                        wp.tile_axpy(d, wp.tile_load(W[j], shape=width), dv)
+                        lam[j] = value
+                change = wp.max(change, ch)
+            it = sweep + 1
+            res = F64(-1.0)
+            if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
+                block_delta(W, d0, lam, m, lane, bd, dv, gate)
+                res = jacobi_change(W, dv, lam, row_start, n_rows, mu, pyramid, nc)
+                if res <= tolerance:
+                    break
+        if res < zero:  # the sweeps ran out: the residual of where they stopped
+            block_delta(W, d0, lam, m, lane, bd, dv, gate)
+            res = jacobi_change(W, dv, lam, row_start, n_rows, mu, pyramid, nc)
+        return it, res
 
 
-@wp.kernel
-def device_pgs_kernel(
-    W: wp.array2d(dtype=wp.float64),
-    d0: wp.array(dtype=wp.float64),
-    lam0: wp.array(dtype=wp.float64),
-    row_start: wp.array(dtype=wp.int32),
-    n_rows: wp.array(dtype=wp.int32),
-    mu: wp.array(dtype=wp.float64),
-    sizes: wp.array(dtype=wp.int32),
-    max_iterations: int,
-    tolerance: wp.float64,
-    pyramid: int,
-    first_sweeps: int,
-    L: wp.array2d(dtype=wp.float64),
-    lam: wp.array(dtype=wp.float64),
-    delta: wp.array(dtype=wp.float64),
-    info: wp.array(dtype=wp.float64),
-):
-    """The LCP of :func:`.pgs.pgs_kernel` with m = sizes[0] rows and nc = sizes[1] contacts read
-    on the device, by one block (``wp.launch_tiled``, :data:`SMALL` lanes), W checked first
-    (:func:`positive_definite_rows`). info = [sweeps, residual, 1 if W was usable else 0]; an
-    unusable W leaves lambda = 0. Within :data:`SMALL` rows :func:`block_pgs_sweeps`, and a
-    frictionless set (nc == m) as the host's :meth:`.pgs.PGS.solve` makes it: up to
-    ``first_sweeps`` sweeps, then (not converged) the active-set method with what is left of
-    ``max_iterations`` as its steps, the better of the two kept, then sweeps for the rest
-    (``first_sweeps`` >= ``max_iterations``: sweeps only). Beyond, :func:`.pgs.pgs_sweeps` on
-    lane 0 in the device's memory. Every lane runs the scalar work alike (their writes to the
-    device's memory are the same values)."""
-    _b, lane = wp.tid()
-    bd = wp.block_dim()
-    m = sizes[0]
-    nc = sizes[1]
-    dv = wp.tile_zeros(shape=SMALL, dtype=wp.float64, storage="shared")
-    gate = wp.tile_zeros(shape=SMALL, dtype=wp.float64, storage="shared")
-    if checked_start(W, L, m, lam, info) == 0:
-        return
-    if m > SMALL:
+    def device_pgs(
+        W: wp.array2d(dtype=wp.float64),
+        d0: wp.array(dtype=wp.float64),
+        lam0: wp.array(dtype=wp.float64),
+        row_start: wp.array(dtype=wp.int32),
+        n_rows: wp.array(dtype=wp.int32),
+        mu: wp.array(dtype=wp.float64),
+        sizes: wp.array(dtype=wp.int32),
+        max_iterations: int,
+        tolerance: wp.float64,
+        pyramid: int,
+        first_sweeps: int,
+        L: wp.array2d(dtype=wp.float64),
+        work: wp.array2d(dtype=wp.float64),
+        iwork: wp.array2d(dtype=wp.int32),
+        lam: wp.array(dtype=wp.float64),
+        delta: wp.array(dtype=wp.float64),
+        info: wp.array(dtype=wp.float64),
+    ):
+        """The LCP of :func:`.pgs.pgs_kernel` with m = sizes[0] <= ``width`` rows and nc = sizes[1]
+        contacts read on the device, by one block (``wp.launch_tiled``, :data:`LANES` lanes), W
+        checked first (:func:`block_positive_definite`). info = [sweeps, residual, 1 if W was
+        usable else 0]; an unusable W leaves lambda = 0. :func:`block_pgs_sweeps`, and a
+        frictionless set (nc == m) as the host's :meth:`.pgs.PGS.solve` makes it: up to
+        ``first_sweeps`` sweeps, then (not converged) the active-set method on lane 0 with what is
+        left of ``max_iterations`` as its steps, the better of the two kept, then sweeps for the
+        rest (``first_sweeps`` >= ``max_iterations``: sweeps only). Every lane runs the scalar work
+        alike (their writes to the device's memory are the same values)."""
+        _b, lane = wp.tid()
+        bd = wp.block_dim()
+        m = sizes[0]
+        nc = sizes[1]
+        dv = wp.tile_zeros(shape=width, dtype=wp.float64, storage="shared")
+        gate = wp.tile_zeros(shape=LANES, dtype=wp.float64, storage="shared")
+        info[0] = F64(0.0)
+        info[1] = F64(0.0)
+        info[2] = F64(0.0)
+        for i in range(m):
+            lam[i] = F64(0.0)
+        if block_positive_definite(W, L, m, lane, bd, gate) == 0:
+            return
+        for i in range(m):
+            lam[i] = lam0[i]
+        frictionless = int(nc == m)
+        first = max_iterations
+        if frictionless != 0:
+            first = wp.min(first_sweeps, max_iterations)
+        it, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, first, tolerance, pyramid, lane, bd, dv, gate)
+        if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
+            if lane == 0:  # the finish on one lane; its verdict in info[2] (2: keep the finish's lambda)
+                steps = device_active_set(W, d0, L, lam, m, tolerance, max_iterations - it, work, iwork)
+                la = work[_LAM]
+                rows_delta(W, d0, la, m, work[_DELTA])
+                ra = jacobi_change(W, work[_DELTA], la, row_start, n_rows, mu, 0, nc)
+                info[0] = F64(steps)
+                info[1] = ra
+                if ra < res:
+                    info[2] = F64(2.0)
+            barrier(gate)
+            it += int(info[0])
+            if info[2] == F64(2.0):
+                res = info[1]
+                for i in range(m):
+                    lam[i] = work[_LAM, i]
+                block_delta(W, d0, lam, m, lane, bd, dv, gate)
+            if res > tolerance and it < max_iterations:
+                more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, max_iterations - it, tolerance, 0,
+                                             lane, bd, dv, gate)
+                it += more
+        barrier(gate)
+        for i in range(lane, m, bd):
+            delta[i] = dv[i]
         if lane == 0:
-            for i in range(m):
-                lam[i] = lam0[i]
-            it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, max_iterations, tolerance, pyramid, lam, delta)
             info[0] = F64(it)
             info[1] = res
-        return
-    lv = _vec_small()
-    for i in range(m):
-        lv[i] = lam0[i]
-    frictionless = int(nc == m)
-    first = max_iterations
-    if frictionless != 0:
-        first = wp.min(first_sweeps, max_iterations)
-    lv, it, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, first, tolerance, pyramid, lane, bd, dv,
-                                   gate)
-    if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
-        la, steps = small_active_set(W, d0, L, lv, m, tolerance, max_iterations - it)
-        it += steps
-        da = small_delta(W, d0, la, m)
-        ra = jacobi_change(W, da, la, row_start, n_rows, mu, 0, nc)
-        if ra < res:
-            lv = la
-            res = ra
-            block_delta(W, d0, lv, m, lane, bd, dv, gate)
-        if res > tolerance and it < max_iterations:
-            lv, more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lv, m, nc, max_iterations - it,
-                                             tolerance, 0, lane, bd, dv, gate)
-            it += more
-    for i in range(lane, m, bd):
-        delta[i] = dv[i]
-    if lane == 0:
-        for i in range(m):
-            lam[i] = lv[i]
-        info[0] = F64(it)
-        info[1] = res
+            info[2] = F64(1.0)
+
+    return wp.Kernel(device_pgs, key=f"device_pgs_{width}")
+
+
+device_pgs_kernel = _block_solver(SMALL)  # up to SMALL rows
+device_pgs_wide_kernel = _block_solver(BIG)  # up to BIG rows
+
+
+def pgs_kernel(rows: int) -> wp.Kernel:
+    """The kernel of :func:`_block_solver` for buffers of ``rows`` rows."""
+    return device_pgs_kernel if rows <= SMALL else device_pgs_wide_kernel
 
 
 class DeviceLCP:
@@ -409,6 +438,8 @@ class DeviceLCP:
         self.coef = self._in.alias("coef", wp.vec3d, (cap, 4))
         self.W = wp.zeros((cap, cap), dtype=wp.float64, device=self.device)
         self.L = wp.zeros((cap, cap), dtype=wp.float64, device=self.device)
+        self.work = wp.zeros((WORK_ROWS, cap), dtype=wp.float64, device=self.device)  # the active-set finish's
+        self.iwork = wp.zeros((IWORK_ROWS, cap), dtype=wp.int32, device=self.device)
         self.delta = wp.zeros(cap, dtype=wp.float64, device=self.device)
         self.out = wp.zeros(3 + cap, dtype=wp.float64, device=self.device)
         self.info = typed_view(self.out, 0, wp.float64, 3)
@@ -447,10 +478,10 @@ class DeviceLCP:
         d = self.device
         dx = self._dx.view(free.shape[0])
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
-        wp.launch_tiled(device_pgs_kernel, dim=[1],
+        wp.launch_tiled(pgs_kernel(self.rows), dim=[1],
                         inputs=[self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu, self.sizes,
                                 int(max_iterations), float(tolerance), int(bool(pyramid)), int(first_sweeps), self.L,
-                                self.lam, self.delta, self.info], block_dim=SMALL, device=d)
+                                self.work, self.iwork, self.lam, self.delta, self.info], block_dim=LANES, device=d)
         inner.apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx)
         return dx
 

@@ -61,28 +61,6 @@ def scaled_free_kernel(y: wp.array(dtype=wp.vec3d), s: wp.float64, free: wp.arra
 
 
 @wp.func
-def cholesky_rows(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
-                  p: int, shift: wp.float64):
-    """The Cholesky factor of W's rows and columns P[0..p) plus shift I into L's leading p x p
-    block (one lane); 1, or 0 where it is not positive definite."""
-    for j in range(p):
-        rj = P[j]
-        s = W[rj, rj] + shift
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not (s > F64(0.0)) or not wp.isfinite(s):
-            return 0
-        ljj = wp.sqrt(s)
-        L[j, j] = ljj
-        for i in range(j + 1, p):
-            t = W[P[i], rj]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / ljj
-    return 1
-
-
-@wp.func
 def barrier(gate: Any):
     """Every lane of the block waits here (``gate``: a shared tile of zeros, each lane adding 0
     to its own elements); what a lane wrote before it, shared or in the device's memory, the
@@ -91,33 +69,50 @@ def barrier(gate: Any):
 
 
 @wp.func
-def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), m: int, lane: int,
-                            bd: int, gate: Any):
+def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
+                     p: int, shift: wp.float64, gathered: int, lane: int, bd: int, gate: Any, sync: int):
+    """The Cholesky factor of W's rows and columns P[0..p) (0..p unless ``gathered``) plus shift I
+    into L's leading p x p block, a column at a time: every lane its pivot, each lane its own
+    rows below it (``lane`` of ``bd``; one lane: 0 of 1), the block waiting at ``gate`` after
+    each column where ``sync`` (every lane calls it). 1, or 0 where it is not positive
+    definite. The same sums in the same order whatever the lanes."""
+    for j in range(p):
+        rj = j
+        if gathered != 0:
+            rj = P[j]
+        s = W[rj, rj] + shift
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not (s > F64(0.0)) or not wp.isfinite(s):
+            return 0
+        ljj = wp.sqrt(s)
+        L[j, j] = ljj
+        for i in range(j + 1 + lane, p, bd):
+            ri = i
+            if gathered != 0:
+                ri = P[i]
+            t = W[ri, rj]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / ljj
+        if sync != 0:
+            barrier(gate)  # column j written before the next pivot reads it
+    return 1
+
+
+@wp.func
+def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64),
+                            P: wp.array(dtype=wp.int32), m: int, lane: int, bd: int, gate: Any):
     """1 if the leading m x m block of the symmetric W is usable by Gauss-Seidel (finite, positive
     diagonal, a Cholesky factorization of W + 1e-10 max(diag W) I into L that succeeds), else 0:
-    :func:`..compliance.positive_definite` by the block, a column at a time (every lane its
-    pivot, each lane its own rows below it; the same sums in the same order as one lane's)."""
+    :func:`..compliance.positive_definite` by the block (:func:`cholesky_columns`)."""
     dmax = F64(0.0)
     for i in range(m):
         d = W[i, i]
         if not (d > F64(0.0)) or not wp.isfinite(d):
             return 0
         dmax = wp.max(dmax, d)
-    shift = F64(1e-10) * dmax
-    for j in range(m):
-        s = W[j, j] + shift
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not (s > F64(0.0)) or not wp.isfinite(s):
-            return 0
-        ljj = wp.sqrt(s)
-        for i in range(j + 1 + lane, m, bd):
-            t = W[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / ljj
-        barrier(gate)  # column j written before the next pivot reads it
-    return 1
+    return cholesky_columns(W, L, P, m, F64(1e-10) * dmax, 0, lane, bd, gate, 1)
 
 
 @wp.func
@@ -158,10 +153,10 @@ WORK_ROWS, IWORK_ROWS = 9, 3
 def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                       L: wp.array2d(dtype=wp.float64), lam0: wp.array(dtype=wp.float64), m: int,
                       tolerance: wp.float64, max_steps: int, work: wp.array2d(dtype=wp.float64),
-                      iwork: wp.array2d(dtype=wp.int32)):
+                      iwork: wp.array2d(dtype=wp.int32), gate: Any):
     """:func:`.pgs.active_set` on one lane (Lawson and Hanson's method from ``lam0``, the face
     problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
-    refinement against W_PP): the same steps in the same order. lambda goes to
+    refinement against W_PP; ``gate`` unused: one lane): the same steps in the same order. lambda goes to
     ``work[_LAM]``; returns the face solves made."""
     zero = F64(0.0)
     lam = work[_LAM]
@@ -195,7 +190,7 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
                 p += 1
         if p > 0:
             steps += 1
-            if cholesky_rows(W, L, P, p, shift) == 0:
+            if cholesky_columns(W, L, P, p, shift, 1, 0, 1, gate, 0) == 0:
                 return steps
             for a in range(p):
                 b[a] = -d0[P[a]]
@@ -361,7 +356,7 @@ def _block_solver(width: int) -> wp.Kernel:
         info[2] = F64(0.0)
         for i in range(m):
             lam[i] = F64(0.0)
-        if block_positive_definite(W, L, m, lane, bd, gate) == 0:
+        if block_positive_definite(W, L, iwork[_P], m, lane, bd, gate) == 0:
             return
         for i in range(m):
             lam[i] = lam0[i]
@@ -372,7 +367,7 @@ def _block_solver(width: int) -> wp.Kernel:
         it, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, first, tolerance, pyramid, lane, bd, dv, gate)
         if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
             if lane == 0:  # the finish on one lane; its verdict in info[2] (2: keep the finish's lambda)
-                steps = device_active_set(W, d0, L, lam, m, tolerance, max_iterations - it, work, iwork)
+                steps = device_active_set(W, d0, L, lam, m, tolerance, max_iterations - it, work, iwork, gate)
                 la = work[_LAM]
                 rows_delta(W, d0, la, m, work[_DELTA])
                 ra = jacobi_change(W, work[_DELTA], la, row_start, n_rows, mu, 0, nc)

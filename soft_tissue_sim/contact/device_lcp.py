@@ -46,6 +46,7 @@ from .geometry import F64
 from .pgs import FIRST_SWEEPS, contact_update, jacobi_change, pgs_sweeps
 
 LANES = 32  # the block of device_pgs_kernel
+WIDE_LANES = 128  # the block of device_pgs_wide_kernel (W's check and the active set's products shared wider)
 SMALL = 32  # the rows of the narrower kernel (the default limit of contact.device_lcp_rows)
 BIG = 256  # the most rows of a device LCP (the limit of contact.device_lcp_rows)
 # no gradients are taken here; one block size for every launch of the module (one compilation)
@@ -116,17 +117,6 @@ def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype
 
 
 @wp.func
-def rows_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64),
-               m: int, out: wp.array(dtype=wp.float64)):
-    """out = W lambda + d0 over the first m rows, summed afresh (:func:`.pgs.exact_delta`)."""
-    for i in range(m):
-        d = d0[i]
-        for j in range(m):
-            d += W[i, j] * lam[j]
-        out[i] = d
-
-
-@wp.func
 def face_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
                     y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64)):
     """x with L L^T x = b (L's leading p x p block, lower; y: work)."""
@@ -145,19 +135,39 @@ def face_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float6
 
 # rows of the active-set method's work arrays (DeviceLCP.work: float64, DeviceLCP.iwork: int32)
 _LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA = 0, 1, 2, 3, 4, 5, 6, 7, 8
-_PASSIVE, _P, _LOW = 0, 1, 2
-WORK_ROWS, IWORK_ROWS = 9, 3
+_PASSIVE, _P, _LOW, _FLAGS = 0, 1, 2, 3
+WORK_ROWS, IWORK_ROWS = 9, 4
+
+
+def work_arrays(rows: int, device) -> tuple[wp.array, wp.array]:
+    """The work arrays of :func:`device_pgs` for sets of up to ``rows`` rows: (float64, int32)."""
+    cols = max(int(rows), 3)  # iwork[_FLAGS] holds three verdicts
+    return (wp.zeros((WORK_ROWS, cols), dtype=wp.float64, device=device),
+            wp.zeros((IWORK_ROWS, cols), dtype=wp.int32, device=device))
 
 
 @wp.func
-def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
-                      L: wp.array2d(dtype=wp.float64), lam0: wp.array(dtype=wp.float64), m: int,
-                      tolerance: wp.float64, max_steps: int, work: wp.array2d(dtype=wp.float64),
-                      iwork: wp.array2d(dtype=wp.int32), gate: Any):
-    """:func:`.pgs.active_set` on one lane (Lawson and Hanson's method from ``lam0``, the face
-    problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
-    refinement against W_PP; ``gate`` unused: one lane): the same steps in the same order. lambda goes to
-    ``work[_LAM]``; returns the face solves made."""
+def block_rows_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
+                     lam: wp.array(dtype=wp.float64), m: int, out: wp.array(dtype=wp.float64), lane: int, bd: int,
+                     gate: Any):
+    """out = W lambda + d0 over the first m rows, summed afresh (:func:`.pgs.exact_delta`), each
+    lane its own rows; then the block waits (every lane calls it)."""
+    for i in range(lane, m, bd):
+        d = d0[i]
+        for j in range(m):
+            d += W[i, j] * lam[j]
+        out[i] = d
+    barrier(gate)
+
+
+@wp.func
+def face_step(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), L: wp.array2d(dtype=wp.float64),
+              m: int, p: int, joined: int, work: wp.array2d(dtype=wp.float64), iwork: wp.array2d(dtype=wp.int32)):
+    """The scalar part of a face step of :func:`device_active_set` after W_PP's factorization
+    (one lane): s from the face solve with one step of refinement, then the ratio test over the
+    rows of P that s leaves <= 0. Returns 0: s is positive on P (lambda is to become s); 1:
+    lambda moved towards s, the rows reaching 0 first left P; 2: the row that just joined
+    leaves again without a step (stop)."""
     zero = F64(0.0)
     lam = work[_LAM]
     s = work[_S]
@@ -167,82 +177,127 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
     y = work[_Y]
     r = work[_R]
     rat = work[_RAT]
-    dv = work[_DELTA]
     passive = iwork[_PASSIVE]
     P = iwork[_P]
     low = iwork[_LOW]
+    for a in range(p):
+        b[a] = -d0[P[a]]
+    face_substitute(L, b, p, y, x)
+    for a in range(p):
+        t = b[a]
+        for c in range(p):
+            t -= W[P[a], P[c]] * x[c]
+        r[a] = t
+    face_substitute(L, r, p, y, x2)
+    for a in range(p):
+        s[P[a]] = x[a] + x2[a]
+    nlow = int(0)
+    alpha = zero
+    for i in range(m):
+        low[i] = 0
+    for a in range(p):
+        i = P[a]
+        if s[i] <= zero:
+            rat[i] = zero
+            gap = lam[i] - s[i]
+            if gap > zero:
+                rat[i] = lam[i] / gap
+            if nlow == 0 or rat[i] < alpha:
+                alpha = rat[i]
+            low[i] = 1
+            nlow += 1
+    if nlow == 0:
+        return 0
+    if alpha <= zero and joined >= 0:
+        if low[joined] != 0 and rat[joined] <= alpha:
+            return 2
+    for i in range(m):
+        lam[i] = lam[i] + alpha * (s[i] - lam[i])
+        if low[i] != 0 and rat[i] <= alpha:
+            lam[i] = zero
+            passive[i] = 0
+    return 1
+
+
+@wp.func
+def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
+                      L: wp.array2d(dtype=wp.float64), lam0: wp.array(dtype=wp.float64), m: int,
+                      tolerance: wp.float64, max_steps: int, work: wp.array2d(dtype=wp.float64),
+                      iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any):
+    """:func:`.pgs.active_set` by the block (Lawson and Hanson's method from ``lam0``, the face
+    problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
+    refinement against W_PP): the same steps in the same order. The factorization and the
+    products W lambda are shared by the lanes (:func:`cholesky_columns`,
+    :func:`block_rows_delta`); the rest is lane 0's, whose verdicts the others read from
+    ``iwork[_FLAGS]`` after the block's barrier. Every lane calls it and gets the face solves
+    made; lambda goes to ``work[_LAM]``."""
+    zero = F64(0.0)
+    lam = work[_LAM]
+    s = work[_S]
+    dv = work[_DELTA]
+    passive = iwork[_PASSIVE]
+    P = iwork[_P]
+    flags = iwork[_FLAGS]
     dmax = zero
     for i in range(m):
-        lam[i] = wp.max(lam0[i], zero)
-        passive[i] = 0
-        if lam[i] > zero:
-            passive[i] = 1
         dmax = wp.max(dmax, W[i, i])
     shift = F64(1e-12) * dmax
+    if lane == 0:
+        for i in range(m):
+            lam[i] = wp.max(lam0[i], zero)
+            passive[i] = 0
+            if lam[i] > zero:
+                passive[i] = 1
     steps = int(0)
     joined = int(-1)
     while steps < max_steps:
-        p = int(0)
-        for i in range(m):
-            s[i] = zero
-            if passive[i] != 0:
-                P[p] = i
-                p += 1
+        barrier(gate)  # lane 0's lambda and passive set written
+        if lane == 0:
+            p = int(0)
+            for i in range(m):
+                s[i] = zero
+                if passive[i] != 0:
+                    P[p] = i
+                    p += 1
+            flags[0] = p
+        barrier(gate)
+        p = flags[0]
         if p > 0:
             steps += 1
-            if cholesky_columns(W, L, P, p, shift, 1, 0, 1, gate, 0) == 0:
+            if cholesky_columns(W, L, P, p, shift, 1, lane, bd, gate, 1) == 0:
                 return steps
-            for a in range(p):
-                b[a] = -d0[P[a]]
-            face_substitute(L, b, p, y, x)
-            for a in range(p):
-                t = b[a]
-                for c in range(p):
-                    t -= W[P[a], P[c]] * x[c]
-                r[a] = t
-            face_substitute(L, r, p, y, x2)
-            for a in range(p):
-                s[P[a]] = x[a] + x2[a]
-            nlow = int(0)  # the ratio test over the rows of P the face solution leaves <= 0
-            alpha = F64(0.0)
-            for i in range(m):
-                low[i] = 0
-            for a in range(p):
-                i = P[a]
-                if s[i] <= zero:
-                    rat[i] = zero
-                    gap = lam[i] - s[i]
-                    if gap > zero:
-                        rat[i] = lam[i] / gap
-                    if nlow == 0 or rat[i] < alpha:
-                        alpha = rat[i]
-                    low[i] = 1
-                    nlow += 1
-            if nlow > 0:  # to the boundary: the rows of P reaching 0 first leave it
-                if alpha <= zero and joined >= 0:
-                    if low[joined] != 0 and rat[joined] <= alpha:
-                        return steps
-                for i in range(m):
-                    lam[i] = lam[i] + alpha * (s[i] - lam[i])
-                    if low[i] != 0 and rat[i] <= alpha:
-                        lam[i] = zero
-                        passive[i] = 0
+            if lane == 0:
+                flags[1] = face_step(W, d0, L, m, p, joined, work, iwork)
+            barrier(gate)
+            verdict = flags[1]
+            if verdict == 2:
+                return steps
+            if verdict == 1:
                 joined = -1
                 continue
-        for i in range(m):
-            lam[i] = s[i]
-        rows_delta(W, d0, lam, m, dv)
-        j = int(-1)
-        best = F64(0.0)
-        for i in range(m):
-            if passive[i] == 0:
-                w = -dv[i]
-                if j < 0 or w > best:
-                    j = i
-                    best = w
-        if j < 0 or best <= tolerance:
+        if lane == 0:
+            for i in range(m):
+                lam[i] = s[i]
+        barrier(gate)
+        block_rows_delta(W, d0, lam, m, dv, lane, bd, gate)
+        if lane == 0:
+            j = int(-1)
+            best = F64(0.0)
+            for i in range(m):
+                if passive[i] == 0:
+                    w = -dv[i]
+                    if j < 0 or w > best:
+                        j = i
+                        best = w
+            if j >= 0 and best > tolerance:
+                passive[j] = 1
+            else:
+                j = -1
+            flags[2] = j
+        barrier(gate)
+        j = flags[2]
+        if j < 0:
             return steps
-        passive[j] = 1
         joined = j
     return steps
 
@@ -257,7 +312,7 @@ def _block_solver(width: int) -> wp.Kernel:
                     m: int, lane: int, bd: int, dv: Any, gate: Any):
         """delta = W lambda + d0 over the first m rows into the shared tile ``dv`` (0 beyond), each
         lane its own rows (i = lane + k block_dim, as the tile's operations divide it), each summed
-        as :func:`rows_delta` does. Every lane assigns in every round: an element's assignment
+        as :func:`block_rows_delta` does. Every lane assigns in every round: an element's assignment
         waits at the block's barrier (as the lanes wait before the first)."""
         barrier(gate)
         for base in range(0, width, bd):
@@ -366,21 +421,14 @@ def _block_solver(width: int) -> wp.Kernel:
             first = wp.min(first_sweeps, max_iterations)
         it, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, first, tolerance, pyramid, lane, bd, dv, gate)
         if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
-            if lane == 0:  # the finish on one lane; its verdict in info[2] (2: keep the finish's lambda)
-                steps = device_active_set(W, d0, L, lam, m, tolerance, max_iterations - it, work, iwork, gate)
-                la = work[_LAM]
-                rows_delta(W, d0, la, m, work[_DELTA])
-                ra = jacobi_change(W, work[_DELTA], la, row_start, n_rows, mu, 0, nc)
-                info[0] = F64(steps)
-                info[1] = ra
-                if ra < res:
-                    info[2] = F64(2.0)
-            barrier(gate)
-            it += int(info[0])
-            if info[2] == F64(2.0):
-                res = info[1]
+            it += device_active_set(W, d0, L, lam, m, tolerance, max_iterations - it, work, iwork, lane, bd, gate)
+            la = work[_LAM]  # (lane 0's last writes precede a barrier)
+            block_rows_delta(W, d0, la, m, work[_DELTA], lane, bd, gate)
+            ra = jacobi_change(W, work[_DELTA], la, row_start, n_rows, mu, 0, nc)
+            if ra < res:
+                res = ra
                 for i in range(m):
-                    lam[i] = work[_LAM, i]
+                    lam[i] = la[i]
                 block_delta(W, d0, lam, m, lane, bd, dv, gate)
             if res > tolerance and it < max_iterations:
                 more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, max_iterations - it, tolerance, 0,
@@ -401,9 +449,9 @@ device_pgs_kernel = _block_solver(SMALL)  # up to SMALL rows
 device_pgs_wide_kernel = _block_solver(BIG)  # up to BIG rows
 
 
-def pgs_kernel(rows: int) -> wp.Kernel:
-    """The kernel of :func:`_block_solver` for buffers of ``rows`` rows."""
-    return device_pgs_kernel if rows <= SMALL else device_pgs_wide_kernel
+def pgs_kernel(rows: int) -> tuple[wp.Kernel, int]:
+    """The kernel of :func:`_block_solver` for buffers of ``rows`` rows, and its block's lanes."""
+    return (device_pgs_kernel, LANES) if rows <= SMALL else (device_pgs_wide_kernel, WIDE_LANES)
 
 
 class DeviceLCP:
@@ -433,8 +481,7 @@ class DeviceLCP:
         self.coef = self._in.alias("coef", wp.vec3d, (cap, 4))
         self.W = wp.zeros((cap, cap), dtype=wp.float64, device=self.device)
         self.L = wp.zeros((cap, cap), dtype=wp.float64, device=self.device)
-        self.work = wp.zeros((WORK_ROWS, cap), dtype=wp.float64, device=self.device)  # the active-set finish's
-        self.iwork = wp.zeros((IWORK_ROWS, cap), dtype=wp.int32, device=self.device)
+        self.work, self.iwork = work_arrays(cap, self.device)  # the active-set finish's
         self.delta = wp.zeros(cap, dtype=wp.float64, device=self.device)
         self.out = wp.zeros(3 + cap, dtype=wp.float64, device=self.device)
         self.info = typed_view(self.out, 0, wp.float64, 3)
@@ -473,10 +520,11 @@ class DeviceLCP:
         d = self.device
         dx = self._dx.view(free.shape[0])
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
-        wp.launch_tiled(pgs_kernel(self.rows), dim=[1],
+        kernel, lanes = pgs_kernel(self.rows)
+        wp.launch_tiled(kernel, dim=[1],
                         inputs=[self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu, self.sizes,
                                 int(max_iterations), float(tolerance), int(bool(pyramid)), int(first_sweeps), self.L,
-                                self.work, self.iwork, self.lam, self.delta, self.info], block_dim=LANES, device=d)
+                                self.work, self.iwork, self.lam, self.delta, self.info], block_dim=lanes, device=d)
         inner.apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx)
         return dx
 

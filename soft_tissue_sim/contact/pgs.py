@@ -45,7 +45,7 @@ FIRST_SWEEPS = 10  # the frictionless LCP's sweeps before the active-set finish 
 
 @wp.func
 def contact_update(
-    W: wp.array2d(dtype=wp.float64),
+    W: Any,
     delta: Any,
     lam: Any,
     r: int,
@@ -54,8 +54,8 @@ def contact_update(
     pyramid: int,
 ):
     """Projected Gauss-Seidel update of the contact whose normal row is r, from the current
-    lambda and delta = W lambda + d0 (neither written; float64 arrays, or as :mod:`.device_lcp`'s
-    block holds them: lambda a vector in each lane's memory, delta a shared tile). Returns
+    lambda and delta = W lambda + d0 (neither written; W, lambda and delta float64 arrays, or as
+    :mod:`.device_lcp`'s block holds them: delta, and W for a small set, shared tiles). Returns
     (lambda_n, lambda_t1, lambda_t2, change), the change being the largest W_rr |new - old| of
     its rows [m]; for an active normal row that is |delta_n|."""
     zero = F64(0.0)
@@ -118,7 +118,7 @@ def move(W: wp.array2d(dtype=wp.float64), delta: wp.array(dtype=wp.float64), lam
 
 @wp.func
 def jacobi_change(
-    W: wp.array2d(dtype=wp.float64),
+    W: Any,
     delta: Any,
     lam: Any,
     row_start: wp.array(dtype=wp.int32),

@@ -324,7 +324,6 @@ def _block_solver(width: int) -> wp.Kernel:
                     d += W[i, j] * lam[j]
             dv[i] = d
 
-
     @wp.func
     def block_pgs_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                          row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
@@ -370,7 +369,6 @@ def _block_solver(width: int) -> wp.Kernel:
             block_delta(W, d0, lam, m, lane, bd, dv, gate)
             res = jacobi_change(W, dv, lam, row_start, n_rows, mu, pyramid, nc)
         return it, res
-
 
     def device_pgs(
         W: wp.array2d(dtype=wp.float64),

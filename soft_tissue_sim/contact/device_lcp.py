@@ -10,7 +10,8 @@ correction, the penetration detection and the guard (one graph a step):
 2. W = dt^2 H P^-1 H^T is gathered into a matrix of the buffers' capacity, the row count read
    on the device (:func:`~soft_tissue_sim.dense_inverse.delassus_matrix_kernel`), so that one
    captured graph serves every contact count;
-3. :func:`device_pgs_kernel`, one block of :data:`LANES` lanes, checks W as
+3. :func:`device_pgs_kernel` (up to :data:`SMALL` rows, a block of :data:`LANES` lanes) or
+   :func:`device_pgs_wide_kernel` (up to :data:`BIG`, :data:`WIDE_LANES` lanes) checks W as
    :func:`.compliance.positive_definite` does (a Cholesky factorization of W + 1e-10 max(diag
    W) I, a column at a time, the lanes sharing each column's rows) and runs the projected
    Gauss-Seidel sweeps of :mod:`.pgs` from the warm start: every lane makes each contact's
@@ -18,7 +19,8 @@ correction, the penetration detection and the guard (one graph a step):
    held in the block's shared memory, by the changed rows' columns of W together, each lane
    its own elements (:func:`block_pgs_sweeps`); a frictionless set (as many contacts as rows)
    is finished, as the host does, by the active-set method where the sweeps stall
-   (:func:`device_active_set` on one lane, the host's :func:`.pgs.active_set`). The same
+   (:func:`device_active_set`: the host's :func:`.pgs.active_set`, its factorizations and
+   products shared by the lanes, its scalar steps on lane 0). The same
    operations in the same order as the host's kernel, so the same lambda to the bit where no
    multiply-add is fused differently;
 4. dx = dt^2 P^-1 H^T lambda (eq. 2), zeroed on the fixed nodes, from the columns of the rows'
@@ -30,7 +32,7 @@ correction. Where W is not positive definite the device solve makes lambda = 0 (
 correction) and says so: the caller restores the free motion and solves the step's contacts
 on the host, with the block diagonal of A (as :meth:`.solver.ContactSolver._respond` does).
 Sweeps with friction that end above the tolerance stand, as they do on the host. A sweep
-costs O(m) a lane for the rows it changes, the check O(m^3 / LANES); sets beyond the row
+costs O(m) a lane for the rows it changes, the check O(m^3 / lanes); sets beyond the row
 limit (at most :data:`BIG`) are solved on the host.
 """
 
@@ -43,13 +45,14 @@ import warp as wp
 
 from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
-from .pgs import FIRST_SWEEPS, contact_update, jacobi_change, pgs_sweeps
+from .pgs import FIRST_SWEEPS, contact_update, jacobi_change
 
 LANES = 32  # the block of device_pgs_kernel
 WIDE_LANES = 128  # the block of device_pgs_wide_kernel (W's check and the active set's products shared wider)
 SMALL = 32  # the rows of the narrower kernel (the default limit of contact.device_lcp_rows)
 BIG = 256  # the most rows of a device LCP (the limit of contact.device_lcp_rows)
-# no gradients are taken here; one block size for every launch of the module (one compilation)
+# no gradients are taken here; the module is built once per block size launched (LANES, and
+# WIDE_LANES where a larger row limit is asked for)
 wp.set_module_options({"enable_backward": False, "block_dim": LANES})
 
 

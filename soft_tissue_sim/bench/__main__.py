@@ -16,6 +16,7 @@ BENCHMARKS = {
     "backends": "backends",  # the factor backends (cholmod, dense, cudss) against body size
     "targets": "targets",  # every target row, one table and targets_<cpu|gpu>.json
     "node": "node",  # the ROS node driven from another process as a robot stack would
+    "lcp": "lcp",  # the contact LCP's host and device solvers on recorded problems
 }
 
 

@@ -1,0 +1,175 @@
+"""The contact LCP's solvers on recorded problems: ``python -m soft_tissue_sim.bench lcp``.
+
+Records the LCPs the host solves (:meth:`soft_tissue_sim.contact.pgs.PGS.solve`) in scenes run
+on Warp's CPU backend, then solves each again, timed:
+
+* ``default``: the default scene along the node benchmark's trajectory (``--steps`` steps: the
+  scalpel lowered, pressed and swayed; friction, about 15 rows), every ``--every``-th set;
+* ``resection``: the shipped scripted resection (``bench brain``'s session; frictionless, self
+  contacts of the cut's faces), its sets of more than 32 rows, ``--large`` of them at random
+  (0: not run).
+
+Each set is solved by the host's :class:`~soft_tissue_sim.contact.pgs.PGS` and, on
+``--device``, by :func:`~soft_tissue_sim.contact.device_lcp.device_pgs_kernel` in buffers of 32
+rows (the default limit) or, for the large sets, 256 (each solve launched and waited for, so
+the device's times include a launch). Reported per set kind: sets, rows (median), sweeps and
+face solves (mean, the host's; the device makes the same), time per solve (mean and median)
+of each, and the largest difference of the device's lambda from the host's relative to the
+largest force. Writes ``lcp_<cpu|gpu>.json``. Not a target row: a measuring tool for the
+device LCP's kernels (docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+
+import numpy as np
+import warp as wp
+
+from .common import parser, publish, resolved_device
+
+
+@contextlib.contextmanager
+def recording(keep):
+    """Within it, every host LCP solve appends (W, d0, row_start, rows, mu, lam0, tolerance,
+    pyramid, max_iterations) to the list it yields, where ``keep(m)`` for its row count m."""
+    from ..contact.pgs import PGS
+
+    sets, solve = [], PGS.solve
+
+    def recorded(self, W, d0, row_start, rows, mu, max_iterations, tolerance, pyramid, lam0):
+        if keep(len(d0)):
+            sets.append((np.array(W), np.array(d0), np.array(row_start), np.array(rows), np.array(mu),
+                         np.array(lam0), float(tolerance), bool(pyramid), int(max_iterations)))
+        return solve(self, W, d0, row_start, rows, mu, max_iterations, tolerance, pyramid, lam0)
+
+    PGS.solve = recorded
+    try:
+        yield sets
+    finally:
+        PGS.solve = solve
+
+
+def default_sets(steps: int, every: int) -> list:
+    """The default scene's LCPs along the node benchmark's trajectory (CPU), every ``every``-th."""
+    from ..scene import load_scene
+    from .node import _trajectory
+
+    with recording(lambda m: m > 0) as sets:
+        sim = load_scene("default.yaml", device="cpu")
+        try:
+            name = sim.instrument_names()[0]
+            at, _script = _trajectory(sim, name)
+            for i in range(steps):
+                sim.set_instrument_pose(name, at(i * sim.dt), (0.0, 0.0, 0.0, 1.0))
+                sim.step()
+        finally:
+            sim.close()
+    return sets[::every]
+
+
+def resection_sets(count: int, seed: int = 0) -> list:
+    """``count`` of the shipped resection's LCPs beyond 32 rows (CPU), at random."""
+    from .brain import run
+
+    with recording(lambda m: m > 32) as sets:
+        run("cpu")
+    rng = np.random.default_rng(seed)
+    pick = sorted(rng.choice(len(sets), size=min(count, len(sets)), replace=False)) if sets else []
+    return [sets[i] for i in pick]
+
+
+def host_solve(problem) -> tuple[np.ndarray, int, float]:
+    """The host's solve of a recorded set: (lambda, sweeps and face solves, seconds)."""
+    from ..contact.pgs import PGS
+
+    W, d0, row_start, rows, mu, lam0, tol, pyramid, max_it = problem
+    pgs = PGS()
+    pgs.solve(W, d0, row_start, rows, mu, max_it, tol, pyramid, lam0)  # its buffers and launch made
+    t0 = time.perf_counter()
+    lam, its, _res = pgs.solve(W, d0, row_start, rows, mu, max_it, tol, pyramid, lam0)
+    return lam, its, time.perf_counter() - t0
+
+
+def device_solve(problem, cap: int, device, reps: int = 3) -> tuple[np.ndarray, int, float]:
+    """:func:`device_pgs_kernel`'s solve of a recorded set in buffers of ``cap`` rows: (lambda,
+    sweeps and face solves, seconds a solve, launch and wait included)."""
+    from ..contact.device_lcp import pgs_kernel, work_arrays
+    from ..contact.pgs import FIRST_SWEEPS
+
+    W, d0, row_start, rows, mu, lam0, tol, pyramid, max_it = problem
+    m, nc = len(d0), len(row_start)
+    Wd = np.zeros((cap, cap))
+    Wd[:m, :m] = W
+
+    def arr(a, dtype=wp.float64):
+        a = np.asarray(a)
+        full = np.zeros(cap, a.dtype)
+        full[: len(a)] = a
+        return wp.array(full, dtype=dtype, device=device)
+
+    lam, delta, info = (wp.zeros(cap, dtype=wp.float64, device=device), wp.zeros(cap, dtype=wp.float64, device=device),
+                        wp.zeros(3, dtype=wp.float64, device=device))
+    kernel, lanes = pgs_kernel(cap)
+    args = [wp.array(Wd, dtype=wp.float64, device=device), arr(d0), arr(lam0), arr(row_start, wp.int32),
+            arr(rows, wp.int32), arr(mu), wp.array(np.array([m, nc], np.int32), dtype=wp.int32, device=device),
+            max_it, tol, int(pyramid), FIRST_SWEEPS, wp.zeros((cap, cap), dtype=wp.float64, device=device),
+            *work_arrays(cap, device), lam, delta, info]
+
+    def launch():
+        wp.launch_tiled(kernel, dim=[1], inputs=args, block_dim=lanes, device=device)
+
+    launch()  # loaded
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        launch()
+    wp.synchronize_device(device)
+    return lam.numpy()[:m], int(info.numpy()[0]), (time.perf_counter() - t0) / reps
+
+
+def compare(sets: list, cap: int, device) -> dict:
+    """The host's and the device's solves of ``sets``, summarized."""
+    if not sets:
+        return {"sets": 0}
+    host_t, dev_t, its, diff = [], [], [], []
+    for p in sets:
+        lam_h, it, th = host_solve(p)
+        lam_d, it_d, td = device_solve(p, cap, device)
+        host_t.append(th)
+        dev_t.append(td)
+        its.append(it)
+        scale = max(float(np.abs(lam_h).max()), 1e-300)
+        diff.append(float(np.abs(lam_d - lam_h).max()) / scale)
+    ms = lambda t: (1e3 * float(np.mean(t)), 1e3 * float(np.median(t)))  # noqa: E731
+    return {"sets": len(sets), "rows_median": float(np.median([len(p[1]) for p in sets])),
+            "frictional": int(sum(len(p[2]) < len(p[1]) for p in sets)), "iterations_mean": float(np.mean(its)),
+            "host_ms_mean": ms(host_t)[0], "host_ms_median": ms(host_t)[1],
+            "device_ms_mean": ms(dev_t)[0], "device_ms_median": ms(dev_t)[1],
+            "device_buffer_rows": cap, "lambda_max_relative_difference": float(max(diff))}
+
+
+def main(argv=None) -> int:
+    ap = parser("lcp", __doc__)
+    ap.add_argument("--steps", type=int, default=1200, help="steps of the default scene's trajectory")
+    ap.add_argument("--every", type=int, default=4, help="keep every n-th of the default scene's sets")
+    ap.add_argument("--large", type=int, default=120, help="resection sets beyond 32 rows (0: none)")
+    args = ap.parse_args(argv)
+    device = resolved_device(args)
+    from ..contact.device_lcp import BIG, SMALL
+
+    figures = {"default": compare(default_sets(args.steps, args.every), SMALL, device)}
+    if args.large > 0:
+        figures["resection"] = compare(resection_sets(args.large), BIG, device)
+    publish("lcp", device, figures, args)
+    print(f"LCP solves on {device} (host: this machine's CPU)")
+    for kind, f in figures.items():
+        if not f["sets"]:
+            print(f"  {kind:10s} no sets")
+            continue
+        print(f"  {kind:10s} {f['sets']:4d} sets, {f['rows_median']:.0f} rows median, {f['iterations_mean']:.1f} "
+              f"sweeps/face solves; host {f['host_ms_mean']:.3f} / {f['host_ms_median']:.3f} ms, device "
+              f"{f['device_ms_mean']:.3f} / {f['device_ms_median']:.3f} ms (mean / median); lambda within "
+              f"{f['lambda_max_relative_difference']:.1e}")
+    return 0

@@ -13,7 +13,7 @@ import pytest
 import warp as wp
 
 from soft_tissue_sim import load_scene
-from soft_tissue_sim.contact.device_lcp import BIG, LANES, SMALL, WIDE_LANES, pgs_kernel, work_arrays
+from soft_tissue_sim.contact.device_lcp import BIG, LANES, SMALL, WIDE_LANES, DeviceLCP
 from soft_tissue_sim.contact.pgs import FIRST_SWEEPS, PGS
 from soft_tissue_sim.dense_inverse import DenseInverse
 from soft_tissue_sim.material import ParameterError
@@ -40,23 +40,16 @@ def _run(cfg, steps=40):
 
 def _device_pgs(W, d0, lam0, row_start, rows, mu, cap, tol, pyramid=False, first=FIRST_SWEEPS, max_iterations=200,
                 device=None):
-    """device_pgs_kernel on one LCP padded to ``cap`` rows (sizes read on the device): (lambda,
-    info = [sweeps, residual, W usable], delta)."""
-    d = device or DEVICE
-    m, nc = len(d0), len(row_start)
+    """device_pgs_kernel on one LCP in DeviceLCP's buffers of ``cap`` rows (sizes read on the
+    device): (lambda, info = [sweeps, residual, W usable], delta)."""
+    lcp = DeviceLCP(cap, device or DEVICE)
+    m = len(d0)
+    lcp.stage(np.zeros((m, 4), np.int32), np.zeros((m, 4, 3)), d0, lam0, row_start, rows, mu)
     Wd = np.zeros((cap, cap))
     Wd[:m, :m] = W
-    pad = lambda a: np.concatenate([a, np.zeros(cap - len(a), np.asarray(a).dtype)])  # noqa: E731
-    arr = lambda a, t=wp.float64: wp.array(a, dtype=t, device=d)  # noqa: E731
-    lam, delta, info = (wp.zeros(cap, dtype=wp.float64, device=d), wp.zeros(cap, dtype=wp.float64, device=d),
-                        wp.zeros(3, dtype=wp.float64, device=d))
-    kernel, lanes = pgs_kernel(cap)
-    wp.launch_tiled(kernel, dim=[1], inputs=[
-        arr(Wd), arr(pad(d0)), arr(pad(lam0)), arr(pad(row_start), wp.int32), arr(pad(rows), wp.int32), arr(pad(mu)),
-        arr(np.array([m, nc], np.int32), wp.int32), max_iterations, tol, int(pyramid), first,
-        wp.zeros((cap, cap), dtype=wp.float64, device=d), *work_arrays(cap, d), lam, delta, info], block_dim=lanes,
-        device=d)
-    return lam.numpy()[:m], info.numpy(), delta.numpy()[:m]
+    lcp.W.assign(Wd)
+    lcp.solve(max_iterations, tol, pyramid, first)
+    return lcp.lam.numpy()[:m], lcp.info.numpy(), lcp.delta.numpy()[:m]
 
 
 @pytest.mark.parametrize("graph", [False, True])
@@ -215,8 +208,6 @@ def test_steps_with_and_without_a_device_solve_alternate_under_graphs(device_row
 def test_the_device_solves_key_makes_its_work_vectors():
     """DeviceLCP.key() makes the views its launches use for this node count, so that the launches
     allocate nothing (memory allocated inside a graph capture would be the graph's)."""
-    from soft_tissue_sim.contact.device_lcp import DeviceLCP
-
     lcp = DeviceLCP(8, DEVICE)
     free = wp.ones(37, dtype=wp.float64, device=DEVICE)
 

@@ -93,40 +93,25 @@ def host_solve(problem) -> tuple[np.ndarray, int, float]:
 
 
 def device_solve(problem, cap: int, device, reps: int = 3) -> tuple[np.ndarray, int, float]:
-    """:func:`device_pgs_kernel`'s solve of a recorded set in buffers of ``cap`` rows: (lambda,
-    sweeps and face solves, seconds a solve, launch and wait included)."""
-    from ..contact.device_lcp import pgs_kernel, work_arrays
-    from ..contact.pgs import FIRST_SWEEPS
+    """The device's solve of a recorded set (:meth:`~soft_tissue_sim.contact.device_lcp.DeviceLCP.
+    solve` in buffers of ``cap`` rows, the set's W written in): (lambda, sweeps and face solves,
+    seconds a solve, launch and wait included)."""
+    from ..contact.device_lcp import DeviceLCP
 
     W, d0, row_start, rows, mu, lam0, tol, pyramid, max_it = problem
-    m, nc = len(d0), len(row_start)
+    m = len(d0)
+    lcp = DeviceLCP(cap, device)
+    lcp.stage(np.zeros((m, 4), np.int32), np.zeros((m, 4, 3)), d0, lam0, row_start, rows, mu)
     Wd = np.zeros((cap, cap))
     Wd[:m, :m] = W
-
-    def arr(a, dtype=wp.float64):
-        a = np.asarray(a)
-        full = np.zeros(cap, a.dtype)
-        full[: len(a)] = a
-        return wp.array(full, dtype=dtype, device=device)
-
-    lam, delta, info = (wp.zeros(cap, dtype=wp.float64, device=device), wp.zeros(cap, dtype=wp.float64, device=device),
-                        wp.zeros(3, dtype=wp.float64, device=device))
-    kernel, lanes = pgs_kernel(cap)
-    args = [wp.array(Wd, dtype=wp.float64, device=device), arr(d0), arr(lam0), arr(row_start, wp.int32),
-            arr(rows, wp.int32), arr(mu), wp.array(np.array([m, nc], np.int32), dtype=wp.int32, device=device),
-            max_it, tol, int(pyramid), FIRST_SWEEPS, wp.zeros((cap, cap), dtype=wp.float64, device=device),
-            *work_arrays(cap, device), lam, delta, info]
-
-    def launch():
-        wp.launch_tiled(kernel, dim=[1], inputs=args, block_dim=lanes, device=device)
-
-    launch()  # loaded
+    lcp.W.assign(Wd)
+    lcp.solve(max_it, tol, pyramid)  # loaded
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     for _ in range(reps):
-        launch()
+        lcp.solve(max_it, tol, pyramid)
     wp.synchronize_device(device)
-    return lam.numpy()[:m], int(info.numpy()[0]), (time.perf_counter() - t0) / reps
+    return lcp.lam.numpy()[:m], int(lcp.info.numpy()[0]), (time.perf_counter() - t0) / reps
 
 
 def compare(sets: list, cap: int, device) -> dict:

@@ -45,7 +45,7 @@ import warp as wp
 
 from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
-from .pgs import FIRST_SWEEPS, contact_update, jacobi_change
+from .pgs import FIRST_SWEEPS, contact_update, jacobi_change, row_delta
 
 LANES = 32  # the block of device_pgs_kernel
 WIDE_LANES = 128  # the block of device_pgs_wide_kernel (W's check and the active set's products shared wider)
@@ -142,24 +142,14 @@ _PASSIVE, _P, _LOW, _FLAGS = 0, 1, 2, 3
 WORK_ROWS, IWORK_ROWS = 9, 4
 
 
-def work_arrays(rows: int, device) -> tuple[wp.array, wp.array]:
-    """The work arrays of :func:`device_pgs` for sets of up to ``rows`` rows: (float64, int32)."""
-    cols = max(int(rows), 3)  # iwork[_FLAGS] holds three verdicts
-    return (wp.zeros((WORK_ROWS, cols), dtype=wp.float64, device=device),
-            wp.zeros((IWORK_ROWS, cols), dtype=wp.int32, device=device))
-
-
 @wp.func
 def block_rows_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                      lam: wp.array(dtype=wp.float64), m: int, out: wp.array(dtype=wp.float64), lane: int, bd: int,
                      gate: Any):
-    """out = W lambda + d0 over the first m rows, summed afresh (:func:`.pgs.exact_delta`), each
+    """out = W lambda + d0 over the first m rows, summed afresh (:func:`.pgs.row_delta`), each
     lane its own rows; then the block waits (every lane calls it)."""
     for i in range(lane, m, bd):
-        d = d0[i]
-        for j in range(m):
-            d += W[i, j] * lam[j]
-        out[i] = d
+        out[i] = row_delta(W, d0, lam, i, m)
     barrier(gate)
 
 
@@ -314,17 +304,15 @@ def _block_solver(width: int) -> wp.Kernel:
     def block_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64),
                     m: int, lane: int, bd: int, dv: Any, gate: Any):
         """delta = W lambda + d0 over the first m rows into the shared tile ``dv`` (0 beyond), each
-        lane its own rows (i = lane + k block_dim, as the tile's operations divide it), each summed
-        as :func:`block_rows_delta` does. Every lane assigns in every round: an element's assignment
+        lane its own rows (i = lane + k block_dim, as the tile's operations divide it; each
+        :func:`.pgs.row_delta`). Every lane assigns in every round: an element's assignment
         waits at the block's barrier (as the lanes wait before the first)."""
         barrier(gate)
         for base in range(0, width, bd):
             i = base + lane
             d = F64(0.0)
             if i < m:
-                d = d0[i]
-                for j in range(m):
-                    d += W[i, j] * lam[j]
+                d = row_delta(W, d0, lam, i, m)
             dv[i] = d
 
     @wp.func
@@ -393,14 +381,15 @@ def _block_solver(width: int) -> wp.Kernel:
         info: wp.array(dtype=wp.float64),
     ):
         """The LCP of :func:`.pgs.pgs_kernel` with m = sizes[0] <= ``width`` rows and nc = sizes[1]
-        contacts read on the device, by one block (``wp.launch_tiled``, :data:`LANES` lanes), W
-        checked first (:func:`block_positive_definite`). info = [sweeps, residual, 1 if W was
-        usable else 0]; an unusable W leaves lambda = 0. :func:`block_pgs_sweeps`, and a
+        contacts read on the device, by one block (``wp.launch_tiled`` with :func:`pgs_kernel`'s
+        lanes), W checked first (:func:`block_positive_definite`). info = [sweeps, residual, 1 if
+        W was usable else 0]; an unusable W leaves lambda = 0. :func:`block_pgs_sweeps`, and a
         frictionless set (nc == m) as the host's :meth:`.pgs.PGS.solve` makes it: up to
-        ``first_sweeps`` sweeps, then (not converged) the active-set method on lane 0 with what is
-        left of ``max_iterations`` as its steps, the better of the two kept, then sweeps for the
-        rest (``first_sweeps`` >= ``max_iterations``: sweeps only). Every lane runs the scalar work
-        alike (their writes to the device's memory are the same values)."""
+        ``first_sweeps`` sweeps, then (not converged) the active-set method
+        (:func:`device_active_set`) with what is left of ``max_iterations`` as its steps, the
+        better of the two kept, then sweeps for the rest (``first_sweeps`` >= ``max_iterations``:
+        sweeps only). Every lane runs the scalar work alike (their writes to the device's memory
+        are the same values)."""
         _b, lane = wp.tid()
         bd = wp.block_dim()
         m = sizes[0]
@@ -410,9 +399,9 @@ def _block_solver(width: int) -> wp.Kernel:
         info[0] = F64(0.0)
         info[1] = F64(0.0)
         info[2] = F64(0.0)
-        for i in range(m):
-            lam[i] = F64(0.0)
         if block_positive_definite(W, L, iwork[_P], m, lane, bd, gate) == 0:
+            for i in range(m):
+                lam[i] = F64(0.0)
             return
         for i in range(m):
             lam[i] = lam0[i]
@@ -482,7 +471,9 @@ class DeviceLCP:
         self.coef = self._in.alias("coef", wp.vec3d, (cap, 4))
         self.W = wp.zeros((cap, cap), dtype=wp.float64, device=self.device)
         self.L = wp.zeros((cap, cap), dtype=wp.float64, device=self.device)
-        self.work, self.iwork = work_arrays(cap, self.device)  # the active-set finish's
+        cols = max(cap, 3)  # the active-set finish's work arrays (iwork[_FLAGS] holds three verdicts)
+        self.work = wp.zeros((WORK_ROWS, cols), dtype=wp.float64, device=self.device)
+        self.iwork = wp.zeros((IWORK_ROWS, cols), dtype=wp.int32, device=self.device)
         self.delta = wp.zeros(cap, dtype=wp.float64, device=self.device)
         self.out = wp.zeros(3 + cap, dtype=wp.float64, device=self.device)
         self.info = typed_view(self.out, 0, wp.float64, 3)
@@ -518,16 +509,22 @@ class DeviceLCP:
         """W, the LCP (:func:`device_pgs_kernel`: a frictionless set finished by the active-set
         method after ``first_sweeps``) and dx = dt^2 P^-1 H^T lambda (eq. 2) on the free nodes:
         launches only. Returns dx (a (n,) vec3d array kept between steps)."""
-        d = self.device
         dx = self._dx.view(free.shape[0])
         inner.delassus_matrix(self.nodes, self.coef, self.sizes, dt * dt, self.W)
+        self.solve(max_iterations, tolerance, pyramid, first_sweeps)
+        inner.apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx)
+        return dx
+
+    def solve(self, max_iterations: int, tolerance: float, pyramid: bool, first_sweeps: int = FIRST_SWEEPS) -> None:
+        """The LCP staged (:meth:`stage`) with the W in :attr:`W` (:func:`device_pgs_kernel`):
+        lambda, delta and [sweeps, residual, W usable] into :attr:`lam`, :attr:`delta` and
+        :attr:`info`. A launch only."""
         kernel, lanes = pgs_kernel(self.rows)
         wp.launch_tiled(kernel, dim=[1],
                         inputs=[self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu, self.sizes,
                                 int(max_iterations), float(tolerance), int(bool(pyramid)), int(first_sweeps), self.L,
-                                self.work, self.iwork, self.lam, self.delta, self.info], block_dim=lanes, device=d)
-        inner.apply_rows(self.nodes, self.coef, self.lam, self.sizes, dt * dt, free, dx)
-        return dx
+                                self.work, self.iwork, self.lam, self.delta, self.info], block_dim=lanes,
+                        device=self.device)
 
 
 def launch_args(options: dict) -> tuple:

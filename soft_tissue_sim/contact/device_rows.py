@@ -297,15 +297,17 @@ class DeviceRows:
 
     TABLES = {"node": wp.int32, "obj": wp.int32, "kind": wp.int32, "tri_row": wp.int32, "tris": wp.vec3i}
 
-    def __init__(self, rows: int, objects: list, friction: float, device):
-        """``objects``: the contact solver's (their order is the slots' object index);
-        ``friction``: the scene's coefficient (a self contact's, and an object's without its own)."""
+    def __init__(self, rows: int, object_friction: list, friction: float, device):
+        """``object_friction``: the Coulomb coefficient of each of the contact solver's objects
+        (in the slots' object order, :meth:`.solver.ContactSolver.object_friction`);
+        ``friction``: the scene's (a self contact's)."""
         self.rows = int(rows)
-        n_objects = len(objects)
+        n_objects = len(object_friction)
+        self.object_friction = [float(v) for v in object_friction]
         self.friction = float(friction)
         # any contact with tangent rows: else the objects' motion is never read (their coefficients
         # stay the staged zeros)
-        self.frictional = self.friction > 0.0 or any((o.friction or 0.0) > 0.0 for o in objects)
+        self.frictional = self.friction > 0.0 or any(v > 0.0 for v in self.object_friction)
         self.device = wp.get_device(device)
         d = self.device
         self.count = wp.zeros(1, dtype=wp.int32, device=d)
@@ -351,9 +353,9 @@ class DeviceRows:
             self.kept = False
 
     def objects(self, objects: list, dt: float) -> None:
-        """The objects' motion in the step (``displacement_map``) and friction coefficient (their
-        own, else the scene's) for the tangent rows, sent (no wait); outside any capture. Nothing
-        where no contact can have friction."""
+        """The objects' motion in the step (``displacement_map``) and friction coefficient for the
+        tangent rows, sent (no wait); outside any capture. Nothing where no contact can have
+        friction."""
         if not self.frictional:
             return
         staged = self._motion.view()
@@ -363,7 +365,7 @@ class DeviceRows:
             b = MOTION * oi
             staged[b: b + 3] = M
             staged[b + 3] = c
-            staged[b + 4, 0] = self.friction if obj.friction is None else obj.friction
+            staged[b + 4, 0] = self.object_friction[oi]
         self._motion.send()
 
     def key(self, limit: int) -> tuple:

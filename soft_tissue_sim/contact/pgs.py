@@ -45,17 +45,17 @@ FIRST_SWEEPS = 10  # the frictionless LCP's sweeps before the active-set finish 
 
 @wp.func
 def contact_update(
-    W: Any,
+    W: wp.array2d(dtype=wp.float64),
     delta: Any,
-    lam: Any,
+    lam: wp.array(dtype=wp.float64),
     r: int,
     rows: int,
     mu: wp.float64,
     pyramid: int,
 ):
     """Projected Gauss-Seidel update of the contact whose normal row is r, from the current
-    lambda and delta = W lambda + d0 (neither written; W, lambda and delta float64 arrays, or as
-    :mod:`.device_lcp`'s block holds them: delta, and W for a small set, shared tiles). Returns
+    lambda and delta = W lambda + d0 (neither written; float64 arrays, or delta a shared tile as
+    :mod:`.device_lcp`'s block holds it). Returns
     (lambda_n, lambda_t1, lambda_t2, change), the change being the largest W_rr |new - old| of
     its rows [m]; for an active normal row that is |delta_n|."""
     zero = F64(0.0)
@@ -94,15 +94,22 @@ def contact_update(
 
 
 @wp.func
+def row_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64),
+              i: int, m: int):
+    """(W lambda + d0)_i over the first m columns, summed afresh in column order."""
+    d = d0[i]
+    for j in range(m):
+        d += W[i, j] * lam[j]
+    return d
+
+
+@wp.func
 def exact_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64),
                 delta: wp.array(dtype=wp.float64), m: int):
     """delta = W lambda + d0 over the first m rows, summed afresh (the sweeps update it
     incrementally)."""
     for i in range(m):
-        d = d0[i]
-        for j in range(m):
-            d += W[i, j] * lam[j]
-        delta[i] = d
+        delta[i] = row_delta(W, d0, lam, i, m)
 
 
 @wp.func
@@ -118,9 +125,9 @@ def move(W: wp.array2d(dtype=wp.float64), delta: wp.array(dtype=wp.float64), lam
 
 @wp.func
 def jacobi_change(
-    W: Any,
+    W: wp.array2d(dtype=wp.float64),
     delta: Any,
-    lam: Any,
+    lam: wp.array(dtype=wp.float64),
     row_start: wp.array(dtype=wp.int32),
     n_rows: wp.array(dtype=wp.int32),
     mu: wp.array(dtype=wp.float64),
@@ -128,7 +135,7 @@ def jacobi_change(
     nc: int,
 ):
     """The largest change of :func:`contact_update` over the nc contacts from lambda and delta
-    as they are (arrays, or the block's vector and tile), none applied [m]."""
+    as they are (arrays, or delta the block's shared tile), none applied [m]."""
     res = F64(0.0)
     for c in range(nc):
         ln, l1, l2, ch = contact_update(W, delta, lam, row_start[c], n_rows[c], mu[c], pyramid)

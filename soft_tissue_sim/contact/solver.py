@@ -358,7 +358,7 @@ class ContactSolver:
         if inner is None or topo is None or not topo.matches(body.fem) or not len(topo.surface):
             return None
         if self._device_rows is None or self._device_rows.rows != o["device_lcp_rows"]:
-            self._device_rows = DeviceRows(o["device_lcp_rows"], self.objects, o["friction"], self.device)
+            self._device_rows = DeviceRows(o["device_lcp_rows"], self.object_friction(), o["friction"], self.device)
         self._device_rows.surface(topo)
         self._device_rows.objects(self.objects, float(body.integrator.dt))
         return DeviceStep(self, body, inner, limit)
@@ -548,11 +548,16 @@ class ContactSolver:
         finish(lam, its, res, kind)
         return dx
 
+    def object_friction(self) -> list[float]:
+        """Each object's Coulomb coefficient: its own, else the scene's."""
+        scene = self.options["friction"]
+        return [scene if o.friction is None else o.friction for o in self.objects]
+
     def _friction(self, obj: np.ndarray) -> Friction:
         """The Coulomb coefficient of contacts with the objects ``obj`` (k,) (-1: the tissue
         itself): an object's own, else the scene's."""
         scene = self.options["friction"]
-        per_object = [scene if o.friction is None else o.friction for o in self.objects]
+        per_object = self.object_friction()
         if all(v == scene and math.copysign(1.0, v) == math.copysign(1.0, scene) for v in per_object):
             return Friction(True, scene)
         table = np.array(per_object)

@@ -348,13 +348,20 @@ class Simulation:
         completed, says what was done."""
         if plan.change is None:
             return plan.result
-        self._apply_topology(plan)
+        res = plan.result
+        t0 = time.perf_counter()
+        res.plan_ms = 1000.0 * (t0 - plan.t0)
+        res.correction_ms = self._apply_topology(plan)
+        t1 = time.perf_counter()
+        res.apply_ms = 1000.0 * (t1 - t0) - res.correction_ms
         debris = self.cutting.debris(plan.change.tissue())  # the body as the change left it (no read)
         if debris is not None and debris.change is not None:
             self._apply_topology(debris)
-            self.cutting.absorb_debris(plan.result, debris.result)
-        plan.result.ms = 1000.0 * (time.perf_counter() - plan.t0)
-        return plan.result
+            self.cutting.absorb_debris(res, debris.result)
+        t2 = time.perf_counter()
+        res.debris_ms = 1000.0 * (t2 - t1)
+        res.ms = 1000.0 * (t2 - plan.t0)
+        return res
 
     def _refresh_surface(self) -> float:
         """The contact surface rebuilt for the current mesh (after a change), in ms (0: no contact)."""
@@ -371,10 +378,11 @@ class Simulation:
         res.ms = 1000.0 * (time.perf_counter() - t0)
         return res
 
-    def _apply_topology(self, plan: CutPlan) -> None:
+    def _apply_topology(self, plan: CutPlan) -> float:
         """Mesh, FEM, state and node identities from ``plan.change``; the modification of A it
         makes (the blocks of the removed and added elements, with the rotations of one state)
         goes to the cutter's correction, or the preconditioner starts afresh without one.
+        Returns the correction's wall time [ms].
 
         The rotations are of the current state, computed for the tets around the change alone:
         the removed tets' and the node rotations of their nodes (and of the nodes new ones copy),
@@ -396,8 +404,10 @@ class Simulation:
         new_blocks = fem.element_blocks(change.added_tets, m_coef, k_coef)
         self.mesh, self.node_uids = change.mesh, change.node_uids
         self.mesh_version += 1
+        t0 = time.perf_counter()
         if not self.cutting.record(plan, change.modification(self.mesh_version, old_blocks, new_blocks, R_nodes)):
             self.preconditioner.invalidate()
+        return 1000.0 * (time.perf_counter() - t0)
 
     def view(self) -> BodyView:
         """The body as the components read it during a step (they return what they change)."""

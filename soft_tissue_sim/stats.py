@@ -55,3 +55,10 @@ class CutStats:
     surface_ms: float = 0.0  # of which the contact surface's rebuild (scenes with contact)
     smf_u_ms: float = 0.0  # U = P^-1 G of the Sherman-Morrison correction (eq. 8)
     smf_q_ms: float = 0.0  # Q = (I + N S)^-1 N (eq. 9)
+    # the cutting phase's parts, summed over the step's changes (CutResult's): planning, the
+    # FEM, state and identities, the preconditioner's correction, the debris; the rest of
+    # cut_ms (less surface_ms) is the state's reads and the planning of what changed nothing
+    plan_ms: float = 0.0
+    apply_ms: float = 0.0
+    correction_ms: float = 0.0
+    debris_ms: float = 0.0

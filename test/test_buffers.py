@@ -220,6 +220,10 @@ def test_a_cut_step_reports_its_whole_host_cost_and_the_surface_part():
             if d["tets_changed"]:
                 cut_steps += 1
                 assert d["cut_ms"] >= d["surface_ms"] > 0.0
+                # its parts: each measured, together within the phase (its reads and the
+                # sweep's planning besides)
+                parts = [d[k] for k in ("plan_ms", "apply_ms", "correction_ms", "debris_ms")]
+                assert all(p > 0.0 for p in parts) and sum(parts) + d["surface_ms"] <= d["cut_ms"]
                 topo = sim.contact._topo
                 assert topo.matches(sim.fem)
                 sim.set_cutting(False)
@@ -228,8 +232,11 @@ def test_a_cut_step_reports_its_whole_host_cost_and_the_surface_part():
                 sim.set_cutting(True)
             else:
                 assert d["surface_ms"] == 0.0
+                assert d["plan_ms"] == d["apply_ms"] == d["correction_ms"] == d["debris_ms"] == 0.0
         assert cut_steps >= 2
         sim.set_cutting(False)
         r = crosswise(sim, 0.085)
         assert r.changed and r.ms >= r.surface_ms > 0.0
+        assert r.ms >= r.plan_ms + r.apply_ms + r.correction_ms + r.debris_ms + r.surface_ms
+        assert min(r.plan_ms, r.apply_ms, r.correction_ms, r.debris_ms) > 0.0
         assert sim.contact._topo.matches(sim.fem)

@@ -36,6 +36,9 @@ from ..scene import load_scene, read_scene
 from .common import columns, figure, parser, publish, resolved_device, save_figure
 
 
+CUT_PARTS = ("plan_ms", "apply_ms", "correction_ms", "debris_ms")  # of a step's cut_ms (see CutStats)
+
+
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
         backend="auto", scheme=None, worker=None, synchronous=False, refresh_every=None, snap=None,
         margin=0.0, radial=0, progress=False, lag=0, reserve_sms=None):
@@ -106,6 +109,8 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
                          "surface_ms": d.get("surface_ms", 0.0) + (asked.surface_ms if asked is not None else 0.0),
                          "smf_ms": d.get("smf_u_ms", 0.0) + d.get("smf_q_ms", 0.0)
                          + (asked.smf_u_ms + asked.smf_q_ms if asked is not None else 0.0),
+                         **{k: d.get(k, 0.0) + (getattr(asked, k) if asked is not None else 0.0)
+                            for k in CUT_PARTS},
                          "wrench_probe_N": float(np.linalg.norm(sim.instrument_wrench("probe")[0]))})
             its_sum[0] += d["iterations"]
             if prog is not None:
@@ -215,8 +220,8 @@ def main(argv=None) -> int:
         # the host cost of the steps with a modification (cutting phase and removals asked before the step)
         "cut_steps": len(cut), "cut_ms_median": float(np.median(cut)) if len(cut) else 0.0,
         "cut_ms_p99": float(np.percentile(cut, 99)) if len(cut) else 0.0,
-        "surface_ms_median": float(np.median([r["surface_ms"] for r in rows if r["modified"]])) if len(cut) else 0.0,
-        "correction_ms_median": float(np.median([r["smf_ms"] for r in rows if r["modified"]])) if len(cut) else 0.0,
+        **{f"{k[:-3]}_ms_median": float(np.median([r[k] for r in rows if r["modified"]])) if len(cut) else 0.0
+           for k in ("surface_ms",) + CUT_PARTS},
         "contacts_mean": float(np.mean([r["contacts"] for r in rows])),
         "max_penetration": max((r["max_penetration"] for r in rows if r["max_penetration"] is not None),
                                default=None),  # over the steps that measured it (contact penetration_every)

@@ -174,17 +174,20 @@ def brain_resection_rows(device):
 
 def cut_rows(rows) -> list:
     """brain_cut_ms_median and brain_cut_ms_p99 from the resection's step rows (``bench brain``'s:
-    ``modified``, ``cut_ms``, ``surface_ms``): over the steps with a modification."""
+    ``modified``, ``cut_ms`` and its parts): over the steps with a modification."""
     mod = [r for r in rows if r.get("modified")]
     if not mod:
         return [_row(n, None, "ms", g, note="no step with a modification") for n, g in
                 (("brain_cut_ms_median", 5.0), ("brain_cut_ms_p99", 20.0))]
     cut = np.array([r["cut_ms"] for r in mod])
-    surface = np.array([r.get("surface_ms", 0.0) for r in mod])
-    smf = np.array([r.get("smf_ms", 0.0) for r in mod])
-    note = (f"{len(mod)} steps with a modification; wall time of the host's cutting phase: planning, mesh "
-            f"change, FEM and state arrays, preconditioner correction (median {np.median(smf):.2f} ms), contact "
-            f"surface rebuild (median {np.median(surface):.2f} ms); the rest median {np.median(cut - smf - surface):.2f} ms")
+    parts = {k: np.array([r.get(k, 0.0) for r in mod]) for k in
+             ("plan_ms", "apply_ms", "correction_ms", "surface_ms", "debris_ms")}
+    rest = cut - sum(parts.values())
+    names = {"plan_ms": "planning", "apply_ms": "FEM, state and identities", "correction_ms": "the preconditioner's "
+             "correction", "surface_ms": "contact surface", "debris_ms": "debris"}
+    note = (f"{len(mod)} steps with a modification; wall time of the host's cutting phase, medians: "
+            + ", ".join(f"{names[k]} {np.median(v):.2f}" for k, v in parts.items())
+            + f", the rest (the state's reads, plans that changed nothing) {np.median(rest):.2f} ms")
     return [_row("brain_cut_ms_median", float(np.median(cut)), "ms", 5.0, note=note),
             _row("brain_cut_ms_p99", float(np.percentile(cut, 99)), "ms", 20.0, note=note)]
 

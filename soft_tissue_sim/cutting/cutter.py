@@ -287,7 +287,9 @@ class Cutter:
         done = [r for r in results if r.changed]
         return CutStats(cuts=self.modifications, tets_changed=sum(r.tets_changed for r in done),
                         affected_nodes=sum(r.affected_nodes for r in done), cut_ms=sum(r.ms for r in results),
-                        smf_u_ms=sum(r.smf_u_ms for r in done), smf_q_ms=sum(r.smf_q_ms for r in done))
+                        smf_u_ms=sum(r.smf_u_ms for r in done), smf_q_ms=sum(r.smf_q_ms for r in done),
+                        **{k: sum(getattr(r, k) for r in done) for k in ("plan_ms", "apply_ms", "correction_ms",
+                                                                          "debris_ms")})
 
     # ------------------------------------------------------------- cutting
     def cut_triangles(self, tissue: Tissue, triangles, frame: str = "world", stroke: str | None = None) -> CutPlan:

@@ -30,6 +30,14 @@ class CutResult:
     smf_u_ms: float = 0.0  # U = P^-1 G (batched triangular solves)
     smf_q_ms: float = 0.0  # Q = (I + N S)^-1 N
     surface_ms: float = 0.0  # the contact surface's rebuild (API requests; a step's is in its CutStats)
+    # the parts of ``ms`` (a change applied): planning it (geometry, the new mesh and state),
+    # applying it to the FEM, the state and the node identities, the preconditioner's
+    # correction (its U and Q in ``smf_*``), and finding and removing the debris it left (that
+    # removal's correction included; its U and Q are in ``smf_*`` too)
+    plan_ms: float = 0.0
+    apply_ms: float = 0.0
+    correction_ms: float = 0.0
+    debris_ms: float = 0.0
 
 
 @dataclass

@@ -52,3 +52,17 @@ def test_the_resection_rows_include_the_cut_rows(monkeypatch):
     assert rows["brain_cut_ms_p99"]["value"] == pytest.approx(np.percentile([4.0, 6.0, 8.0], 99))
     assert rows["brain_cut_ms_p99"]["goal"] == rows["brain_resection_step_p99_ms"]["goal"] == 20.0
     assert "brain_resection_step_median_ms" in rows and "brain_resection_fps" in rows
+
+
+def test_the_cut_beam_note_splits_the_steps_by_their_place_around_the_cuts():
+    """Steps 1, 4, 7 cut; 2, 5, 8 follow a cut; the others are between cuts."""
+    stats = []
+    for i in range(9):
+        cut, after = i % 3 == 1, i % 3 == 2
+        stats.append({"total_ms": 1.0 + 2.0 * after, "solve_ms": 0.5 + after, "tets_changed": 4 if cut else 0,
+                      **({"cut_ms": 10.0, "plan_ms": 3.0, "apply_ms": 2.0, "correction_ms": 4.0, "debris_ms": 0.5}
+                         if cut else {})})
+    note = targets.beam_split(stats)
+    assert note.startswith("steps between cuts 1.00 (solve 0.50), a cut's step 11.00 of which its cutting phase 10.00")
+    assert "(planning 3.00, FEM, state and identities 2.00, correction 4.00, debris 0.50)" in note
+    assert note.endswith("the step after a cut 3.00 (solve 1.50)")

@@ -96,10 +96,30 @@ def cut_beam_rows(device, steps=90):
     solve = float(np.mean([s["solve_ms"] for s in smf_stats])) + corr_ms
     note = f"{smf['cuts']} cuts in {steps} steps, the scene's backend (auto)"
     return [_row("beam2000_smf_solve_ms", solve, "ms", 1.0, note=note + "; PCG solve + corrections, mean"),
-            _row("beam2000_smf_step_ms", smf["total_ms"], "ms", 3.4, note=note + "; whole step with the cuts, mean"),
+            _row("beam2000_smf_step_ms", smf["total_ms"], "ms", 3.4,
+                 note=note + "; whole step with the cuts, mean; " + beam_split(smf_stats)),
             _row("beam2000_smf_iterations_mean", smf["iterations"], "iterations", 8.0, note=note),
             _row("beam2000_smf_over_cg", cg_step / smf["total_ms"], "x", 20.0, ">=",
                  note=f"plain CG {cg_step:.1f} ms a step (mean of {len(cg_stats)}) on the same device")]
+
+
+def beam_split(stats) -> str:
+    """Where the cut beam's step goes (its step records): the steps between cuts, a cut's step
+    (its cutting phase and the phase's parts) and the step after a cut, means in ms."""
+    cut = [i for i, s in enumerate(stats) if s.get("tets_changed", 0) > 0]
+    after = [i + 1 for i in cut if i + 1 < len(stats) and i + 1 not in cut]
+    between = [i for i in range(len(stats)) if i not in cut and i not in after]
+
+    def mean(idx, f):
+        return float(np.mean([f(stats[i]) for i in idx])) if idx else float("nan")
+
+    whole = lambda s: s["total_ms"] + s.get("cut_ms", 0.0)  # noqa: E731
+    parts = ", ".join(f"{name} {mean(cut, lambda s, k=k: s.get(k, 0.0)):.2f}" for name, k in (
+        ("planning", "plan_ms"), ("FEM, state and identities", "apply_ms"), ("correction", "correction_ms"),
+        ("debris", "debris_ms")))
+    return (f"steps between cuts {mean(between, whole):.2f} (solve {mean(between, lambda s: s['solve_ms']):.2f}), "
+            f"a cut's step {mean(cut, whole):.2f} of which its cutting phase {mean(cut, lambda s: s['cut_ms']):.2f} "
+            f"({parts}), the step after a cut {mean(after, whole):.2f} (solve {mean(after, lambda s: s['solve_ms']):.2f})")
 
 
 def beam100k_rows(device, steps=40, warmup=8):

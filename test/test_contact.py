@@ -123,6 +123,28 @@ def test_the_active_set_option_reaches_the_lcp_solver_and_both_settings_rest_the
     np.testing.assert_allclose(forces[True], forces[False], rtol=0, atol=1e-6 * mg)
 
 
+def test_the_friction_active_set_option_reaches_the_lcp_solver():
+    """contact.friction_active_set (default false): the PGS's finish of LCPs with friction. A
+    block landing on a floor with friction (12 contacts at its bottom nodes, nearly repeated
+    constraints): the sweeps alone stop at their 200 above 1e-9 m on the landing, the finish
+    reaches it at every step in fewer iterations; both rest the block with its weight."""
+    floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
+    tol = 1e-9
+    worst, its, weight = {}, {}, {}
+    for on in (False, True):
+        contact = {"friction": 0.3, "tolerance": tol, **({"friction_active_set": True} if on else {})}
+        with load_scene(scene(obstacles=[floor], contact=contact)) as sim:
+            assert sim.contact.options["friction_active_set"] is on and sim.contact._pgs.friction_active_set is on
+            steps = [sim.step().extra for _ in range(60)]
+            worst[on] = max(s["lcp_residual"] for s in steps)
+            its[on] = np.mean([s["gs_iterations"] for s in steps])
+            assert steps[-1]["active_contacts"] == 12
+            weight[on] = sim.contact.contact_forces().sum(axis=0)
+    assert worst[True] <= tol < worst[False]
+    assert its[True] < its[False]
+    np.testing.assert_allclose(weight[True], weight[False], rtol=0, atol=1e-9 * weight[False][2])
+
+
 def test_a_body_resting_in_contact_takes_fewer_iterations_with_the_warm_start():
     """solver.warm_start (default true): at rest on the floor the free motion falls the same
     way every step (the contact puts it back), so the last step's dv is this one's solution
@@ -859,6 +881,8 @@ BAD_SCENES = [
     ({"contact": {"compliance": "magic"}, "instruments": [{"name": "p", "radius": 0.01}]}, "compliance"),
     ({"contact": {"self_collision": "yes"}}, "self_collision"),
     ({"contact": {"active_set": 1}, "instruments": [{"name": "p", "radius": 0.01}]}, "active_set"),
+    ({"contact": {"friction_active_set": "on"}, "instruments": [{"name": "p", "radius": 0.01}]},
+     "friction_active_set"),
     ({"contact": {"self_collision": True, "self_depth": -1.0}}, "self_depth"),
     ({"instruments": [{"name": "p", "radius": 0.0}]}, "radius"),
     ({"instruments": [{"name": "p"}]}, "radius"),

@@ -1,14 +1,16 @@
 """The contact LCP (soft_tissue_sim.contact.pgs): projected Gauss-Seidel and the active-set
 finish of a frictionless LCP against an exact solution by enumeration of the active sets, on
 near-singular W like the resection's (where the sweeps alone stall), against the sweeps alone
-on well-conditioned problems, and the friction cone."""
+on well-conditioned problems, and the friction cone; the active-set finish with friction on the
+default scene's own LCPs."""
 
 import itertools
 
 import numpy as np
 import pytest
 
-from soft_tissue_sim.contact.pgs import PGS, active_set, face_solve, frictionless_residual
+from soft_tissue_sim.contact.pgs import (PGS, active_set, face_solve, friction_active_set, frictionless_residual,
+                                        pgs_residual_host)
 
 
 def _spd(rng, m):
@@ -268,3 +270,92 @@ def test_with_friction_rows_the_solver_sweeps_as_without_the_finish(pyramid):
         new, old = PGS().solve(*args), PGS(active_set=False).solve(*args)
         np.testing.assert_array_equal(new[0], old[0])
         assert new[1:] == old[1:]
+
+
+# --------------------------------------------------- the active-set finish of an LCP with friction
+def _friction_problem(rng, rows_):
+    m = int(rows_.sum())
+    W = _spd(rng, m)
+    d0 = rng.standard_normal(m)
+    row_start = (np.cumsum(rows_) - rows_).astype(np.int32)
+    d0[row_start] = -np.abs(d0[row_start])
+    return W, d0, row_start, np.asarray(rows_, np.int32), np.where(rows_ == 3, 0.4, 0.0)
+
+
+@pytest.mark.parametrize("pyramid", [False, True])
+def test_the_hosts_residual_is_the_kernels(pyramid):
+    """pgs_residual_host (what the friction finish scores its iterates by) equals the kernel's
+    residual of the same lambda (a solve of 0 sweeps), up to the order of delta's sums: at cold
+    and warm starts, inside and outside the cones, with one-row contacts among the others."""
+    rng = np.random.default_rng(5)
+    for rows_ in (np.full(5, 3), np.array([3, 1, 3, 1, 1, 3])):
+        W, d0, row_start, rows_, mu = _friction_problem(rng, rows_)
+        m, nc = len(d0), len(row_start)
+        pgs = PGS(active_set=False)
+        pgs.solve(W, d0, row_start, rows_, mu, 1, 1e-9, pyramid, np.zeros(m))  # fills the kernel's buffers
+        for lam in (np.zeros(m), np.abs(rng.standard_normal(m)), 0.1 * rng.standard_normal(m)):
+            kernel = pgs._sweeps(lam, m, nc, 0, 1e-9, pyramid)[2]
+            assert kernel > 0.0
+            assert pgs_residual_host(W, d0, lam, row_start, rows_, mu, pyramid) == pytest.approx(kernel, rel=1e-12)
+
+
+@pytest.fixture(scope="module")
+def default_scene_lcps():
+    """The LCPs the host solves along the first 400 steps of the node benchmark's trajectory in
+    the default scene (the scalpel lowered onto the tissue and pressed; friction 0.2)."""
+    from soft_tissue_sim.bench.lcp import default_sets
+
+    return default_sets(400, 1)
+
+
+def test_the_friction_finish_converges_where_the_sweeps_stop_at_their_cap(default_scene_lcps):
+    """The scalpel's tip presses a node and the faces around it: nearly one constraint several
+    times, where the sweeps alone end at max_iterations above the tolerance in about a tenth of
+    the steps. With the finish most of those converge, the iterations (sweeps and steps) fall by
+    more than half, and every answer keeps lambda_n >= 0 and the forces in their cones."""
+    plain, finish = PGS(), PGS(friction_active_set=True)
+    hard = converged = 0
+    its_plain = its_finish = 0
+    for W, d0, row_start, rows_, mu, lam0, tol, pyramid, max_iterations in default_scene_lcps:
+        assert (rows_ == 3).all() and not pyramid
+        a = plain.solve(W, d0, row_start, rows_, mu, max_iterations, tol, pyramid, lam0)
+        lam, its, res = finish.solve(W, d0, row_start, rows_, mu, max_iterations, tol, pyramid, lam0)
+        assert its <= max_iterations
+        assert res == pytest.approx(pgs_residual_host(W, d0, lam, row_start, rows_, mu, pyramid), rel=1e-9, abs=1e-18)
+        ln = lam[row_start]
+        assert (ln >= 0.0).all()
+        assert (np.hypot(lam[row_start + 1], lam[row_start + 2]) <= mu * ln * (1 + 1e-12) + 1e-300).all()
+        its_plain, its_finish = its_plain + a[1], its_finish + its
+        if a[2] > tol:
+            hard += 1
+            converged += res <= tol
+    assert len(default_scene_lcps) > 200 and hard >= 10
+    assert converged >= hard / 2
+    assert its_finish < 0.5 * its_plain
+
+
+def test_the_friction_finish_solves_a_state_exactly_and_keeps_its_best_iterate():
+    """From the converged answer's own states (a long run of sweeps), one step of the finish
+    solves their linear system: residual far under the sweeps'. From any start it returns an
+    iterate no worse than its start (the least residual it met)."""
+    rng = np.random.default_rng(2)
+    for pyramid in (False, True):
+        W, d0, row_start, rows_, mu = _friction_problem(rng, np.full(4, 3))
+        m = len(d0)
+        ref, _its, res_ref = PGS(active_set=False).solve(W, d0, row_start, rows_, mu, 20000, 1e-9, pyramid,
+                                                         np.zeros(m))
+        lam, steps, res = friction_active_set(W, d0, row_start, rows_, mu, ref, pyramid, 1e-14, 5)
+        assert steps >= 1 and res < 1e-2 * res_ref and res < 1e-11  # rounding (W lambda about 10)
+        start = np.abs(rng.standard_normal(m))
+        r0 = pgs_residual_host(W, d0, start, row_start, rows_, mu, pyramid)
+        lam, steps, res = friction_active_set(W, d0, row_start, rows_, mu, start, pyramid, 0.0, 10)
+        assert res <= r0 and res == pytest.approx(pgs_residual_host(W, d0, lam, row_start, rows_, mu, pyramid))
+
+
+def test_without_friction_the_friction_finish_changes_nothing():
+    """A frictionless LCP goes to the frictionless active-set method either way."""
+    W, d0, lam_star = _clustered(1)
+    args = _frictionless(W, d0, tolerance=1e-10)
+    a, b = PGS().solve(*args), PGS(friction_active_set=True).solve(*args)
+    np.testing.assert_array_equal(a[0], b[0])
+    assert a[1:] == b[1:]

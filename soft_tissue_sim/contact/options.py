@@ -10,6 +10,10 @@ Scene options (all optional)::
       tolerance: 1.0e-8      # [m] LCP residual (largest W_rr |change of lambda_r| in a sweep)
       active_set: true       # a frictionless LCP: finish the sweeps by an exact active-set
                              # method (contact.pgs); false: sweeps only
+      friction_active_set: false  # an LCP with friction: finish the sweeps by an active-set
+                             # method on the contacts' states (contact.pgs), on the host (the
+                             # device's kernel sweeps only: with this on, such LCPs are solved
+                             # on the host)
       self_collision: false  # tissue surface nodes against the tissue's own triangles
       facing: 0.5            # same-component self contact only if n_node . n_triangle <= -facing
       self_depth: null       # [m] deepest penetration behind a tissue triangle taken as real
@@ -43,6 +47,7 @@ DEFAULTS = {
     "max_iterations": 200,
     "tolerance": 1e-8,
     "active_set": True,
+    "friction_active_set": False,
     "self_collision": False,
     "facing": 0.5,
     "self_depth": None,
@@ -79,7 +84,7 @@ def parse_options(cfg) -> dict:
     rows = o["device_lcp_rows"]
     if isinstance(rows, bool) or not isinstance(rows, int) or not 0 <= rows <= 256:
         raise ParameterError(f"contact device_lcp_rows must be an integer in [0, 256], got {rows!r}")
-    for key in ("self_collision", "active_set", "device_rows"):
+    for key in ("self_collision", "active_set", "friction_active_set", "device_rows"):
         if not isinstance(o[key], bool):
             raise ParameterError(f"contact {key} must be true or false, got {o[key]!r}")
     if o["friction_cone"] not in ("disk", "pyramid"):

@@ -89,7 +89,7 @@ class ContactSolver:
         # (record, lambda, node uids, node count) of the last step's contacts where they were solved
         # from device rows: their Contacts and warm start are made from it when asked for
         self._device_read = None
-        self._pgs = PGS(o["active_set"])
+        self._pgs = PGS(o["active_set"], friction_active_set=o["friction_active_set"])
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
         self._device_rows: DeviceRows | None = None  # the rows built on the device (device_rows), idem
         self._last_rows = 0  # the last step's constraint rows (where the next step's rows are built)
@@ -418,9 +418,11 @@ class ContactSolver:
     def _device_solver(self, body: BodyView, m: int):
         """The factor's services where this step's LCP of ``m`` rows is solved on the device, else
         None (see :mod:`.device_lcp`)."""
-        rows = self.options["device_lcp_rows"]
+        o = self.options
+        rows = o["device_lcp_rows"]
         inner = getattr(body.preconditioner, "inner", None)
-        if (not rows or m > rows or self.options["compliance"] != "preconditioner"
+        if (not rows or m > rows or o["compliance"] != "preconditioner"
+                or (o["friction_active_set"] and o["active_set"] and not self._frictionless)
                 or not getattr(inner, "solves_contact_on_device", lambda: False)()):
             return None
         if self._device_lcp is None or self._device_lcp.rows != rows:

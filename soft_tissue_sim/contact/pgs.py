@@ -350,19 +350,20 @@ def pgs_residual_host(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, row_start:
         safe = np.where(ok, det, 1.0)
         l1 = np.where(ok, lam[rf + 1] - (a22 * t1 - a12 * t2) / safe, lam[rf + 1])
         l2 = np.where(ok, lam[rf + 2] - (a11 * t2 - a12 * t1) / safe, lam[rf + 2])
-        lim = np.asarray(mu)[f] * lnf
-        if pyramid:
-            l1, l2 = np.clip(l1, -lim, lim), np.clip(l2, -lim, lim)
-        else:
-            lt = np.hypot(l1, l2)
-            scale = np.where(lt > lim, np.divide(lim, lt, out=np.zeros_like(lt), where=lt > 0.0), 1.0)
-            l1, l2 = l1 * scale, l2 * scale
+        l1, l2 = _onto_cone(l1, l2, np.asarray(mu)[f] * lnf, pyramid)
         change[f] = np.maximum(change[f], np.maximum(a11 * np.abs(l1 - lam[rf + 1]), a22 * np.abs(l2 - lam[rf + 2])))
     return float(change.max())
 
 
-_OFF, _ON = 0, 1  # a contact's normal state in :func:`friction_active_set`
-_FREE = 0  # a tangent row's state: free (its gap held at 0), else the sign of mu lambda_n it is held at
+def _onto_cone(l1: np.ndarray, l2: np.ndarray, lim: np.ndarray, pyramid: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Tangential forces (l1, l2) projected onto their cones of radius ``lim``, as
+    :func:`contact_update` projects them: each component clamped (pyramid), or the pair scaled
+    onto the disk's rim where outside it."""
+    if pyramid:
+        return np.clip(l1, -lim, lim), np.clip(l2, -lim, lim)
+    lt = np.hypot(l1, l2)
+    scale = np.where(lt > lim, np.divide(lim, lt, out=np.zeros_like(lt), where=lt > 0.0), 1.0)
+    return l1 * scale, l2 * scale
 
 
 def _cone(lam: np.ndarray, r: np.ndarray, rows: np.ndarray, mu: np.ndarray, pyramid: bool) -> np.ndarray:
@@ -372,15 +373,7 @@ def _cone(lam: np.ndarray, r: np.ndarray, rows: np.ndarray, mu: np.ndarray, pyra
     f = rows == 3
     if f.any():
         rf = r[f]
-        lim = mu[f] * out[rf]
-        l1, l2 = out[rf + 1], out[rf + 2]
-        if pyramid:
-            l1, l2 = np.clip(l1, -lim, lim), np.clip(l2, -lim, lim)
-        else:
-            lt = np.hypot(l1, l2)
-            scale = np.where(lt > lim, np.divide(lim, lt, out=np.zeros_like(lt), where=lt > 0.0), 1.0)
-            l1, l2 = l1 * scale, l2 * scale
-        out[rf + 1], out[rf + 2] = l1, l2
+        out[rf + 1], out[rf + 2] = _onto_cone(out[rf + 1], out[rf + 2], mu[f] * out[rf], pyramid)
     return out
 
 

@@ -19,6 +19,11 @@ def test_the_default_scenes_sets_are_recorded_and_solved_alike(tmp_path):
     assert d["iterations_mean"] > 1.0 and d["host_ms_mean"] > 0.0 and d["device_ms_mean"] > 0.0
     assert d["lambda_max_relative_difference"] <= 1e-9
     assert "resection" not in f
+    # the host with the friction finish on the same (frictional) sets: never more sets above the
+    # tolerance, fewer iterations
+    g = d["friction_finish"]
+    assert g["above_tolerance"] <= d["above_tolerance"] and g["iterations_mean"] <= d["iterations_mean"]
+    assert g["host_ms_mean"] > 0.0
 
 
 def test_a_large_set_goes_to_the_wide_buffers_and_a_bad_device_solve_shows():
@@ -31,6 +36,7 @@ def test_a_large_set_goes_to_the_wide_buffers_and_a_bad_device_solve_shows():
                200)
     f = lcp.compare([problem], BIG, "cpu")
     assert f["sets"] == 1 and f["rows_median"] == m and f["frictional"] == 0 and f["device_buffer_rows"] == BIG
+    assert f["above_tolerance"] == 0 and "friction_finish" not in f  # no friction: no finish to compare
     assert f["lambda_max_relative_difference"] <= 1e-9
     # a device solve that differs from the host's is reported as such
     bad = (-W,) + problem[1:]

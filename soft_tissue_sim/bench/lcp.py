@@ -13,9 +13,10 @@ Each set is solved by the host's :class:`~soft_tissue_sim.contact.pgs.PGS` and, 
 ``--device``, by :func:`~soft_tissue_sim.contact.device_lcp.device_pgs_kernel` in buffers of 32
 rows (the default limit) or, for the large sets, 256 (each solve launched and waited for, so
 the device's times include a launch). Reported per set kind: sets, rows (median), sweeps and
-face solves (mean, the host's; the device makes the same), time per solve (mean and median)
-of each, and the largest difference of the device's lambda from the host's relative to the
-largest force. Writes ``lcp_<cpu|gpu>.json``. Not a target row: a measuring tool for the
+face solves (mean, the host's; the device makes the same), the sets left above the tolerance,
+time per solve (mean and median) of each, and the largest difference of the device's lambda
+from the host's relative to the largest force; for the sets with friction, the host's solve
+with ``contact.friction_active_set`` too (iterations, sets above the tolerance, time). Writes ``lcp_<cpu|gpu>.json``. Not a target row: a measuring tool for the
 device LCP's kernels (docs/benchmarks.md).
 """
 
@@ -80,16 +81,17 @@ def resection_sets(count: int, seed: int = 0) -> list:
     return [sets[i] for i in pick]
 
 
-def host_solve(problem) -> tuple[np.ndarray, int, float]:
-    """The host's solve of a recorded set: (lambda, sweeps and face solves, seconds)."""
+def host_solve(problem, friction_active_set: bool = False) -> tuple[np.ndarray, int, float, float]:
+    """The host's solve of a recorded set (``friction_active_set``: with that finish, as the
+    scene option asks): (lambda, sweeps and active-set steps, residual, seconds)."""
     from ..contact.pgs import PGS
 
     W, d0, row_start, rows, mu, lam0, tol, pyramid, max_it = problem
-    pgs = PGS()
+    pgs = PGS(friction_active_set=friction_active_set)
     pgs.solve(W, d0, row_start, rows, mu, max_it, tol, pyramid, lam0)  # its buffers and launch made
     t0 = time.perf_counter()
-    lam, its, _res = pgs.solve(W, d0, row_start, rows, mu, max_it, tol, pyramid, lam0)
-    return lam, its, time.perf_counter() - t0
+    lam, its, res = pgs.solve(W, d0, row_start, rows, mu, max_it, tol, pyramid, lam0)
+    return lam, its, res, time.perf_counter() - t0
 
 
 def device_solve(problem, cap: int, device, reps: int = 3) -> tuple[np.ndarray, int, float]:
@@ -118,21 +120,32 @@ def compare(sets: list, cap: int, device) -> dict:
     """The host's and the device's solves of ``sets``, summarized."""
     if not sets:
         return {"sets": 0}
-    host_t, dev_t, its, diff = [], [], [], []
+    host_t, dev_t, its, diff, capped = [], [], [], [], 0
+    fin_t, fin_its, fin_capped = [], [], 0  # the frictional sets with the friction finish
     for p in sets:
-        lam_h, it, th = host_solve(p)
+        lam_h, it, res, th = host_solve(p)
         lam_d, it_d, td = device_solve(p, cap, device)
         host_t.append(th)
         dev_t.append(td)
         its.append(it)
+        capped += res > p[6]
         scale = max(float(np.abs(lam_h).max()), 1e-300)
         diff.append(float(np.abs(lam_d - lam_h).max()) / scale)
+        if len(p[2]) < len(p[1]):
+            _lam, it_f, res_f, tf = host_solve(p, friction_active_set=True)
+            fin_t.append(tf)
+            fin_its.append(it_f)
+            fin_capped += res_f > p[6]
     ms = lambda t: (1e3 * float(np.mean(t)), 1e3 * float(np.median(t)))  # noqa: E731
-    return {"sets": len(sets), "rows_median": float(np.median([len(p[1]) for p in sets])),
-            "frictional": int(sum(len(p[2]) < len(p[1]) for p in sets)), "iterations_mean": float(np.mean(its)),
-            "host_ms_mean": ms(host_t)[0], "host_ms_median": ms(host_t)[1],
-            "device_ms_mean": ms(dev_t)[0], "device_ms_median": ms(dev_t)[1],
-            "device_buffer_rows": cap, "lambda_max_relative_difference": float(max(diff))}
+    out = {"sets": len(sets), "rows_median": float(np.median([len(p[1]) for p in sets])),
+           "frictional": int(sum(len(p[2]) < len(p[1]) for p in sets)), "iterations_mean": float(np.mean(its)),
+           "above_tolerance": int(capped), "host_ms_mean": ms(host_t)[0], "host_ms_median": ms(host_t)[1],
+           "device_ms_mean": ms(dev_t)[0], "device_ms_median": ms(dev_t)[1],
+           "device_buffer_rows": cap, "lambda_max_relative_difference": float(max(diff))}
+    if fin_t:  # the host with contact.friction_active_set, on the frictional sets
+        out["friction_finish"] = {"iterations_mean": float(np.mean(fin_its)), "above_tolerance": int(fin_capped),
+                                  "host_ms_mean": ms(fin_t)[0], "host_ms_median": ms(fin_t)[1]}
+    return out
 
 
 def main(argv=None) -> int:
@@ -156,5 +169,9 @@ def main(argv=None) -> int:
         print(f"  {kind:10s} {f['sets']:4d} sets, {f['rows_median']:.0f} rows median, {f['iterations_mean']:.1f} "
               f"sweeps/face solves; host {f['host_ms_mean']:.3f} / {f['host_ms_median']:.3f} ms, device "
               f"{f['device_ms_mean']:.3f} / {f['device_ms_median']:.3f} ms (mean / median); lambda within "
-              f"{f['lambda_max_relative_difference']:.1e}")
+              f"{f['lambda_max_relative_difference']:.1e}; {f['above_tolerance']} above the tolerance")
+        if "friction_finish" in f:
+            g = f["friction_finish"]
+            print(f"  {'':10s} host with the friction finish: {g['iterations_mean']:.1f} sweeps/steps, "
+                  f"{g['host_ms_mean']:.3f} / {g['host_ms_median']:.3f} ms, {g['above_tolerance']} above the tolerance")
     return 0

@@ -44,7 +44,6 @@ from .geometry import F64
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
 FIRST_SWEEPS = 10  # the sweeps before an active-set finish (PGS)
-FRICTION_SWEEPS = 20  # with friction: the sweeps between two active-set finishes (PGS)
 FRICTION_STEPS = 10  # with friction: the most steps of one active-set finish (PGS)
 
 
@@ -522,19 +521,17 @@ class PGS:
     active-set method continues from the sweeps' lambda with the rest of ``max_iterations`` as
     its steps; if that does not finish within tolerance (see :func:`active_set`), the sweeps
     go on from the better of the two for what is left. A solve with friction rows sweeps up to
-    ``max_iterations``; with ``friction_active_set`` it sweeps ``first_sweeps``, then alternates
-    :func:`friction_active_set` (its steps counted) with ``friction_sweeps`` sweeps from the best
-    lambda so far until the tolerance or ``max_iterations``. ``active_set=False``: sweeps only,
+    ``max_iterations``; with ``friction_active_set`` it sweeps ``first_sweeps``, then (where
+    not converged) makes one :func:`friction_active_set` (its steps counted) and sweeps from the
+    better lambda for what is left. ``active_set=False``: sweeps only,
     always. The CPU buffers are kept between solves: they grow to the largest problem seen and
     are filled in place, and the kernel's launch is recorded once per set of buffers, so that a
     sweep phase allocates no Warp array and makes one launch.
     """
 
-    def __init__(self, active_set: bool = True, first_sweeps: int = FIRST_SWEEPS, friction_active_set: bool = False,
-                 friction_sweeps: int = FRICTION_SWEEPS):
+    def __init__(self, active_set: bool = True, first_sweeps: int = FIRST_SWEEPS, friction_active_set: bool = False):
         self.active_set = bool(active_set)
         self.friction_active_set = bool(friction_active_set)
-        self.friction_sweeps = int(friction_sweeps)
         self.first_sweeps = int(first_sweeps)
         self.rows_cap = self.contacts_cap = 0
         self._cmd = None
@@ -587,16 +584,14 @@ class PGS:
         first = min(self.first_sweeps, max_iterations) if finish or friction else max_iterations
         lam, its, res = self._sweeps(lam0, m, nc, first, tolerance, pyramid)
         if friction:
-            while res > tolerance and its < max_iterations:
+            if res > tolerance and its < max_iterations:  # one finish: a set it leaves unsolved it rarely solves later
                 lf, steps, rf = friction_active_set(W, d0, row_start, rows, mu, lam, pyramid, tolerance,
                                                     min(FRICTION_STEPS, max_iterations - its))
                 its += steps
                 if rf < res:
                     lam, res = lf, rf
-                if res <= tolerance or its >= max_iterations:
-                    break
-                lam, more, res = self._sweeps(lam, m, nc, min(self.friction_sweeps, max_iterations - its), tolerance,
-                                              pyramid)
+            if res > tolerance and its < max_iterations:
+                lam, more, res = self._sweeps(lam, m, nc, max_iterations - its, tolerance, pyramid)
                 its += more
             return lam, its, res
         if res <= tolerance or not finish or its >= max_iterations:

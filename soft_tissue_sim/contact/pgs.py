@@ -45,6 +45,8 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
 FIRST_SWEEPS = 10  # the sweeps before an active-set finish (PGS)
 FRICTION_STEPS = 10  # with friction: the most steps of one active-set finish (PGS)
+FRICTION_FINISHES = 2  # with friction: the most finishes a solve (PGS)
+FRICTION_SWEEPS = 20  # with friction: the sweeps between two finishes (PGS)
 
 
 @wp.func
@@ -521,9 +523,10 @@ class PGS:
     active-set method continues from the sweeps' lambda with the rest of ``max_iterations`` as
     its steps; if that does not finish within tolerance (see :func:`active_set`), the sweeps
     go on from the better of the two for what is left. A solve with friction rows sweeps up to
-    ``max_iterations``; with ``friction_active_set`` it sweeps ``first_sweeps``, then (where
-    not converged) makes one :func:`friction_active_set` (its steps counted) and sweeps from the
-    better lambda for what is left. ``active_set=False``: sweeps only,
+    ``max_iterations``; with ``friction_active_set`` it sweeps ``first_sweeps``, then, where not
+    converged, makes a :func:`friction_active_set` (its steps counted) and sweeps from the better
+    lambda, :data:`FRICTION_SWEEPS` of them between two finishes, at most
+    :data:`FRICTION_FINISHES`, the last finish's sweeps taking what is left. ``active_set=False``: sweeps only,
     always. The CPU buffers are kept between solves: they grow to the largest problem seen and
     are filled in place, and the kernel's launch is recorded once per set of buffers, so that a
     sweep phase allocates no Warp array and makes one launch.
@@ -584,15 +587,19 @@ class PGS:
         first = min(self.first_sweeps, max_iterations) if finish or friction else max_iterations
         lam, its, res = self._sweeps(lam0, m, nc, first, tolerance, pyramid)
         if friction:
-            if res > tolerance and its < max_iterations:  # one finish: a set it leaves unsolved it rarely solves later
+            for k in range(FRICTION_FINISHES):
+                if res <= tolerance or its >= max_iterations:
+                    break
                 lf, steps, rf = friction_active_set(W, d0, row_start, rows, mu, lam, pyramid, tolerance,
                                                     min(FRICTION_STEPS, max_iterations - its))
                 its += steps
                 if rf < res:
                     lam, res = lf, rf
-            if res > tolerance and its < max_iterations:
-                lam, more, res = self._sweeps(lam, m, nc, max_iterations - its, tolerance, pyramid)
-                its += more
+                if res > tolerance and its < max_iterations:  # the last finish's sweeps take what is left
+                    more_sweeps = FRICTION_SWEEPS if k + 1 < FRICTION_FINISHES else max_iterations - its
+                    lam, more, res = self._sweeps(lam, m, nc, min(more_sweeps, max_iterations - its), tolerance,
+                                                  pyramid)
+                    its += more
             return lam, its, res
         if res <= tolerance or not finish or its >= max_iterations:
             return lam, its, res

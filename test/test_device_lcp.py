@@ -22,10 +22,10 @@ from test_contact import FLOOR_Z, scene
 DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 
 
-def _floor_scene(rows, friction=0.0, cone="disk", graph=False, tol=1e-8, active_set=True, mesh=None):
+def _floor_scene(rows, friction=0.0, cone="disk", graph=False, tol=1e-8, active_set=True, mesh=None, **contact):
     floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
     cfg = scene(mesh, obstacles=[floor], contact={"tolerance": tol, "device_lcp_rows": rows, "friction": friction,
-                                            "friction_cone": cone, "active_set": active_set})
+                                            "friction_cone": cone, "active_set": active_set, **contact})
     cfg["device"] = DEVICE
     cfg["solver"]["ldlt"].update(backend="dense")
     cfg["solver"]["graph"] = graph
@@ -84,6 +84,58 @@ def test_the_device_solve_takes_the_host_solves_steps(friction, cone, rows, grap
     np.testing.assert_allclose(dev[1], host[1], rtol=0, atol=tol / 0.01)
     np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9 if cpu else 1e-6, atol=1e-12 if cpu else 1e-9)
     assert dev[2][0][2] < 0.0  # the floor carries the block
+
+
+@pytest.mark.parametrize("cone, rows", [("disk", 64), ("pyramid", 64), ("disk", 32)])
+def test_the_device_friction_finish_takes_the_host_finishs_steps(cone, rows):
+    """contact.friction_active_set on the device (the finish on the block's lane 0) and on the
+    host: a block landing with friction at 1e-10 m (where the sweeps alone stop at their cap),
+    the same iterations, residuals to rounding, positions and the floor's force."""
+    cpu = DEVICE == "cpu"
+    small = rows <= 32
+    mesh = {"generator": "beam", "n_long": 2, "n_cross": 2, "spacing": 0.01} if small else None
+    kw = dict(friction=0.4, cone=cone, tol=1e-10, mesh=mesh, friction_active_set=True)
+    host = _run(_floor_scene(0, **kw))
+    dev = _run(_floor_scene(rows, **kw))
+    assert any(s.get("contacts", 0) == (4 if small else 12) for s in dev[3])
+    finished = 0
+    for sh, sd in zip(host[3], dev[3]):
+        if sd.get("contacts", 0):
+            assert sd["lcp_device"] is True and "lcp_device" not in sh
+            assert sd["gs_iterations"] == sh["gs_iterations"]
+            assert sd["lcp_residual"] == pytest.approx(sh["lcp_residual"], rel=1e-6, abs=1e-15 if cpu else 1e-11)
+            finished += sh["gs_iterations"] > FIRST_SWEEPS and sh["lcp_residual"] <= 1e-10
+    assert finished > 0  # some steps went beyond the first sweeps and converged
+    tol = 1e-12 if cpu else 1e-9
+    np.testing.assert_allclose(dev[0], host[0], rtol=0, atol=tol)
+    np.testing.assert_allclose(dev[2][0], host[2][0], rtol=1e-9 if cpu else 1e-6, atol=1e-12 if cpu else 1e-9)
+
+
+def test_the_device_friction_finish_solves_the_default_scenes_lcps_as_the_host():
+    """The default scene's own LCPs (recorded along the node benchmark's trajectory; the
+    scalpel's tip, nearly repeated contacts): the kernel with the friction finish makes the
+    host's iterations on every set, converges on the same ones, and its contact displacement
+    W lambda is the host's to rounding."""
+    from soft_tissue_sim.bench.lcp import default_sets
+
+    sets = default_sets(400, 2)
+    host = PGS(friction_active_set=True)
+    finished = 0
+    lcp = DeviceLCP(SMALL, DEVICE)
+    for W, d0, row_start, rows, mu, lam0, tol, pyramid, max_iterations in sets:
+        m = len(d0)
+        lh, ih, rh = host.solve(W, d0, row_start, rows, mu, max_iterations, tol, pyramid, lam0)
+        lcp.stage(np.zeros((m, 4), np.int32), np.zeros((m, 4, 3)), d0, lam0, row_start, rows, mu)
+        Wd = np.zeros((SMALL, SMALL))
+        Wd[:m, :m] = W
+        lcp.W.assign(Wd)
+        lcp.solve(max_iterations, tol, pyramid, FIRST_SWEEPS, True)
+        info = lcp.info.numpy()
+        ld = lcp.lam.numpy()[:m]
+        assert int(info[0]) == ih and (info[1] <= tol) == (rh <= tol)
+        assert np.abs(W @ (ld - lh)).max() <= (1e-12 if DEVICE == "cpu" else 1e-9)  # [m], of about 1 mm
+        finished += ih > FIRST_SWEEPS
+    assert len(sets) > 100 and finished > 10
 
 
 def test_a_contact_set_beyond_the_row_limit_is_solved_on_the_host():

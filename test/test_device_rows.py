@@ -64,7 +64,8 @@ FRICTION = {"friction": 0.3}
 @pytest.mark.parametrize("graph, rows, contact, spatula", [
     (False, 64, {}, None), (True, 64, {}, None), (True, 32, {}, None),
     (True, 160, FRICTION, None), (False, 160, {**FRICTION, "friction_cone": "pyramid"}, None),
-    (True, 160, FRICTION, {"friction": 0.0})])
+    (True, 160, FRICTION, {"friction": 0.0}),
+    (True, 160, {**FRICTION, "active_set": True, "friction_active_set": True}, None)])
 def test_rows_built_on_the_device_give_the_host_rows_steps(tmp_path, graph, rows, contact, spatula):
     """Self contacts, an instrument's node and face contacts, a warm start from the step before,
     with friction (tangent rows: the tissue's and the tools' motion in the step; both cones; a
@@ -137,26 +138,14 @@ def test_beyond_the_row_limit_the_step_is_redone_on_the_host_and_the_next_built_
 
 
 @pytest.mark.parametrize("contact, why", [({"device_lcp_rows": 0}, "no device LCP"),
-                                          ({"device_rows": False}, "option off"),
-                                          ({**FRICTION, "active_set": True, "friction_active_set": True},
-                                           "friction finished by the host's active-set method")])
+                                          ({"device_rows": False}, "option off")])
 def test_the_rows_stay_on_the_host_where_the_device_does_not_build_them(tmp_path, contact, why):
-    """No device LCP, the option off, or an LCP with friction to be finished by the active-set
-    method (the device's kernel only sweeps those): the rows are built and solved on the host."""
+    """No device LCP, or the option off: the rows are built on the host."""
     contact = dict(contact)
     cfg = _u_scene(tmp_path, contact.pop("device_rows", True), **contact)
     out, _ = _press(cfg, steps=25)
     assert any(s.get("contacts", 0) for s, *_ in out), why
     assert not any(s.get("rows_device") for s, *_ in out), why
-    if "friction_active_set" in contact:
-        assert not any(s.get("lcp_device") for s, *_ in out), why
-
-
-def test_a_frictionless_scene_keeps_the_device_rows_with_the_friction_finish_on(tmp_path):
-    """friction_active_set concerns LCPs with friction: a frictionless one stays on the device."""
-    cfg = _u_scene(tmp_path, True, active_set=True, friction_active_set=True)
-    out, _ = _press(cfg, steps=25)
-    assert any(s.get("rows_device") for s, *_ in out)
 
 
 def test_a_runaway_correction_from_the_device_rows_is_dropped(tmp_path, monkeypatch):

@@ -11,9 +11,8 @@ Scene options (all optional)::
       active_set: true       # a frictionless LCP: finish the sweeps by an exact active-set
                              # method (contact.pgs); false: sweeps only
       friction_active_set: false  # an LCP with friction: finish the sweeps by an active-set
-                             # method on the contacts' states (contact.pgs), on the host (the
-                             # device's kernel sweeps only: with this on, such LCPs are solved
-                             # on the host)
+                             # method on the contacts' states (contact.pgs; on the device, the
+                             # LCP's block, contact.device_lcp); needs active_set
       self_collision: false  # tissue surface nodes against the tissue's own triangles
       facing: 0.5            # same-component self contact only if n_node . n_triangle <= -facing
       self_depth: null       # [m] deepest penetration behind a tissue triangle taken as real

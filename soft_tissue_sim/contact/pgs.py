@@ -26,9 +26,10 @@ Kocvara and Zowe, and Morales, Nocedal and Smelyanskiy) and finishes with
 :func:`active_set`. With friction the Coulomb problem is not a quadratic program, and where
 nearly repeated contacts share a force (an instrument's tip: the node it presses and the faces
 around it) the sweeps converge slowly; by default they run alone. :func:`friction_active_set`
-(``contact.friction_active_set``, on the host) finishes them instead: it solves the linear
-system of the contacts' current states (off, sticking, sliding) and follows the states the
-solution asks for, keeping the iterate of least residual, between rounds of sweeps.
+(``contact.friction_active_set``; the device's block has it too) finishes them instead: it
+solves the linear system of the contacts' current states (off, sticking, sliding) and follows
+the states the solution asks for, keeping the iterate of least residual, between rounds of
+sweeps.
 """
 
 from __future__ import annotations
@@ -396,8 +397,8 @@ def friction_active_set(W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, ro
     off, an off contact penetrating beyond the tolerance comes on, a free tangent beyond the cone
     is held there, and a held one takes the cone point a Gauss-Seidel update of its contact would
     project to (free again where that point is inside the cone). It stops at the tolerance, when
-    the states repeat, or after ``max_steps``. The states start from ``lam`` (a tangent on the
-    cone held, inside it free). No convergence guarantee (with friction the LCP is not a
+    the states repeat one of the last two, or after ``max_steps``. The states start from ``lam``
+    (a tangent on the cone held, inside it free). No convergence guarantee (with friction the LCP is not a
     quadratic program): the caller goes on sweeping from the returned lambda where the residual
     is above the tolerance."""
     m = len(d0)
@@ -420,13 +421,13 @@ def friction_active_set(W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, ro
             held[at] = np.where(np.abs(t[at]) >= lim[at, None] * (1.0 - 1e-9), np.sign(t[at]), 0.0)
         else:
             held[at] = t[at] / np.hypot(t[at, 0], t[at, 1])[:, None]
-    seen = set()
+    recent = []  # the last two states (a cycle of one or two steps ends the finish)
     steps = 0
     while steps < max_steps:
         key = (on.tobytes(), held.tobytes())
-        if key in seen:
+        if key in recent:
             break
-        seen.add(key)
+        recent = [key] + recent[:1]
         # unknowns: each on contact's normal, and each of its free tangents; equations: their gaps
         cols, eqs = [], []
         for c in np.flatnonzero(on):

@@ -418,11 +418,9 @@ class ContactSolver:
     def _device_solver(self, body: BodyView, m: int):
         """The factor's services where this step's LCP of ``m`` rows is solved on the device, else
         None (see :mod:`.device_lcp`)."""
-        o = self.options
-        rows = o["device_lcp_rows"]
+        rows = self.options["device_lcp_rows"]
         inner = getattr(body.preconditioner, "inner", None)
-        if (not rows or m > rows or o["compliance"] != "preconditioner"
-                or (o["friction_active_set"] and o["active_set"] and not self._frictionless)
+        if (not rows or m > rows or self.options["compliance"] != "preconditioner"
                 or not getattr(inner, "solves_contact_on_device", lambda: False)()):
             return None
         if self._device_lcp is None or self._device_lcp.rows != rows:

@@ -15,8 +15,9 @@ rows (the default limit) or, for the large sets, 256 (each solve launched and wa
 the device's times include a launch). Reported per set kind: sets, rows (median), sweeps and
 face solves (mean, the host's; the device makes the same), the sets left above the tolerance,
 time per solve (mean and median) of each, and the largest difference of the device's lambda
-from the host's relative to the largest force; for the sets with friction, the host's solve
-with ``contact.friction_active_set`` too (iterations, sets above the tolerance, time). Writes ``lcp_<cpu|gpu>.json``. Not a target row: a measuring tool for the
+from the host's relative to the largest force; for the sets with friction, both solves with
+``contact.friction_active_set`` too (iterations, sets above the tolerance, times, and the
+largest difference of the contact displacement W lambda between them). Writes ``lcp_<cpu|gpu>.json``. Not a target row: a measuring tool for the
 device LCP's kernels (docs/benchmarks.md).
 """
 
@@ -94,11 +95,13 @@ def host_solve(problem, friction_active_set: bool = False) -> tuple[np.ndarray, 
     return lam, its, res, time.perf_counter() - t0
 
 
-def device_solve(problem, cap: int, device, reps: int = 3) -> tuple[np.ndarray, int, float]:
+def device_solve(problem, cap: int, device, reps: int = 3, friction_finish: bool = False) -> tuple[np.ndarray, int,
+                                                                                                   float]:
     """The device's solve of a recorded set (:meth:`~soft_tissue_sim.contact.device_lcp.DeviceLCP.
-    solve` in buffers of ``cap`` rows, the set's W written in): (lambda, sweeps and face solves,
-    seconds a solve, launch and wait included)."""
+    solve` in buffers of ``cap`` rows, the set's W written in; ``friction_finish``: with the
+    friction finish): (lambda, sweeps and face solves, seconds a solve, launch and wait included)."""
     from ..contact.device_lcp import DeviceLCP
+    from ..contact.pgs import FIRST_SWEEPS
 
     W, d0, row_start, rows, mu, lam0, tol, pyramid, max_it = problem
     m = len(d0)
@@ -107,11 +110,11 @@ def device_solve(problem, cap: int, device, reps: int = 3) -> tuple[np.ndarray, 
     Wd = np.zeros((cap, cap))
     Wd[:m, :m] = W
     lcp.W.assign(Wd)
-    lcp.solve(max_it, tol, pyramid)  # loaded
+    lcp.solve(max_it, tol, pyramid, FIRST_SWEEPS, friction_finish)  # loaded
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     for _ in range(reps):
-        lcp.solve(max_it, tol, pyramid)
+        lcp.solve(max_it, tol, pyramid, FIRST_SWEEPS, friction_finish)
     wp.synchronize_device(device)
     return lcp.lam.numpy()[:m], int(lcp.info.numpy()[0]), (time.perf_counter() - t0) / reps
 
@@ -121,7 +124,7 @@ def compare(sets: list, cap: int, device) -> dict:
     if not sets:
         return {"sets": 0}
     host_t, dev_t, its, diff, capped = [], [], [], [], 0
-    fin_t, fin_its, fin_capped = [], [], 0  # the frictional sets with the friction finish
+    fin_t, fin_its, fin_capped, fin_dev_t, fin_diff = [], [], 0, [], []  # the frictional sets with the friction finish
     for p in sets:
         lam_h, it, res, th = host_solve(p)
         lam_d, it_d, td = device_solve(p, cap, device)
@@ -132,10 +135,15 @@ def compare(sets: list, cap: int, device) -> dict:
         scale = max(float(np.abs(lam_h).max()), 1e-300)
         diff.append(float(np.abs(lam_d - lam_h).max()) / scale)
         if len(p[2]) < len(p[1]):
-            _lam, it_f, res_f, tf = host_solve(p, friction_active_set=True)
+            lam_f, it_f, res_f, tf = host_solve(p, friction_active_set=True)
             fin_t.append(tf)
             fin_its.append(it_f)
             fin_capped += res_f > p[6]
+            lam_fd, _it, tfd = device_solve(p, cap, device, friction_finish=True)
+            fin_dev_t.append(tfd)
+            # the contact displacement W lambda: where nearly repeated contacts share a force,
+            # rounding can split it otherwise
+            fin_diff.append(float(np.abs(p[0] @ (lam_fd - lam_f)).max()))
     ms = lambda t: (1e3 * float(np.mean(t)), 1e3 * float(np.median(t)))  # noqa: E731
     out = {"sets": len(sets), "rows_median": float(np.median([len(p[1]) for p in sets])),
            "frictional": int(sum(len(p[2]) < len(p[1]) for p in sets)), "iterations_mean": float(np.mean(its)),
@@ -144,7 +152,9 @@ def compare(sets: list, cap: int, device) -> dict:
            "device_buffer_rows": cap, "lambda_max_relative_difference": float(max(diff))}
     if fin_t:  # the host with contact.friction_active_set, on the frictional sets
         out["friction_finish"] = {"iterations_mean": float(np.mean(fin_its)), "above_tolerance": int(fin_capped),
-                                  "host_ms_mean": ms(fin_t)[0], "host_ms_median": ms(fin_t)[1]}
+                                  "host_ms_mean": ms(fin_t)[0], "host_ms_median": ms(fin_t)[1],
+                                  "device_ms_mean": ms(fin_dev_t)[0], "device_ms_median": ms(fin_dev_t)[1],
+                                  "displacement_max_difference_m": float(max(fin_diff))}
     return out
 
 
@@ -172,6 +182,8 @@ def main(argv=None) -> int:
               f"{f['lambda_max_relative_difference']:.1e}; {f['above_tolerance']} above the tolerance")
         if "friction_finish" in f:
             g = f["friction_finish"]
-            print(f"  {'':10s} host with the friction finish: {g['iterations_mean']:.1f} sweeps/steps, "
-                  f"{g['host_ms_mean']:.3f} / {g['host_ms_median']:.3f} ms, {g['above_tolerance']} above the tolerance")
+            print(f"  {'':10s} with the friction finish: {g['iterations_mean']:.1f} sweeps/steps, host "
+                  f"{g['host_ms_mean']:.3f} / {g['host_ms_median']:.3f} ms, device {g['device_ms_mean']:.3f} / "
+                  f"{g['device_ms_median']:.3f} ms, {g['above_tolerance']} above the tolerance, W lambda within "
+                  f"{g['displacement_max_difference_m']:.1e} m")
     return 0

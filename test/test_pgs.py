@@ -9,8 +9,8 @@ import itertools
 import numpy as np
 import pytest
 
-from soft_tissue_sim.contact.pgs import (PGS, active_set, face_solve, friction_active_set, frictionless_residual,
-                                        pgs_residual_host)
+from lcp_reference import pgs_residual_host, solve_reference
+from soft_tissue_sim.contact.pgs import FIRST_SWEEPS, PGS, active_set, face_solve, frictionless_residual
 
 
 def _spd(rng, m):
@@ -320,6 +320,7 @@ def test_the_friction_finish_converges_where_the_sweeps_stop_at_their_cap(defaul
         assert (rows_ == 3).all() and not pyramid
         a = plain.solve(W, d0, row_start, rows_, mu, max_iterations, tol, pyramid, lam0)
         lam, its, res = finish.solve(W, d0, row_start, rows_, mu, max_iterations, tol, pyramid, lam0)
+        assert its == solve_reference(W, d0, row_start, rows_, mu, max_iterations, tol, pyramid, lam0)[1]
         assert its <= max_iterations
         assert res == pytest.approx(pgs_residual_host(W, d0, lam, row_start, rows_, mu, pyramid), rel=1e-9, abs=1e-18)
         ln = lam[row_start]
@@ -334,22 +335,35 @@ def test_the_friction_finish_converges_where_the_sweeps_stop_at_their_cap(defaul
     assert its_finish < 0.5 * its_plain
 
 
-def test_the_friction_finish_solves_a_state_exactly_and_keeps_its_best_iterate():
-    """From the converged answer's own states (a long run of sweeps), one step of the finish
-    solves their linear system: residual far under the sweeps'. From any start it returns an
-    iterate no worse than its start (the least residual it met)."""
-    rng = np.random.default_rng(2)
-    for pyramid in (False, True):
-        W, d0, row_start, rows_, mu = _friction_problem(rng, np.full(4, 3))
-        m = len(d0)
-        ref, _its, res_ref = PGS(active_set=False).solve(W, d0, row_start, rows_, mu, 20000, 1e-9, pyramid,
-                                                         np.zeros(m))
-        lam, steps, res = friction_active_set(W, d0, row_start, rows_, mu, ref, pyramid, 1e-14, 5)
-        assert steps >= 1 and res < 1e-2 * res_ref and res < 1e-11  # rounding (W lambda about 10)
-        start = np.abs(rng.standard_normal(m))
-        r0 = pgs_residual_host(W, d0, start, row_start, rows_, mu, pyramid)
-        lam, steps, res = friction_active_set(W, d0, row_start, rows_, mu, start, pyramid, 0.0, 10)
-        assert res <= r0 and res == pytest.approx(pgs_residual_host(W, d0, lam, row_start, rows_, mu, pyramid))
+@pytest.mark.parametrize("pyramid", [False, True])
+def test_the_kernels_friction_finish_is_the_references(pyramid):
+    """PGS with friction_active_set (the finish inside the host's kernel) against the same solve
+    written in NumPy and LAPACK (test/lcp_reference.py): the same iterations and verdicts, and
+    where converged the same contact displacement to rounding, on problems the first sweeps do
+    not solve (W of nearly repeated rows, 1e-12 m) and others, with one-row contacts among
+    the others."""
+    rng = np.random.default_rng(9)
+    stalled = converged = 0  # trials beyond the first sweeps, and converged
+    for trial in range(12):
+        rows_ = np.array([3, 3, 1, 3, 3]) if trial % 3 == 2 else np.full(5, 3)
+        m = int(rows_.sum())
+        base = rng.standard_normal((m, 4 if trial % 2 else m))  # rank 4: nearly repeated rows
+        W = base @ base.T + (1e-6 if trial % 2 else 0.5) * np.eye(m)
+        row_start = (np.cumsum(rows_) - rows_).astype(np.int32)
+        d0 = 0.1 * rng.standard_normal(m)
+        d0[row_start] = -np.abs(d0[row_start])
+        mu = np.where(rows_ == 3, 0.3, 0.0)
+        args = (W, d0, row_start, rows_.astype(np.int32), mu, 200, 1e-12, pyramid, np.zeros(m))
+        lam, its, res = PGS(friction_active_set=True).solve(*args)
+        ref, its_ref, res_ref = solve_reference(*args)
+        assert its == its_ref and (res <= 1e-12) == (res_ref <= 1e-12)
+        assert res == pytest.approx(res_ref, rel=1e-6, abs=1e-15)  # below that, rounding
+        if res <= 1e-12:  # a solution: the contact displacement W lambda the reference's (the split
+            # between nearly repeated rows may differ by rounding where the sweeps stopped early)
+            np.testing.assert_allclose(W @ lam, W @ ref, rtol=0, atol=1e-9 * np.abs(W @ ref).max())
+            converged += 1
+        stalled += its > FIRST_SWEEPS
+    assert stalled >= 3 and converged >= 6  # the finish ran in some (beyond the first sweeps)
 
 
 def test_without_friction_the_friction_finish_changes_nothing():
@@ -359,3 +373,27 @@ def test_without_friction_the_friction_finish_changes_nothing():
     a, b = PGS().solve(*args), PGS(friction_active_set=True).solve(*args)
     np.testing.assert_array_equal(a[0], b[0])
     assert a[1:] == b[1:]
+
+
+def test_beyond_its_row_limit_the_friction_finish_leaves_the_sweeps_alone():
+    """A set with friction of more than FRICTION_FINISH_ROWS rows (one thread's normal
+    equations grow as the cube of the rows): the sweeps alone, as without the option; within the
+    limit the same problem's first rows are finished."""
+    from soft_tissue_sim.contact.pgs import FRICTION_FINISH_ROWS
+
+    rng = np.random.default_rng(12)
+    k = FRICTION_FINISH_ROWS // 3 + 1
+    m = 3 * k
+    base = rng.standard_normal((m, 30))
+    W = base @ base.T + 1e-6 * np.eye(m)  # of rank 30 and 66 rows: the sweeps take tens
+    d0 = 0.1 * rng.standard_normal(m)
+    d0[::3] = -np.abs(d0[::3])
+    row_start, rows_, mu = np.arange(0, m, 3, dtype=np.int32), np.full(k, 3, np.int32), np.full(k, 0.3)
+    args = (W, d0, row_start, rows_, mu, 200, 1e-9, False, np.zeros(m))
+    on, off = PGS(friction_active_set=True).solve(*args), PGS().solve(*args)
+    np.testing.assert_array_equal(on[0], off[0])
+    assert on[1:] == off[1:] and on[1] > FIRST_SWEEPS
+    j = 3 * (FRICTION_FINISH_ROWS // 3)  # the first contacts, within the limit: finished
+    small = (W[:j, :j], d0[:j], row_start[:j // 3], rows_[:j // 3], mu[:j // 3], 200, 1e-9, False, np.zeros(j))
+    fin, plain = PGS(friction_active_set=True).solve(*small), PGS().solve(*small)
+    assert plain[1] > FIRST_SWEEPS and fin[1] != plain[1]

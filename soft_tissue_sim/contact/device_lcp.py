@@ -22,7 +22,7 @@ correction, the penetration detection and the guard (one graph a step):
    (:func:`device_active_set`: the host's :func:`.pgs.active_set`, its factorizations and
    products shared by the lanes, its scalar steps on lane 0), and a set with friction, where
    ``contact.friction_active_set`` asks, by the host's friction finish on lane 0
-   (:func:`device_friction_active_set`). The same
+   (:func:`friction_finish`). The same
    operations in the same order as the host's kernel, so the same lambda to the bit where no
    multiply-add is fused differently (the friction finish's sums in loop order, the host's by
    BLAS and LAPACK: to rounding);
@@ -35,8 +35,8 @@ correction. Where W is not positive definite the device solve makes lambda = 0 (
 correction) and says so: the caller restores the free motion and solves the step's contacts
 on the host, with the block diagonal of A (as :meth:`.solver.ContactSolver._respond` does).
 Sweeps with friction that end above the tolerance stand, as they do on the host. The friction
-finish is one lane's work (its normal equations O(k^3) for k unknowns): cheap on the narrow
-kernel's sets, slow on the wide one's. A sweep
+finish is one lane's work (its normal equations O(k^3) for k unknowns), for sets of up to
+:data:`.pgs.FRICTION_FINISH_ROWS` rows, as on the host. A sweep
 costs O(m) a lane for the rows it changes, the check O(m^3 / lanes); sets beyond the row
 limit (at most :data:`BIG`) are solved on the host.
 """
@@ -50,8 +50,8 @@ import warp as wp
 
 from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
-from .pgs import (FIRST_SWEEPS, FRICTION_FINISHES, FRICTION_STEPS, FRICTION_SWEEPS, contact_update, jacobi_change,
-                  row_delta)
+from .pgs import (_FBEST, _FCOUNT, _FOUT, FIRST_SWEEPS, FIWORK_ROWS, FRICTION_FINISH_ROWS, FRICTION_FINISHES,
+                  FRICTION_STEPS, FRICTION_SWEEPS, FWORK_ROWS, contact_update, friction_finish, face_substitute, jacobi_change, row_delta)
 
 LANES = 32  # the block of device_pgs_kernel
 WIDE_LANES = 128  # the block of device_pgs_wide_kernel (W's check and the active set's products shared wider)
@@ -123,23 +123,6 @@ def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype
             return 0
         dmax = wp.max(dmax, d)
     return cholesky_columns(W, L, P, m, F64(1e-10) * dmax, 0, lane, bd, gate, 1)
-
-
-@wp.func
-def face_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
-                    y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64)):
-    """x with L L^T x = b (L's leading p x p block, lower; y: work)."""
-    for i in range(p):
-        t = b[i]
-        for k in range(i):
-            t -= L[i, k] * y[k]
-        y[i] = t / L[i, i]
-    for q in range(p):
-        i = p - 1 - q
-        t = y[i]
-        for k in range(i + 1, p):
-            t -= L[k, i] * x[k]
-        x[i] = t / L[i, i]
 
 
 # rows of the active-set method's work arrays (DeviceLCP.work: float64, DeviceLCP.iwork: int32)
@@ -301,324 +284,6 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
     return steps
 
 
-# rows of the friction finish's work arrays (DeviceLCP.fwork: float64, DeviceLCP.fiwork: int32):
-# lambda kept, the state's solution, it projected, delta, the solves' vectors, and per contact
-# the held tangents (h1, h2) of the state, of the two before it and of the next
-(_FBEST, _FNEW, _FSOL, _FDELTA, _FY, _FY2, _FRHS, _FRHS2, _FT,
- _FH1, _FH2, _FH1P, _FH2P, _FH1Q, _FH2Q, _FH1N, _FH2N, _FOUT) = range(18)
-# per contact whether on (state, the two before, the next); per unknown its contact and part
-# (0: the normal, 1 / 2: a tangent) and its equation's row; [steps, states kept] in _FCOUNT
-_FON, _FONP, _FONQ, _FONN, _FUNKC, _FUNKT, _FEQ, _FCOUNT = range(8)
-FWORK_ROWS, FIWORK_ROWS = 18, 8
-
-
-@wp.func
-def _sign(x: wp.float64):
-    """-1, 0 or 1 (NumPy's sign)."""
-    out = F64(0.0)
-    if x > F64(0.0):
-        out = F64(1.0)
-    elif x < F64(0.0):
-        out = F64(-1.0)
-    return out
-
-
-@wp.func
-def _friction_cone(lam: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64),
-                   row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
-                   mu: wp.array(dtype=wp.float64), pyramid: int, m: int, nc: int):
-    """out = lam projected onto lambda_n >= 0 and the cones (:func:`.pgs._cone`)."""
-    for i in range(m):
-        out[i] = lam[i]
-    for c in range(nc):
-        r = row_start[c]
-        out[r] = wp.max(out[r], F64(0.0))
-        if n_rows[c] == 3:
-            lim = mu[c] * out[r]
-            l1 = out[r + 1]
-            l2 = out[r + 2]
-            if pyramid != 0:
-                l1 = wp.clamp(l1, -lim, lim)
-                l2 = wp.clamp(l2, -lim, lim)
-            else:
-                lt = wp.sqrt(l1 * l1 + l2 * l2)
-                if lt > lim:
-                    sc = F64(0.0)
-                    if lt > F64(0.0):
-                        sc = lim / lt
-                    l1 = l1 * sc
-                    l2 = l2 * sc
-            out[r + 1] = l1
-            out[r + 2] = l2
-
-
-@wp.func
-def _friction_residual(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
-                       lam: wp.array(dtype=wp.float64), delta: wp.array(dtype=wp.float64),
-                       row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
-                       mu: wp.array(dtype=wp.float64), pyramid: int, m: int, nc: int):
-    """:func:`.pgs.pgs_residual` of lam (delta = W lam + d0 summed afresh into ``delta``)."""
-    for i in range(m):
-        delta[i] = row_delta(W, d0, lam, i, m)
-    return jacobi_change(W, delta, lam, row_start, n_rows, mu, pyramid, nc)
-
-
-@wp.func
-def _same_state(fiwork: wp.array2d(dtype=wp.int32), fwork: wp.array2d(dtype=wp.float64), on_a: int, h1_a: int,
-                h2_a: int, on_b: int, h1_b: int, h2_b: int, nc: int):
-    """1 where two states of the contacts (rows of on and held) are the same."""
-    same = int(1)
-    for c in range(nc):
-        if fiwork[on_a, c] != fiwork[on_b, c] or fwork[h1_a, c] != fwork[h1_b, c] or fwork[h2_a, c] != fwork[h2_b, c]:
-            same = 0
-    return same
-
-
-@wp.func
-def _unknown_column(W: wp.array2d(dtype=wp.float64), row_start: wp.array(dtype=wp.int32),
-                    n_rows: wp.array(dtype=wp.int32), mu: wp.array(dtype=wp.float64),
-                    fwork: wp.array2d(dtype=wp.float64), fiwork: wp.array2d(dtype=wp.int32), i: int, j: int):
-    """Row i of W times unknown j's column (its normal with the held tangents, or a free tangent)."""
-    c = fiwork[_FUNKC, j]
-    t = fiwork[_FUNKT, j]
-    r = row_start[c]
-    v = F64(0.0)
-    if t == 0:
-        v = W[i, r]
-        if n_rows[c] == 3:
-            v += mu[c] * (fwork[_FH1, c] * W[i, r + 1] + fwork[_FH2, c] * W[i, r + 2])
-    else:
-        v = W[i, r + t]
-    return v
-
-
-@wp.func
-def device_friction_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
-                               row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
-                               mu: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64), m: int, nc: int,
-                               pyramid: int, tolerance: wp.float64, max_steps: int,
-                               fwork: wp.array2d(dtype=wp.float64), fiwork: wp.array2d(dtype=wp.int32),
-                               A: wp.array2d(dtype=wp.float64), N: wp.array2d(dtype=wp.float64)):
-    """:func:`.pgs.friction_active_set` on one lane, from ``lam``: the same states, steps and
-    choices (the sums in their loops' order, the host's by BLAS and LAPACK: equal to rounding).
-    The iterate of least residual goes to ``fwork[_FBEST]``; returns (steps, its residual)."""
-    zero = F64(0.0)
-    one = F64(1.0)
-    best = fwork[_FBEST]
-    new = fwork[_FNEW]
-    sol = fwork[_FSOL]
-    dl = fwork[_FDELTA]
-    y = fwork[_FY]
-    y2 = fwork[_FY2]
-    rhs = fwork[_FRHS]
-    rhs2 = fwork[_FRHS2]
-    tmp = fwork[_FT]
-    for i in range(m):
-        best[i] = lam[i]
-    best_res = _friction_residual(W, d0, best, dl, row_start, n_rows, mu, pyramid, m, nc)
-    if m == 0 or best_res <= tolerance:
-        return 0, best_res
-    tight = F64(1.0) - F64(1e-9)
-    for c in range(nc):
-        r = row_start[c]
-        fiwork[_FON, c] = int(lam[r] > zero)
-        fwork[_FH1, c] = zero
-        fwork[_FH2, c] = zero
-        if n_rows[c] == 3 and lam[r] > zero:
-            lim = mu[c] * lam[r]
-            t1 = lam[r + 1]
-            t2 = lam[r + 2]
-            size = wp.sqrt(t1 * t1 + t2 * t2)
-            if pyramid != 0:
-                size = wp.max(wp.abs(t1), wp.abs(t2))
-            if size >= lim * tight and lim > zero:
-                if pyramid != 0:
-                    if wp.abs(t1) >= lim * tight:
-                        fwork[_FH1, c] = _sign(t1)
-                    if wp.abs(t2) >= lim * tight:
-                        fwork[_FH2, c] = _sign(t2)
-                else:
-                    n = wp.sqrt(t1 * t1 + t2 * t2)
-                    fwork[_FH1, c] = t1 / n
-                    fwork[_FH2, c] = t2 / n
-    kept = int(0)  # states kept for the cycle check (the last two)
-    steps = int(0)
-    while steps < max_steps:
-        if kept >= 1 and _same_state(fiwork, fwork, _FON, _FH1, _FH2, _FONP, _FH1P, _FH2P, nc) != 0:
-            break
-        if kept >= 2 and _same_state(fiwork, fwork, _FON, _FH1, _FH2, _FONQ, _FH1Q, _FH2Q, nc) != 0:
-            break
-        for c in range(nc):  # the state before becomes the one before that, this one the state before
-            fiwork[_FONQ, c] = fiwork[_FONP, c]
-            fwork[_FH1Q, c] = fwork[_FH1P, c]
-            fwork[_FH2Q, c] = fwork[_FH2P, c]
-            fiwork[_FONP, c] = fiwork[_FON, c]
-            fwork[_FH1P, c] = fwork[_FH1, c]
-            fwork[_FH2P, c] = fwork[_FH2, c]
-        kept = wp.min(kept + 1, 2)
-        # unknowns: each on contact's normal (with its held tangents), then its free tangents
-        k = int(0)
-        for c in range(nc):
-            if fiwork[_FON, c] != 0:
-                r = row_start[c]
-                fiwork[_FUNKC, k] = c
-                fiwork[_FUNKT, k] = 0
-                fiwork[_FEQ, k] = r
-                k += 1
-                if n_rows[c] == 3:
-                    for t in range(1, 3):
-                        free = int(0)
-                        if pyramid != 0:
-                            if (t == 1 and fwork[_FH1, c] == zero) or (t == 2 and fwork[_FH2, c] == zero):
-                                free = 1
-                        elif fwork[_FH1, c] == zero and fwork[_FH2, c] == zero:
-                            free = 1
-                        if free != 0:
-                            fiwork[_FUNKC, k] = c
-                            fiwork[_FUNKT, k] = t
-                            fiwork[_FEQ, k] = r + t
-                            k += 1
-        steps += 1
-        for i in range(m):
-            new[i] = zero
-        if k > 0:
-            for a in range(k):
-                for b in range(k):
-                    A[a, b] = _unknown_column(W, row_start, n_rows, mu, fwork, fiwork, fiwork[_FEQ, a], b)
-                rhs[a] = -d0[fiwork[_FEQ, a]]
-            dmax = zero
-            for a in range(k):  # N = A^T A, its lower triangle
-                for b in range(a + 1):
-                    acc = zero
-                    for q in range(k):
-                        acc += A[q, a] * A[q, b]
-                    N[a, b] = acc
-                    N[b, a] = acc
-                dmax = wp.max(dmax, wp.abs(N[a, a]))
-            shift = F64(1e-12) * dmax
-            ok = int(1)
-            for a in range(k):  # Cholesky of N + shift I in place (lower)
-                acc = N[a, a] + shift
-                for q in range(a):
-                    acc -= N[a, q] * N[a, q]
-                if not (acc > zero):
-                    ok = 0
-                    break
-                d = wp.sqrt(acc)
-                N[a, a] = d
-                for b in range(a + 1, k):
-                    u = N[b, a]
-                    for q in range(a):
-                        u -= N[b, q] * N[a, q]
-                    N[b, a] = u / d
-            if ok == 0:
-                break
-            for a in range(k):  # y = N^-1 A^T rhs, then one refinement against A
-                acc = zero
-                for q in range(k):
-                    acc += A[q, a] * rhs[q]
-                rhs2[a] = acc
-            face_substitute(N, rhs2, k, tmp, y)
-            for a in range(k):
-                acc = rhs[a]
-                for b in range(k):
-                    acc -= A[a, b] * y[b]
-                tmp[a] = acc
-            for a in range(k):
-                acc = zero
-                for q in range(k):
-                    acc += A[q, a] * tmp[q]
-                rhs2[a] = acc
-            face_substitute(N, rhs2, k, tmp, y2)
-            for a in range(k):
-                y[a] = y[a] + y2[a]
-            for j in range(k):  # lambda = B y
-                c = fiwork[_FUNKC, j]
-                t = fiwork[_FUNKT, j]
-                r = row_start[c]
-                if t == 0:
-                    new[r] += y[j]
-                    if n_rows[c] == 3:
-                        new[r + 1] += mu[c] * fwork[_FH1, c] * y[j]
-                        new[r + 2] += mu[c] * fwork[_FH2, c] * y[j]
-                else:
-                    new[r + t] += y[j]
-        _friction_cone(new, sol, row_start, n_rows, mu, pyramid, m, nc)
-        res = _friction_residual(W, d0, sol, dl, row_start, n_rows, mu, pyramid, m, nc)
-        if res < best_res:
-            best_res = res
-            for i in range(m):
-                best[i] = sol[i]
-        if best_res <= tolerance:
-            break
-        # the states the solution asks for
-        for i in range(m):
-            dl[i] = row_delta(W, d0, new, i, m)
-        for c in range(nc):
-            r = row_start[c]
-            on = fiwork[_FON, c]
-            on_next = on
-            if on != 0 and new[r] < zero:
-                on_next = 0
-            if on == 0 and dl[r] < -tolerance:
-                on_next = 1
-            fiwork[_FONN, c] = on_next
-            h1 = fwork[_FH1, c]
-            h2 = fwork[_FH2, c]
-            if on_next == 0 or on == 0:
-                h1 = zero
-                h2 = zero
-            elif n_rows[c] == 3:
-                limc = mu[c] * wp.max(new[r], zero)
-                lt1 = new[r + 1]
-                lt2 = new[r + 2]
-                a11 = W[r + 1, r + 1]
-                a22 = W[r + 2, r + 2]
-                a12 = F64(0.5) * (W[r + 1, r + 2] + W[r + 2, r + 1])
-                det = a11 * a22 - a12 * a12
-                s1 = lt1
-                s2 = lt2
-                if det > zero:
-                    s1 = lt1 - (a22 * dl[r + 1] - a12 * dl[r + 2]) / det
-                    s2 = lt2 - (a11 * dl[r + 2] - a12 * dl[r + 1]) / det
-                if pyramid != 0:
-                    if h1 == zero:
-                        h1 = zero
-                        if wp.abs(lt1) > limc * (one + F64(1e-9)):
-                            h1 = _sign(lt1)
-                    else:
-                        h1 = zero
-                        if wp.abs(s1) > limc:
-                            h1 = _sign(s1)
-                    if h2 == zero:
-                        h2 = zero
-                        if wp.abs(lt2) > limc * (one + F64(1e-9)):
-                            h2 = _sign(lt2)
-                    else:
-                        h2 = zero
-                        if wp.abs(s2) > limc:
-                            h2 = _sign(s2)
-                elif h1 == zero and h2 == zero:
-                    n_lt = wp.sqrt(lt1 * lt1 + lt2 * lt2)
-                    if n_lt > limc * (one + F64(1e-9)):
-                        h1 = lt1 / n_lt
-                        h2 = lt2 / n_lt
-                else:
-                    n_st = wp.sqrt(s1 * s1 + s2 * s2)
-                    h1 = zero
-                    h2 = zero
-                    if n_st > limc and n_st > zero:
-                        h1 = s1 / n_st
-                        h2 = s2 / n_st
-            fwork[_FH1N, c] = h1
-            fwork[_FH2N, c] = h2
-        for c in range(nc):
-            fiwork[_FON, c] = fiwork[_FONN, c]
-            fwork[_FH1, c] = fwork[_FH1N, c]
-            fwork[_FH2, c] = fwork[_FH2N, c]
-    return steps, best_res
-
-
 def _block_solver(width: int) -> wp.Kernel:
     """:func:`device_pgs` for sets of up to ``width`` rows: delta in a shared tile of that many
     elements, and a changed row's column of W read as many (one kernel per width, so that the
@@ -697,7 +362,7 @@ def _block_solver(width: int) -> wp.Kernel:
         tolerance: wp.float64,
         pyramid: int,
         first_sweeps: int,
-        friction_finish: int,
+        finish_friction: int,
         L: wp.array2d(dtype=wp.float64),
         work: wp.array2d(dtype=wp.float64),
         iwork: wp.array2d(dtype=wp.int32),
@@ -717,9 +382,9 @@ def _block_solver(width: int) -> wp.Kernel:
         ``first_sweeps`` sweeps, then (not converged) the active-set method
         (:func:`device_active_set`) with what is left of ``max_iterations`` as its steps, the
         better of the two kept, then sweeps for the rest (``first_sweeps`` >= ``max_iterations``:
-        sweeps only). A set with friction and ``friction_finish`` as the host's with
-        ``friction_active_set``: ``first_sweeps`` sweeps, then up to :data:`.pgs.FRICTION_FINISHES`
-        of :func:`device_friction_active_set` (on lane 0, the others waiting), each followed by
+        sweeps only). A set with friction and ``finish_friction`` as the host's with
+        ``friction_active_set`` (up to :data:`.pgs.FRICTION_FINISH_ROWS` rows): ``first_sweeps`` sweeps, then up to :data:`.pgs.FRICTION_FINISHES`
+        of :func:`friction_finish` (on lane 0, the others waiting), each followed by
         sweeps from the better lambda. Every lane runs the scalar work alike (their writes to the
         device's memory are the same values)."""
         _b, lane = wp.tid()
@@ -738,7 +403,7 @@ def _block_solver(width: int) -> wp.Kernel:
         for i in range(m):
             lam[i] = lam0[i]
         frictionless = int(nc == m)
-        finish = int(frictionless == 0 and friction_finish != 0)
+        finish = int(frictionless == 0 and finish_friction != 0 and m <= FRICTION_FINISH_ROWS)
         first = max_iterations
         if frictionless != 0 or finish != 0:
             first = wp.min(first_sweeps, max_iterations)
@@ -763,7 +428,7 @@ def _block_solver(width: int) -> wp.Kernel:
                     break
                 barrier(gate)  # every lane's lambda written
                 if lane == 0:
-                    steps, rf = device_friction_active_set(W, d0, row_start, n_rows, mu, lam, m, nc, pyramid, tolerance,
+                    steps, rf = friction_finish(W, d0, row_start, n_rows, mu, lam, m, nc, pyramid, tolerance,
                                                            wp.min(FRICTION_STEPS, max_iterations - it), fwork, fiwork,
                                                            fA, fN)
                     fiwork[_FCOUNT, 0] = steps
@@ -833,7 +498,7 @@ class DeviceLCP:
         cols = max(cap, 3)  # the active-set finish's work arrays (iwork[_FLAGS] holds three verdicts)
         self.work = wp.zeros((WORK_ROWS, cols), dtype=wp.float64, device=self.device)
         self.iwork = wp.zeros((IWORK_ROWS, cols), dtype=wp.int32, device=self.device)
-        # the friction finish's (device_friction_active_set)
+        # the friction finish's (friction_finish)
         self.fwork = wp.zeros((FWORK_ROWS, cols), dtype=wp.float64, device=self.device)
         self.fiwork = wp.zeros((FIWORK_ROWS, cols), dtype=wp.int32, device=self.device)
         self.fA = wp.zeros((cap, cap), dtype=wp.float64, device=self.device)

@@ -48,6 +48,7 @@ FIRST_SWEEPS = 10  # the sweeps before an active-set finish (PGS)
 FRICTION_STEPS = 10  # with friction: the most steps of one active-set finish (PGS)
 FRICTION_FINISHES = 2  # with friction: the most finishes a solve (PGS)
 FRICTION_SWEEPS = 20  # with friction: the sweeps between two finishes (PGS)
+FRICTION_FINISH_ROWS = 64  # with friction: the most rows finished (one thread's normal equations, O(rows^3))
 
 
 @wp.func
@@ -210,6 +211,341 @@ def pgs_sweeps(
     return it, res
 
 
+@wp.func
+def face_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
+                    y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64)):
+    """x with L L^T x = b (L's leading p x p block, lower; y: work)."""
+    for i in range(p):
+        t = b[i]
+        for k in range(i):
+            t -= L[i, k] * y[k]
+        y[i] = t / L[i, i]
+    for q in range(p):
+        i = p - 1 - q
+        t = y[i]
+        for k in range(i + 1, p):
+            t -= L[k, i] * x[k]
+        x[i] = t / L[i, i]
+
+
+# rows of the friction finish's work arrays (DeviceLCP.fwork: float64, DeviceLCP.fiwork: int32):
+# lambda kept, the state's solution, it projected, delta, the solves' vectors, and per contact
+# the held tangents (h1, h2) of the state, of the two before it and of the next
+(_FBEST, _FNEW, _FSOL, _FDELTA, _FY, _FY2, _FRHS, _FRHS2, _FT,
+ _FH1, _FH2, _FH1P, _FH2P, _FH1Q, _FH2Q, _FH1N, _FH2N, _FOUT) = range(18)
+# per contact whether on (state, the two before, the next); per unknown its contact and part
+# (0: the normal, 1 / 2: a tangent) and its equation's row; [steps, states kept] in _FCOUNT
+_FON, _FONP, _FONQ, _FONN, _FUNKC, _FUNKT, _FEQ, _FCOUNT = range(8)
+FWORK_ROWS, FIWORK_ROWS = 18, 8
+
+
+@wp.func
+def _sign(x: wp.float64):
+    """-1, 0 or 1 (NumPy's sign)."""
+    out = F64(0.0)
+    if x > F64(0.0):
+        out = F64(1.0)
+    elif x < F64(0.0):
+        out = F64(-1.0)
+    return out
+
+
+@wp.func
+def _friction_cone(lam: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64),
+                   row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
+                   mu: wp.array(dtype=wp.float64), pyramid: int, m: int, nc: int):
+    """out = lam projected onto lambda_n >= 0 and the cones (:func:`_cone`)."""
+    for i in range(m):
+        out[i] = lam[i]
+    for c in range(nc):
+        r = row_start[c]
+        out[r] = wp.max(out[r], F64(0.0))
+        if n_rows[c] == 3:
+            lim = mu[c] * out[r]
+            l1 = out[r + 1]
+            l2 = out[r + 2]
+            if pyramid != 0:
+                l1 = wp.clamp(l1, -lim, lim)
+                l2 = wp.clamp(l2, -lim, lim)
+            else:
+                lt = wp.sqrt(l1 * l1 + l2 * l2)
+                if lt > lim:
+                    sc = F64(0.0)
+                    if lt > F64(0.0):
+                        sc = lim / lt
+                    l1 = l1 * sc
+                    l2 = l2 * sc
+            out[r + 1] = l1
+            out[r + 2] = l2
+
+
+@wp.func
+def _friction_residual(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
+                       lam: wp.array(dtype=wp.float64), delta: wp.array(dtype=wp.float64),
+                       row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
+                       mu: wp.array(dtype=wp.float64), pyramid: int, m: int, nc: int):
+    """:func:`pgs_residual` of lam (delta = W lam + d0 summed afresh into ``delta``)."""
+    for i in range(m):
+        delta[i] = row_delta(W, d0, lam, i, m)
+    return jacobi_change(W, delta, lam, row_start, n_rows, mu, pyramid, nc)
+
+
+@wp.func
+def _same_state(fiwork: wp.array2d(dtype=wp.int32), fwork: wp.array2d(dtype=wp.float64), on_a: int, h1_a: int,
+                h2_a: int, on_b: int, h1_b: int, h2_b: int, nc: int):
+    """1 where two states of the contacts (rows of on and held) are the same."""
+    same = int(1)
+    for c in range(nc):
+        if fiwork[on_a, c] != fiwork[on_b, c] or fwork[h1_a, c] != fwork[h1_b, c] or fwork[h2_a, c] != fwork[h2_b, c]:
+            same = 0
+    return same
+
+
+@wp.func
+def _unknown_column(W: wp.array2d(dtype=wp.float64), row_start: wp.array(dtype=wp.int32),
+                    n_rows: wp.array(dtype=wp.int32), mu: wp.array(dtype=wp.float64),
+                    fwork: wp.array2d(dtype=wp.float64), fiwork: wp.array2d(dtype=wp.int32), i: int, j: int):
+    """Row i of W times unknown j's column (its normal with the held tangents, or a free tangent)."""
+    c = fiwork[_FUNKC, j]
+    t = fiwork[_FUNKT, j]
+    r = row_start[c]
+    v = F64(0.0)
+    if t == 0:
+        v = W[i, r]
+        if n_rows[c] == 3:
+            v += mu[c] * (fwork[_FH1, c] * W[i, r + 1] + fwork[_FH2, c] * W[i, r + 2])
+    else:
+        v = W[i, r + t]
+    return v
+
+
+@wp.func
+def friction_finish(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
+                               row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
+                               mu: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64), m: int, nc: int,
+                               pyramid: int, tolerance: wp.float64, max_steps: int,
+                               fwork: wp.array2d(dtype=wp.float64), fiwork: wp.array2d(dtype=wp.int32),
+                               A: wp.array2d(dtype=wp.float64), N: wp.array2d(dtype=wp.float64)):
+    """:func:`friction_active_set` on one thread (a lane of the device's block), from ``lam``: the same states, steps and
+    choices (the sums in their loops' order, the host's by BLAS and LAPACK: equal to rounding).
+    The iterate of least residual goes to ``fwork[_FBEST]``; returns (steps, its residual)."""
+    zero = F64(0.0)
+    one = F64(1.0)
+    best = fwork[_FBEST]
+    new = fwork[_FNEW]
+    sol = fwork[_FSOL]
+    dl = fwork[_FDELTA]
+    y = fwork[_FY]
+    y2 = fwork[_FY2]
+    rhs = fwork[_FRHS]
+    rhs2 = fwork[_FRHS2]
+    tmp = fwork[_FT]
+    for i in range(m):
+        best[i] = lam[i]
+    best_res = _friction_residual(W, d0, best, dl, row_start, n_rows, mu, pyramid, m, nc)
+    if m == 0 or best_res <= tolerance:
+        return 0, best_res
+    tight = F64(1.0) - F64(1e-9)
+    for c in range(nc):
+        r = row_start[c]
+        fiwork[_FON, c] = int(lam[r] > zero)
+        fwork[_FH1, c] = zero
+        fwork[_FH2, c] = zero
+        if n_rows[c] == 3 and lam[r] > zero:
+            lim = mu[c] * lam[r]
+            t1 = lam[r + 1]
+            t2 = lam[r + 2]
+            size = wp.sqrt(t1 * t1 + t2 * t2)
+            if pyramid != 0:
+                size = wp.max(wp.abs(t1), wp.abs(t2))
+            if size >= lim * tight and lim > zero:
+                if pyramid != 0:
+                    if wp.abs(t1) >= lim * tight:
+                        fwork[_FH1, c] = _sign(t1)
+                    if wp.abs(t2) >= lim * tight:
+                        fwork[_FH2, c] = _sign(t2)
+                else:
+                    n = wp.sqrt(t1 * t1 + t2 * t2)
+                    fwork[_FH1, c] = t1 / n
+                    fwork[_FH2, c] = t2 / n
+    kept = int(0)  # states kept for the cycle check (the last two)
+    steps = int(0)
+    while steps < max_steps:
+        if kept >= 1 and _same_state(fiwork, fwork, _FON, _FH1, _FH2, _FONP, _FH1P, _FH2P, nc) != 0:
+            break
+        if kept >= 2 and _same_state(fiwork, fwork, _FON, _FH1, _FH2, _FONQ, _FH1Q, _FH2Q, nc) != 0:
+            break
+        for c in range(nc):  # the state before becomes the one before that, this one the state before
+            fiwork[_FONQ, c] = fiwork[_FONP, c]
+            fwork[_FH1Q, c] = fwork[_FH1P, c]
+            fwork[_FH2Q, c] = fwork[_FH2P, c]
+            fiwork[_FONP, c] = fiwork[_FON, c]
+            fwork[_FH1P, c] = fwork[_FH1, c]
+            fwork[_FH2P, c] = fwork[_FH2, c]
+        kept = wp.min(kept + 1, 2)
+        # unknowns: each on contact's normal (with its held tangents), then its free tangents
+        k = int(0)
+        for c in range(nc):
+            if fiwork[_FON, c] != 0:
+                r = row_start[c]
+                fiwork[_FUNKC, k] = c
+                fiwork[_FUNKT, k] = 0
+                fiwork[_FEQ, k] = r
+                k += 1
+                if n_rows[c] == 3:
+                    for t in range(1, 3):
+                        free = int(0)
+                        if pyramid != 0:
+                            if (t == 1 and fwork[_FH1, c] == zero) or (t == 2 and fwork[_FH2, c] == zero):
+                                free = 1
+                        elif fwork[_FH1, c] == zero and fwork[_FH2, c] == zero:
+                            free = 1
+                        if free != 0:
+                            fiwork[_FUNKC, k] = c
+                            fiwork[_FUNKT, k] = t
+                            fiwork[_FEQ, k] = r + t
+                            k += 1
+        steps += 1
+        for i in range(m):
+            new[i] = zero
+        if k > 0:
+            for a in range(k):
+                for b in range(k):
+                    A[a, b] = _unknown_column(W, row_start, n_rows, mu, fwork, fiwork, fiwork[_FEQ, a], b)
+                rhs[a] = -d0[fiwork[_FEQ, a]]
+            dmax = zero
+            for a in range(k):  # N = A^T A, its lower triangle
+                for b in range(a + 1):
+                    acc = zero
+                    for q in range(k):
+                        acc += A[q, a] * A[q, b]
+                    N[a, b] = acc
+                    N[b, a] = acc
+                dmax = wp.max(dmax, wp.abs(N[a, a]))
+            shift = F64(1e-12) * dmax
+            ok = int(1)
+            for a in range(k):  # Cholesky of N + shift I in place (lower)
+                acc = N[a, a] + shift
+                for q in range(a):
+                    acc -= N[a, q] * N[a, q]
+                if not (acc > zero):
+                    ok = 0
+                    break
+                d = wp.sqrt(acc)
+                N[a, a] = d
+                for b in range(a + 1, k):
+                    u = N[b, a]
+                    for q in range(a):
+                        u -= N[b, q] * N[a, q]
+                    N[b, a] = u / d
+            if ok == 0:
+                break
+            for a in range(k):  # y = N^-1 A^T rhs, then one refinement against A
+                acc = zero
+                for q in range(k):
+                    acc += A[q, a] * rhs[q]
+                rhs2[a] = acc
+            face_substitute(N, rhs2, k, tmp, y)
+            for a in range(k):
+                acc = rhs[a]
+                for b in range(k):
+                    acc -= A[a, b] * y[b]
+                tmp[a] = acc
+            for a in range(k):
+                acc = zero
+                for q in range(k):
+                    acc += A[q, a] * tmp[q]
+                rhs2[a] = acc
+            face_substitute(N, rhs2, k, tmp, y2)
+            for a in range(k):
+                y[a] = y[a] + y2[a]
+            for j in range(k):  # lambda = B y
+                c = fiwork[_FUNKC, j]
+                t = fiwork[_FUNKT, j]
+                r = row_start[c]
+                if t == 0:
+                    new[r] += y[j]
+                    if n_rows[c] == 3:
+                        new[r + 1] += mu[c] * fwork[_FH1, c] * y[j]
+                        new[r + 2] += mu[c] * fwork[_FH2, c] * y[j]
+                else:
+                    new[r + t] += y[j]
+        _friction_cone(new, sol, row_start, n_rows, mu, pyramid, m, nc)
+        res = _friction_residual(W, d0, sol, dl, row_start, n_rows, mu, pyramid, m, nc)
+        if res < best_res:
+            best_res = res
+            for i in range(m):
+                best[i] = sol[i]
+        if best_res <= tolerance:
+            break
+        # the states the solution asks for
+        for i in range(m):
+            dl[i] = row_delta(W, d0, new, i, m)
+        for c in range(nc):
+            r = row_start[c]
+            on = fiwork[_FON, c]
+            on_next = on
+            if on != 0 and new[r] < zero:
+                on_next = 0
+            if on == 0 and dl[r] < -tolerance:
+                on_next = 1
+            fiwork[_FONN, c] = on_next
+            h1 = fwork[_FH1, c]
+            h2 = fwork[_FH2, c]
+            if on_next == 0 or on == 0:
+                h1 = zero
+                h2 = zero
+            elif n_rows[c] == 3:
+                limc = mu[c] * wp.max(new[r], zero)
+                lt1 = new[r + 1]
+                lt2 = new[r + 2]
+                a11 = W[r + 1, r + 1]
+                a22 = W[r + 2, r + 2]
+                a12 = F64(0.5) * (W[r + 1, r + 2] + W[r + 2, r + 1])
+                det = a11 * a22 - a12 * a12
+                s1 = lt1
+                s2 = lt2
+                if det > zero:
+                    s1 = lt1 - (a22 * dl[r + 1] - a12 * dl[r + 2]) / det
+                    s2 = lt2 - (a11 * dl[r + 2] - a12 * dl[r + 1]) / det
+                if pyramid != 0:
+                    if h1 == zero:
+                        h1 = zero
+                        if wp.abs(lt1) > limc * (one + F64(1e-9)):
+                            h1 = _sign(lt1)
+                    else:
+                        h1 = zero
+                        if wp.abs(s1) > limc:
+                            h1 = _sign(s1)
+                    if h2 == zero:
+                        h2 = zero
+                        if wp.abs(lt2) > limc * (one + F64(1e-9)):
+                            h2 = _sign(lt2)
+                    else:
+                        h2 = zero
+                        if wp.abs(s2) > limc:
+                            h2 = _sign(s2)
+                elif h1 == zero and h2 == zero:
+                    n_lt = wp.sqrt(lt1 * lt1 + lt2 * lt2)
+                    if n_lt > limc * (one + F64(1e-9)):
+                        h1 = lt1 / n_lt
+                        h2 = lt2 / n_lt
+                else:
+                    n_st = wp.sqrt(s1 * s1 + s2 * s2)
+                    h1 = zero
+                    h2 = zero
+                    if n_st > limc and n_st > zero:
+                        h1 = s1 / n_st
+                        h2 = s2 / n_st
+            fwork[_FH1N, c] = h1
+            fwork[_FH2N, c] = h2
+        for c in range(nc):
+            fiwork[_FON, c] = fiwork[_FONN, c]
+            fwork[_FH1, c] = fwork[_FH1N, c]
+            fwork[_FH2, c] = fwork[_FH2N, c]
+    return steps, best_res
+
+
 @wp.kernel
 def pgs_kernel(
     W: wp.array2d(dtype=wp.float64),
@@ -225,6 +561,12 @@ def pgs_kernel(
     lam: wp.array(dtype=wp.float64),
     delta: wp.array(dtype=wp.float64),
     info: wp.array(dtype=wp.float64),
+    first_sweeps: int,
+    finish: int,
+    fwork: wp.array2d(dtype=wp.float64),
+    fiwork: wp.array2d(dtype=wp.int32),
+    fA: wp.array2d(dtype=wp.float64),
+    fN: wp.array2d(dtype=wp.float64),
 ):
     """Projected Gauss-Seidel for delta = W lambda + d0 with Signorini-Coulomb contacts.
 
@@ -236,8 +578,33 @@ def pgs_kernel(
     tolerance. info = [sweeps, residual]. W symmetric. The problem is the first m rows and nc
     contacts of the arrays (which may be larger: reused buffers). One thread: launched with
     dim 1 on the CPU.
+
+    ``finish`` (an LCP with friction): ``first_sweeps`` sweeps, then up to
+    :data:`FRICTION_FINISHES` of :func:`friction_finish` (its steps counted), each followed by
+    sweeps from the better lambda (:data:`FRICTION_SWEEPS` between two, the last one's taking
+    what is left of ``max_iterations``); the work arrays are the finish's.
     """
-    it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, max_iterations, tolerance, pyramid, lam, delta)
+    if finish == 0:
+        it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, max_iterations, tolerance, pyramid, lam, delta)
+    else:
+        it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, wp.min(first_sweeps, max_iterations), tolerance,
+                             pyramid, lam, delta)
+        for k in range(FRICTION_FINISHES):
+            if res <= tolerance or it >= max_iterations:
+                break
+            steps, rf = friction_finish(W, d0, row_start, n_rows, mu, lam, m, nc, pyramid, tolerance,
+                                        wp.min(FRICTION_STEPS, max_iterations - it), fwork, fiwork, fA, fN)
+            it += steps
+            if rf < res:
+                res = rf
+                for i in range(m):
+                    lam[i] = fwork[_FBEST, i]
+            if res > tolerance and it < max_iterations:
+                more_sweeps = max_iterations - it
+                if k + 1 < FRICTION_FINISHES:
+                    more_sweeps = wp.min(FRICTION_SWEEPS, more_sweeps)
+                more, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, more_sweeps, tolerance, pyramid, lam, delta)
+                it += more
     info[0] = F64(it)
     info[1] = res
 
@@ -327,194 +694,6 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
     return lam, steps
 
 
-def pgs_residual_host(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, row_start: np.ndarray, rows: np.ndarray,
-                      mu: np.ndarray, pyramid: bool) -> float:
-    """:func:`pgs_residual` on the host, for contacts of one or three rows: the largest change
-    :func:`contact_update` would make to any contact from ``lam`` (delta = W lambda + d0 summed
-    by BLAS, so equal to the kernel's up to rounding) [m]."""
-    if len(d0) == 0 or len(row_start) == 0:
-        return 0.0
-    delta = W @ lam + d0
-    r = np.asarray(row_start, np.int64)
-    diag = W[r, r]
-    ln = np.maximum(0.0, lam[r] - delta[r] / diag)
-    change = diag * np.abs(ln - lam[r])
-    f = np.asarray(rows) == 3
-    if f.any():
-        rf, lnf = r[f], ln[f]
-        dln = lnf - lam[rf]
-        t1 = delta[rf + 1] + W[rf + 1, rf] * dln
-        t2 = delta[rf + 2] + W[rf + 2, rf] * dln
-        a11, a22 = W[rf + 1, rf + 1], W[rf + 2, rf + 2]
-        a12 = 0.5 * (W[rf + 1, rf + 2] + W[rf + 2, rf + 1])
-        det = a11 * a22 - a12 * a12
-        ok = det > 0.0
-        safe = np.where(ok, det, 1.0)
-        l1 = np.where(ok, lam[rf + 1] - (a22 * t1 - a12 * t2) / safe, lam[rf + 1])
-        l2 = np.where(ok, lam[rf + 2] - (a11 * t2 - a12 * t1) / safe, lam[rf + 2])
-        l1, l2 = _onto_cone(l1, l2, np.asarray(mu)[f] * lnf, pyramid)
-        change[f] = np.maximum(change[f], np.maximum(a11 * np.abs(l1 - lam[rf + 1]), a22 * np.abs(l2 - lam[rf + 2])))
-    return float(change.max())
-
-
-def _onto_cone(l1: np.ndarray, l2: np.ndarray, lim: np.ndarray, pyramid: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Tangential forces (l1, l2) projected onto their cones of radius ``lim``, as
-    :func:`contact_update` projects them: each component clamped (pyramid), or the pair scaled
-    onto the disk's rim where outside it."""
-    if pyramid:
-        return np.clip(l1, -lim, lim), np.clip(l2, -lim, lim)
-    lt = np.hypot(l1, l2)
-    scale = np.where(lt > lim, np.divide(lim, lt, out=np.zeros_like(lt), where=lt > 0.0), 1.0)
-    return l1 * scale, l2 * scale
-
-
-def _cone(lam: np.ndarray, r: np.ndarray, rows: np.ndarray, mu: np.ndarray, pyramid: bool) -> np.ndarray:
-    """``lam`` projected onto lambda_n >= 0 and the friction cones (a copy)."""
-    out = lam.copy()
-    out[r] = np.maximum(out[r], 0.0)
-    f = rows == 3
-    if f.any():
-        rf = r[f]
-        out[rf + 1], out[rf + 2] = _onto_cone(out[rf + 1], out[rf + 2], mu[f] * out[rf], pyramid)
-    return out
-
-
-def friction_active_set(W: np.ndarray, d0: np.ndarray, row_start: np.ndarray, rows: np.ndarray, mu: np.ndarray,
-                        lam: np.ndarray, pyramid: bool, tolerance: float, max_steps: int,
-                        shift: float = 1e-12) -> tuple[np.ndarray, int, float]:
-    """An active-set finish for an LCP with friction (contacts of three rows, or one), from the
-    sweeps' ``lam``: returns (lambda, steps, residual of :func:`pgs_residual_host`), lambda the
-    step of least residual (``lam`` itself where none does better).
-
-    Each contact has a state: off (every row 0), or on with each tangent either free or held at
-    the cone. A step solves the linear system of that state: an on contact's normal gap is 0, a
-    free tangent's gap is 0; the disk's held tangents are mu lambda_n along a fixed unit
-    direction, the pyramid's each at +-mu lambda_n. Where rows nearly repeat a constraint (a
-    node contact and the face contacts around it) the system is near singular: it is solved by
-    its normal equations shifted by ``shift`` times their largest diagonal and one refinement
-    (the least-squares solution, a shared force). The solution, projected onto the cones, is
-    scored by the PGS residual; then the states follow it: a contact pulled (lambda_n < 0) goes
-    off, an off contact penetrating beyond the tolerance comes on, a free tangent beyond the cone
-    is held there, and a held one takes the cone point a Gauss-Seidel update of its contact would
-    project to (free again where that point is inside the cone). It stops at the tolerance, when
-    the states repeat one of the last two, or after ``max_steps``. The states start from ``lam``
-    (a tangent on the cone held, inside it free). No convergence guarantee (with friction the LCP is not a
-    quadratic program): the caller goes on sweeping from the returned lambda where the residual
-    is above the tolerance."""
-    m = len(d0)
-    r = np.asarray(row_start, np.int64)
-    rows = np.asarray(rows)
-    mu = np.asarray(mu, dtype=np.float64)
-    lam = np.asarray(lam, dtype=np.float64)
-    best, best_res = lam, pgs_residual_host(W, d0, lam, r, rows, mu, pyramid)
-    if m == 0 or best_res <= tolerance:
-        return best, 0, best_res
-    f = rows == 3
-    on = lam[r] > 0.0
-    lim = mu * lam[r]
-    held = np.zeros((len(r), 2))  # per contact: (0, 0) free; disk: the unit direction held; pyramid: the signs
-    if f.any():
-        t = np.stack([lam[np.minimum(r + 1, m - 1)], lam[np.minimum(r + 2, m - 1)]], axis=1)
-        at = (np.abs(t).max(axis=1) if pyramid else np.hypot(t[:, 0], t[:, 1])) >= lim * (1.0 - 1e-9)
-        at &= f & on & (lim > 0.0)
-        if pyramid:
-            held[at] = np.where(np.abs(t[at]) >= lim[at, None] * (1.0 - 1e-9), np.sign(t[at]), 0.0)
-        else:
-            held[at] = t[at] / np.hypot(t[at, 0], t[at, 1])[:, None]
-    recent = []  # the last two states (a cycle of one or two steps ends the finish)
-    steps = 0
-    while steps < max_steps:
-        key = (on.tobytes(), held.tobytes())
-        if key in recent:
-            break
-        recent = [key] + recent[:1]
-        # unknowns: each on contact's normal, and each of its free tangents; equations: their gaps
-        cols, eqs = [], []
-        for c in np.flatnonzero(on):
-            rc = int(r[c])
-            col = np.zeros(m)
-            col[rc] = 1.0
-            if f[c]:
-                h = held[c]
-                if pyramid:
-                    for j in (0, 1):
-                        if h[j] != 0.0:
-                            col[rc + 1 + j] = mu[c] * h[j]
-                elif h.any():
-                    col[rc + 1:rc + 3] = mu[c] * h
-            cols.append(col)
-            eqs.append(rc)
-            if f[c]:
-                for j in (0, 1):
-                    if (pyramid and held[c, j] == 0.0) or (not pyramid and not held[c].any()):
-                        col = np.zeros(m)
-                        col[rc + 1 + j] = 1.0
-                        cols.append(col)
-                        eqs.append(rc + 1 + j)
-        steps += 1
-        new = np.zeros(m)
-        if cols:
-            B = np.array(cols).T
-            y = _least_squares(W[eqs] @ B, -d0[eqs], shift)
-            if y is None:
-                break
-            new = B @ y
-        sol = _cone(new, r, rows, mu, pyramid)
-        res = pgs_residual_host(W, d0, sol, r, rows, mu, pyramid)
-        if res < best_res:
-            best, best_res = sol, res
-        if best_res <= tolerance:
-            break
-        # the states the solution asks for
-        delta = W @ new + d0
-        on_next = on.copy()
-        on_next[on & (new[r] < 0.0)] = False
-        on_next[~on & (delta[r] < -tolerance)] = True
-        held_next = held.copy()
-        held_next[~on_next] = 0.0
-        for c in np.flatnonzero(on_next & f):
-            rc = int(r[c])
-            limc = mu[c] * max(new[rc], 0.0)
-            lt = new[rc + 1:rc + 3]
-            if not on[c]:  # just taken in: free
-                held_next[c] = 0.0
-                continue
-            # the point a Gauss-Seidel update of this contact goes to before its projection
-            a11, a22 = W[rc + 1, rc + 1], W[rc + 2, rc + 2]
-            a12 = 0.5 * (W[rc + 1, rc + 2] + W[rc + 2, rc + 1])
-            det = a11 * a22 - a12 * a12
-            tt = delta[rc + 1:rc + 3]
-            stick = lt - (np.array([a22 * tt[0] - a12 * tt[1], a11 * tt[1] - a12 * tt[0]]) / det if det > 0.0 else 0.0)
-            if pyramid:
-                for j in (0, 1):
-                    if held[c, j] == 0.0:
-                        held_next[c, j] = np.sign(lt[j]) if abs(lt[j]) > limc * (1.0 + 1e-9) else 0.0
-                    else:
-                        held_next[c, j] = np.sign(stick[j]) if abs(stick[j]) > limc else 0.0
-            elif not held[c].any():
-                n_lt = float(np.hypot(lt[0], lt[1]))
-                if n_lt > limc * (1.0 + 1e-9):
-                    held_next[c] = lt / n_lt
-            else:
-                n_st = float(np.hypot(stick[0], stick[1]))
-                held_next[c] = stick / n_st if n_st > limc and n_st > 0.0 else 0.0
-        on, held = on_next, held_next
-    return best, steps, best_res
-
-
-def _least_squares(A: np.ndarray, rhs: np.ndarray, shift: float) -> np.ndarray | None:
-    """The solution of A y = rhs in the least-squares sense, by the normal equations shifted by
-    ``shift`` times their largest diagonal and one step of refinement; None where even shifted
-    they are not positive definite."""
-    N = A.T @ A
-    N[np.diag_indices_from(N)] += shift * float(np.abs(np.diag(N)).max())
-    c, info = dpotrf(N, lower=1, clean=0)
-    if info != 0:
-        return None
-    y = dpotrs(c, A.T @ rhs, lower=1)[0]
-    return y + dpotrs(c, A.T @ (rhs - A @ y), lower=1)[0]
-
-
 class PGS:
     """The contact LCP's solver: projected Gauss-Seidel sweeps (:func:`pgs_kernel`) and, for a
     frictionless LCP (every contact one row), :func:`active_set` after ``first_sweeps`` of
@@ -524,10 +703,12 @@ class PGS:
     active-set method continues from the sweeps' lambda with the rest of ``max_iterations`` as
     its steps; if that does not finish within tolerance (see :func:`active_set`), the sweeps
     go on from the better of the two for what is left. A solve with friction rows sweeps up to
-    ``max_iterations``; with ``friction_active_set`` it sweeps ``first_sweeps``, then, where not
-    converged, makes a :func:`friction_active_set` (its steps counted) and sweeps from the better
-    lambda, :data:`FRICTION_SWEEPS` of them between two finishes, at most
-    :data:`FRICTION_FINISHES`, the last finish's sweeps taking what is left. ``active_set=False``: sweeps only,
+    ``max_iterations``; with ``friction_active_set`` the kernel sweeps ``first_sweeps``, then,
+    where not converged, makes :func:`friction_finish` (its steps counted) and sweeps from the
+    better lambda, :data:`FRICTION_SWEEPS` of them between two finishes, at most
+    :data:`FRICTION_FINISHES`, the last finish's sweeps taking what is left (one launch), for
+    sets of up to :data:`FRICTION_FINISH_ROWS` rows (beyond, the sweeps alone).
+    ``active_set=False``: sweeps only,
     always. The CPU buffers are kept between solves: they grow to the largest problem seen and
     are filled in place, and the kernel's launch is recorded once per set of buffers, so that a
     sweep phase allocates no Warp array and makes one launch.
@@ -551,18 +732,23 @@ class PGS:
             z(rc, wp.float64)
         self.row_start, self.n_rows, self.mu = z(cc, wp.int32), z(cc, wp.int32), z(cc, wp.float64)
         self.info = z(2, wp.float64)
+        self.fwork, self.fiwork = z((FWORK_ROWS, rc), wp.float64), z((FIWORK_ROWS, rc), wp.int32)
+        self.fA, self.fN = z((rc, rc), wp.float64), z((rc, rc), wp.float64)
         self._cmd = wp.launch(pgs_kernel, 1, [self.W, self.d0, self.row_start, self.n_rows, self.mu, 0, 0, 0, 0.0, 0,
-                                              self.lam, self.delta, self.info], device="cpu", record_cmd=True)
+                                              self.lam, self.delta, self.info, 0, 0, self.fwork, self.fiwork, self.fA,
+                                              self.fN], device="cpu", record_cmd=True)
         self._np = {name: getattr(self, name).numpy() for name in
                     ("W", "d0", "lam", "row_start", "n_rows", "mu", "info")}
 
     def _sweeps(self, lam: np.ndarray, m: int, nc: int, max_iterations: int, tolerance: float,
-                pyramid: bool) -> tuple[np.ndarray, int, float]:
-        """Up to ``max_iterations`` sweeps from ``lam`` on the problem in the buffers."""
+                pyramid: bool, finish: bool = False) -> tuple[np.ndarray, int, float]:
+        """Up to ``max_iterations`` sweeps from ``lam`` on the problem in the buffers (``finish``:
+        with the friction finish after ``first_sweeps`` of them, :func:`pgs_kernel`)."""
         a = self._np
         a["lam"][:m] = lam
         cmd = self._cmd
-        for index, value in ((5, m), (6, nc), (7, int(max_iterations)), (8, float(tolerance)), (9, int(pyramid))):
+        for index, value in ((5, m), (6, nc), (7, int(max_iterations)), (8, float(tolerance)), (9, int(pyramid)),
+                             (13, self.first_sweeps), (14, int(finish))):
             cmd.set_param_at_index(index, value)
         cmd.launch()
         its, res = a["info"]
@@ -584,24 +770,10 @@ class PGS:
         a["n_rows"][:nc] = rows
         a["mu"][:nc] = mu
         finish = self.active_set and nc == m  # the contacts' rows partition the m rows: no friction rows
-        friction = self.active_set and self.friction_active_set and nc < m
-        first = min(self.first_sweeps, max_iterations) if finish or friction else max_iterations
+        if self.active_set and self.friction_active_set and nc < m <= FRICTION_FINISH_ROWS:  # the kernel finishes it
+            return self._sweeps(lam0, m, nc, max_iterations, tolerance, pyramid, finish=True)
+        first = min(self.first_sweeps, max_iterations) if finish else max_iterations
         lam, its, res = self._sweeps(lam0, m, nc, first, tolerance, pyramid)
-        if friction:
-            for k in range(FRICTION_FINISHES):
-                if res <= tolerance or its >= max_iterations:
-                    break
-                lf, steps, rf = friction_active_set(W, d0, row_start, rows, mu, lam, pyramid, tolerance,
-                                                    min(FRICTION_STEPS, max_iterations - its))
-                its += steps
-                if rf < res:
-                    lam, res = lf, rf
-                if res > tolerance and its < max_iterations:  # the last finish's sweeps take what is left
-                    more_sweeps = FRICTION_SWEEPS if k + 1 < FRICTION_FINISHES else max_iterations - its
-                    lam, more, res = self._sweeps(lam, m, nc, min(more_sweeps, max_iterations - its), tolerance,
-                                                  pyramid)
-                    its += more
-            return lam, its, res
         if res <= tolerance or not finish or its >= max_iterations:
             return lam, its, res
         la, steps = active_set(W, d0, lam, tolerance, max_iterations - its)  # every row a contact's normal

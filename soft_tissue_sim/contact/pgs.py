@@ -251,6 +251,31 @@ def _sign(x: wp.float64):
 
 
 @wp.func
+def _transpose_times(A: wp.array2d(dtype=wp.float64), v: wp.array(dtype=wp.float64), k: int,
+                     out: wp.array(dtype=wp.float64)):
+    """out = A^T v over A's leading k x k block."""
+    for a in range(k):
+        acc = F64(0.0)
+        for q in range(k):
+            acc += A[q, a] * v[q]
+        out[a] = acc
+
+
+@wp.func
+def _held_component(h: wp.float64, lt: wp.float64, stick: wp.float64, limc: wp.float64):
+    """The pyramid's next state of one tangent component: free (0) beyond the cone becomes held
+    at the sign of its force; held becomes free where the Gauss-Seidel point ``stick`` is
+    inside the cone, else held at its sign."""
+    out = F64(0.0)
+    if h == F64(0.0):
+        if wp.abs(lt) > limc * (F64(1.0) + F64(1e-9)):
+            out = _sign(lt)
+    elif wp.abs(stick) > limc:
+        out = _sign(stick)
+    return out
+
+
+@wp.func
 def _friction_cone(lam: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64),
                    row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
                    mu: wp.array(dtype=wp.float64), pyramid: int, m: int, nc: int):
@@ -326,9 +351,10 @@ def friction_finish(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float
                                pyramid: int, tolerance: wp.float64, max_steps: int,
                                fwork: wp.array2d(dtype=wp.float64), fiwork: wp.array2d(dtype=wp.int32),
                                A: wp.array2d(dtype=wp.float64), N: wp.array2d(dtype=wp.float64)):
-    """:func:`friction_active_set` on one thread (a lane of the device's block), from ``lam``: the same states, steps and
-    choices (the sums in their loops' order, the host's by BLAS and LAPACK: equal to rounding).
-    The iterate of least residual goes to ``fwork[_FBEST]``; returns (steps, its residual)."""
+    """The friction finish on one thread (the host's kernel, or a lane of the device's block),
+    from ``lam`` (the NumPy reference, ``friction_active_set`` of test/lcp_reference.py, makes
+    the same states, steps and choices, its sums by BLAS and LAPACK: equal to rounding). The
+    iterate of least residual goes to ``fwork[_FBEST]``; returns (steps, its residual)."""
     zero = F64(0.0)
     one = F64(1.0)
     best = fwork[_FBEST]
@@ -440,22 +466,14 @@ def friction_finish(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float
                     N[b, a] = u / d
             if ok == 0:
                 break
-            for a in range(k):  # y = N^-1 A^T rhs, then one refinement against A
-                acc = zero
-                for q in range(k):
-                    acc += A[q, a] * rhs[q]
-                rhs2[a] = acc
+            _transpose_times(A, rhs, k, rhs2)  # y = N^-1 A^T rhs, then one refinement against A
             face_substitute(N, rhs2, k, tmp, y)
             for a in range(k):
                 acc = rhs[a]
                 for b in range(k):
                     acc -= A[a, b] * y[b]
                 tmp[a] = acc
-            for a in range(k):
-                acc = zero
-                for q in range(k):
-                    acc += A[q, a] * tmp[q]
-                rhs2[a] = acc
+            _transpose_times(A, tmp, k, rhs2)
             face_substitute(N, rhs2, k, tmp, y2)
             for a in range(k):
                 y[a] = y[a] + y2[a]
@@ -509,22 +527,8 @@ def friction_finish(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float
                     s1 = lt1 - (a22 * dl[r + 1] - a12 * dl[r + 2]) / det
                     s2 = lt2 - (a11 * dl[r + 2] - a12 * dl[r + 1]) / det
                 if pyramid != 0:
-                    if h1 == zero:
-                        h1 = zero
-                        if wp.abs(lt1) > limc * (one + F64(1e-9)):
-                            h1 = _sign(lt1)
-                    else:
-                        h1 = zero
-                        if wp.abs(s1) > limc:
-                            h1 = _sign(s1)
-                    if h2 == zero:
-                        h2 = zero
-                        if wp.abs(lt2) > limc * (one + F64(1e-9)):
-                            h2 = _sign(lt2)
-                    else:
-                        h2 = zero
-                        if wp.abs(s2) > limc:
-                            h2 = _sign(s2)
+                    h1 = _held_component(h1, lt1, s1, limc)
+                    h2 = _held_component(h2, lt2, s2, limc)
                 elif h1 == zero and h2 == zero:
                     n_lt = wp.sqrt(lt1 * lt1 + lt2 * lt2)
                     if n_lt > limc * (one + F64(1e-9)):

@@ -12,7 +12,8 @@ from soft_tissue_sim.contact.pgs import PGS
 
 
 def test_the_default_scenes_sets_are_recorded_and_solved_alike(tmp_path):
-    assert lcp.main(["--device", "cpu", "--steps", "200", "--every", "3", "--large", "0", "--out", str(tmp_path)]) == 0
+    assert lcp.main(["--device", "cpu", "--steps", "200", "--every", "3", "--large", "0", "--trajectory", "0",
+                     "--out", str(tmp_path)]) == 0
     f = json.load(open(tmp_path / "lcp_cpu.json"))["figures"]
     d = f["default"]
     assert d["sets"] > 5 and d["rows_median"] >= 3 and d["frictional"] == d["sets"]  # the scene's friction
@@ -53,3 +54,18 @@ def test_recording_restores_the_host_solver():
                         np.zeros(2), 50, 1e-12, False, np.zeros(2))
             raise RuntimeError("stop")
     assert PGS.solve is solve and len(sets) == 1 and sets[0][1].tolist() == [-1.0, 1.0]
+
+
+def test_the_trajectory_compares_each_lcp_setting_with_the_converged_one():
+    """The default scene's trajectory (its first 160 steps: the scalpel lowered and pressed) with
+    each setting: the converged run is its own reference (no error), the shipped and finished
+    runs have fewer iterations and an error of their own, the finish fewer iterations and steps
+    above the tolerance than the sweeps alone."""
+    f = lcp.trajectory("cpu", 160)
+    ref, shipped, finish = f["converged"], f["shipped"], f["friction_finish"]
+    assert f["steps"] == 160
+    assert ref["wrench_error_p99"] == 0.0 and ref["positions_max_error_m"] == 0.0
+    assert ref["iterations_mean"] > shipped["iterations_mean"] > finish["iterations_mean"] > 1.0
+    assert finish["above_tolerance_fraction"] <= shipped["above_tolerance_fraction"]
+    assert 0.0 < shipped["wrench_error_median"] < 0.1 and shipped["positions_max_error_m"] > 0.0
+    assert all(g["step_ms_median"] > 0.0 for g in (ref, shipped, finish))

@@ -17,8 +17,17 @@ face solves (mean, the host's; the device makes the same), the sets left above t
 time per solve (mean and median) of each, and the largest difference of the device's lambda
 from the host's relative to the largest force; for the sets with friction, both solves with
 ``contact.friction_active_set`` too (iterations, sets above the tolerance, times, and the
-largest difference of the contact displacement W lambda between them). Writes ``lcp_<cpu|gpu>.json``. Not a target row: a measuring tool for the
-device LCP's kernels (docs/benchmarks.md).
+largest difference of the contact displacement W lambda between them).
+
+``trajectory``: the default scene along the same trajectory run on ``--device`` for
+``--trajectory`` steps with the LCP converged (1e-9 m, up to 5,000 iterations), as shipped, and
+with the friction finish (a factor made in the step that asks for it, so that the runs are
+comparable): per setting the iterations a step, the steps above the tolerance, the step's wall
+time, and the scalpel's force (median and p99, relative) and the positions (largest) against
+the converged run: error against run time for the contact LCP.
+
+Writes ``lcp_<cpu|gpu>.json``. Not a target row: a measuring tool for the device LCP's
+kernels (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -158,11 +167,69 @@ def compare(sets: list, cap: int, device) -> dict:
     return out
 
 
+TRAJECTORY_SETTINGS = {  # name -> contact options over the scene's (the reference first)
+    "converged": {"tolerance": 1e-9, "max_iterations": 5000},
+    "shipped": {},
+    "friction_finish": {"friction_active_set": True},
+}
+
+
+def trajectory_run(device, steps: int, contact: dict) -> dict:
+    """The default scene along the node benchmark's trajectory on ``device`` (a factor made in
+    the step that asks for it, so that runs are comparable) with ``contact`` options: per step the
+    scalpel's force, the LCP's iterations and residual, the wall time; positions every 10th step."""
+    from ..scene import load_scene
+    from .node import _trajectory
+
+    sim = load_scene("default.yaml", device=device, overrides={"contact": contact,
+                                                                  "solver": {"ldlt": {"deterministic": True}}})
+    tol = sim.contact.options["tolerance"]
+    force, its, above, wall, x = [], [], 0, [], []
+    try:
+        name = sim.instrument_names()[0]
+        at, _script = _trajectory(sim, name)
+        for i in range(steps):
+            sim.set_instrument_pose(name, at(i * sim.dt), (0.0, 0.0, 0.0, 1.0))
+            t0 = time.perf_counter()
+            d = sim.step().as_dict()
+            wall.append(1e3 * (time.perf_counter() - t0))
+            force.append(sim.instrument_wrench(name)[0].copy())
+            its.append(d.get("gs_iterations", 0) or 0)
+            above += (d.get("lcp_residual", 0.0) or 0.0) > tol
+            if i % 10 == 0:
+                x.append(sim.positions())
+    finally:
+        sim.close()
+    return {"force": np.array(force), "iterations": np.array(its), "above": above, "wall": np.array(wall),
+            "x": np.array(x)}
+
+
+def trajectory(device, steps: int) -> dict:
+    """The default scene's trajectory with each of :data:`TRAJECTORY_SETTINGS`, each against the
+    converged one: iterations a step, steps above the tolerance, step time, the scalpel's force
+    against the converged run's (relative, over the steps it is pressed) and the positions'
+    largest difference."""
+    runs = {k: trajectory_run(device, steps, c) for k, c in TRAJECTORY_SETTINGS.items()}
+    ref = runs["converged"]
+    nref = np.linalg.norm(ref["force"], axis=1)
+    on = nref > 1e-6 * nref.max() if len(nref) else nref > 0
+    out = {"steps": int(steps)}
+    for k, r in runs.items():
+        rel = np.linalg.norm(r["force"] - ref["force"], axis=1)[on] / nref[on] if on.any() else np.zeros(1)
+        out[k] = {"iterations_mean": float(r["iterations"].mean()), "above_tolerance_fraction": r["above"] / steps,
+                  "step_ms_median": float(np.median(r["wall"])), "step_ms_mean": float(r["wall"].mean()),
+                  "wrench_error_median": float(np.median(rel)), "wrench_error_p99": float(np.percentile(rel, 99)),
+                  "positions_max_error_m": float(np.abs(r["x"] - ref["x"]).max())}
+    return out
+
+
 def main(argv=None) -> int:
     ap = parser("lcp", __doc__)
     ap.add_argument("--steps", type=int, default=1200, help="steps of the default scene's trajectory")
     ap.add_argument("--every", type=int, default=4, help="keep every n-th of the default scene's sets")
     ap.add_argument("--large", type=int, default=120, help="resection sets beyond 32 rows (0: none)")
+    ap.add_argument("--trajectory", type=int, default=1500,
+                    help="steps of the default scene's trajectory run on --device with each LCP setting (0: none)")
     args = ap.parse_args(argv)
     device = resolved_device(args)
     from ..contact.device_lcp import BIG, SMALL
@@ -170,9 +237,20 @@ def main(argv=None) -> int:
     figures = {"default": compare(default_sets(args.steps, args.every), SMALL, device)}
     if args.large > 0:
         figures["resection"] = compare(resection_sets(args.large), BIG, device)
+    if args.trajectory > 0:
+        figures["trajectory"] = trajectory(device, args.trajectory)
     publish("lcp", device, figures, args)
     print(f"LCP solves on {device} (host: this machine's CPU)")
     for kind, f in figures.items():
+        if kind == "trajectory":
+            print(f"  the default scene's trajectory on {device}, {f['steps']} steps, against the converged LCPs:")
+            for name in TRAJECTORY_SETTINGS:
+                g = f[name]
+                print(f"  {name:16s} {g['iterations_mean']:6.1f} iterations a step, "
+                      f"{100 * g['above_tolerance_fraction']:4.1f} % above the tolerance, step "
+                      f"{g['step_ms_median']:.2f} / {g['step_ms_mean']:.2f} ms, wrench {g['wrench_error_median']:.1e} / "
+                      f"{g['wrench_error_p99']:.1e}, positions {1e6 * g['positions_max_error_m']:.1f} um")
+            continue
         if not f["sets"]:
             print(f"  {kind:10s} no sets")
             continue

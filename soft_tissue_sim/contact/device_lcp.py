@@ -35,8 +35,8 @@ correction. Where W is not positive definite the device solve makes lambda = 0 (
 correction) and says so: the caller restores the free motion and solves the step's contacts
 on the host, with the block diagonal of A (as :meth:`.solver.ContactSolver._respond` does).
 Sweeps with friction that end above the tolerance stand, as they do on the host. The friction
-finish is one lane's work (its normal equations O(k^3) for k unknowns), for sets of up to
-:data:`.pgs.FRICTION_FINISH_ROWS` rows, as on the host. A sweep
+finish is one lane's work (its normal equations O(k^3) for k unknowns), for the sets
+:func:`.pgs.finishes_friction` names, as on the host. A sweep
 costs O(m) a lane for the rows it changes, the check O(m^3 / lanes); sets beyond the row
 limit (at most :data:`BIG`) are solved on the host.
 """
@@ -50,8 +50,9 @@ import warp as wp
 
 from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
-from .pgs import (_FBEST, _FCOUNT, _FOUT, FIRST_SWEEPS, FIWORK_ROWS, FRICTION_FINISH_ROWS, FRICTION_FINISHES,
-                  FRICTION_STEPS, FRICTION_SWEEPS, FWORK_ROWS, contact_update, friction_finish, face_substitute, jacobi_change, row_delta)
+from .pgs import (_FBEST, _FCOUNT, _FOUT, FIRST_SWEEPS, FIWORK_ROWS, FRICTION_FINISHES, FRICTION_STEPS, FRICTION_SWEEPS,
+                  FWORK_ROWS, contact_update, face_substitute, finishes_friction, friction_finish, jacobi_change,
+                  row_delta)
 
 LANES = 32  # the block of device_pgs_kernel
 WIDE_LANES = 128  # the block of device_pgs_wide_kernel (W's check and the active set's products shared wider)
@@ -383,9 +384,9 @@ def _block_solver(width: int) -> wp.Kernel:
         (:func:`device_active_set`) with what is left of ``max_iterations`` as its steps, the
         better of the two kept, then sweeps for the rest (``first_sweeps`` >= ``max_iterations``:
         sweeps only). A set with friction and ``finish_friction`` as the host's with
-        ``friction_active_set`` (up to :data:`.pgs.FRICTION_FINISH_ROWS` rows): ``first_sweeps`` sweeps, then up to :data:`.pgs.FRICTION_FINISHES`
-        of :func:`friction_finish` (on lane 0, the others waiting), each followed by
-        sweeps from the better lambda. Every lane runs the scalar work alike (their writes to the
+        ``friction_active_set`` (where :func:`.pgs.finishes_friction`): ``first_sweeps`` sweeps,
+        then up to :data:`.pgs.FRICTION_FINISHES` of :func:`.pgs.friction_finish` (on lane 0,
+        the others waiting), each followed by sweeps from the better lambda. Every lane runs the scalar work alike (their writes to the
         device's memory are the same values)."""
         _b, lane = wp.tid()
         bd = wp.block_dim()
@@ -403,7 +404,7 @@ def _block_solver(width: int) -> wp.Kernel:
         for i in range(m):
             lam[i] = lam0[i]
         frictionless = int(nc == m)
-        finish = int(frictionless == 0 and finish_friction != 0 and m <= FRICTION_FINISH_ROWS)
+        finish = finishes_friction(m, nc, finish_friction)
         first = max_iterations
         if frictionless != 0 or finish != 0:
             first = wp.min(first_sweeps, max_iterations)
@@ -429,8 +430,7 @@ def _block_solver(width: int) -> wp.Kernel:
                 barrier(gate)  # every lane's lambda written
                 if lane == 0:
                     steps, rf = friction_finish(W, d0, row_start, n_rows, mu, lam, m, nc, pyramid, tolerance,
-                                                           wp.min(FRICTION_STEPS, max_iterations - it), fwork, fiwork,
-                                                           fA, fN)
+                                                wp.min(FRICTION_STEPS, max_iterations - it), fwork, fiwork, fA, fN)
                     fiwork[_FCOUNT, 0] = steps
                     fwork[_FOUT, 0] = rf
                 barrier(gate)

@@ -52,6 +52,44 @@ FRICTION_FINISH_ROWS = 64  # with friction: the most rows finished (one thread's
 
 
 @wp.func
+def stick_point(W: wp.array2d(dtype=wp.float64), r: int, l1: wp.float64, l2: wp.float64, t1: wp.float64,
+                t2: wp.float64):
+    """The tangential forces of the contact whose normal row is r that would make its
+    tangential gaps (t1, t2) zero (stick), from (l1, l2): a solve with its 2 x 2 block of W
+    (unchanged where that block is singular)."""
+    a11 = W[r + 1, r + 1]
+    a22 = W[r + 2, r + 2]
+    a12 = F64(0.5) * (W[r + 1, r + 2] + W[r + 2, r + 1])
+    det = a11 * a22 - a12 * a12
+    s1 = l1
+    s2 = l2
+    if det > F64(0.0):
+        s1 = l1 - (a22 * t1 - a12 * t2) / det
+        s2 = l2 - (a11 * t2 - a12 * t1) / det
+    return s1, s2
+
+
+@wp.func
+def cone_project(l1: wp.float64, l2: wp.float64, lim: wp.float64, pyramid: int):
+    """Tangential forces onto their cone of radius ``lim``: each clamped (pyramid), or onto the
+    disk's rim where outside it (slide)."""
+    out1 = l1
+    out2 = l2
+    if pyramid != 0:
+        out1 = wp.clamp(l1, -lim, lim)
+        out2 = wp.clamp(l2, -lim, lim)
+    else:
+        lt = wp.sqrt(l1 * l1 + l2 * l2)
+        if lt > lim:
+            s = F64(0.0)
+            if lt > F64(0.0):
+                s = lim / lt
+            out1 = l1 * s
+            out2 = l2 * s
+    return out1, out2
+
+
+@wp.func
 def contact_update(
     W: wp.array2d(dtype=wp.float64),
     delta: Any,
@@ -76,28 +114,10 @@ def contact_update(
         dln = ln - lam[r]  # the tangential gaps see the new normal force
         t1 = delta[r + 1] + W[r + 1, r] * dln
         t2 = delta[r + 2] + W[r + 2, r] * dln
-        a11 = W[r + 1, r + 1]
-        a22 = W[r + 2, r + 2]
-        a12 = F64(0.5) * (W[r + 1, r + 2] + W[r + 2, r + 1])
-        det = a11 * a22 - a12 * a12
-        l1 = lam[r + 1]
-        l2 = lam[r + 2]
-        if det > zero:  # stick: zero tangential displacement
-            l1 = l1 - (a22 * t1 - a12 * t2) / det
-            l2 = l2 - (a11 * t2 - a12 * t1) / det
-        lim = mu * ln
-        if pyramid != 0:
-            l1 = wp.clamp(l1, -lim, lim)
-            l2 = wp.clamp(l2, -lim, lim)
-        else:
-            lt = wp.sqrt(l1 * l1 + l2 * l2)
-            if lt > lim:  # slide: on the disk's rim
-                s = zero
-                if lt > zero:
-                    s = lim / lt
-                l1 = l1 * s
-                l2 = l2 * s
-        change = wp.max(change, wp.max(a11 * wp.abs(l1 - lam[r + 1]), a22 * wp.abs(l2 - lam[r + 2])))
+        l1, l2 = stick_point(W, r, lam[r + 1], lam[r + 2], t1, t2)
+        l1, l2 = cone_project(l1, l2, mu * ln, pyramid)
+        change = wp.max(change, wp.max(W[r + 1, r + 1] * wp.abs(l1 - lam[r + 1]),
+                                       W[r + 2, r + 2] * wp.abs(l2 - lam[r + 2])))
     return ln, l1, l2, change
 
 
@@ -234,9 +254,18 @@ def face_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float6
 (_FBEST, _FNEW, _FSOL, _FDELTA, _FY, _FY2, _FRHS, _FRHS2, _FT,
  _FH1, _FH2, _FH1P, _FH2P, _FH1Q, _FH2Q, _FH1N, _FH2N, _FOUT) = range(18)
 # per contact whether on (state, the two before, the next); per unknown its contact and part
-# (0: the normal, 1 / 2: a tangent) and its equation's row; [steps, states kept] in _FCOUNT
+# (0: the normal, 1 / 2: a tangent) and its equation's row; the device block's finish hands its
+# steps to the other lanes in _FCOUNT (and its residual in fwork[_FOUT])
 _FON, _FONP, _FONQ, _FONN, _FUNKC, _FUNKT, _FEQ, _FCOUNT = range(8)
 FWORK_ROWS, FIWORK_ROWS = 18, 8
+
+
+@wp.func
+def finishes_friction(m: int, nc: int, asked: int):
+    """1 where the friction finish is to run on an LCP of m rows and nc contacts: ``asked``
+    (contact.friction_active_set), tangent rows, and at most :data:`FRICTION_FINISH_ROWS` rows
+    (its normal equations are one thread's work, O(m^3))."""
+    return int(asked != 0 and nc < m and m <= FRICTION_FINISH_ROWS)
 
 
 @wp.func
@@ -279,27 +308,14 @@ def _held_component(h: wp.float64, lt: wp.float64, stick: wp.float64, limc: wp.f
 def _friction_cone(lam: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64),
                    row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
                    mu: wp.array(dtype=wp.float64), pyramid: int, m: int, nc: int):
-    """out = lam projected onto lambda_n >= 0 and the cones (:func:`_cone`)."""
+    """out = lam projected onto lambda_n >= 0 and the cones (:func:`cone_project`)."""
     for i in range(m):
         out[i] = lam[i]
     for c in range(nc):
         r = row_start[c]
         out[r] = wp.max(out[r], F64(0.0))
         if n_rows[c] == 3:
-            lim = mu[c] * out[r]
-            l1 = out[r + 1]
-            l2 = out[r + 2]
-            if pyramid != 0:
-                l1 = wp.clamp(l1, -lim, lim)
-                l2 = wp.clamp(l2, -lim, lim)
-            else:
-                lt = wp.sqrt(l1 * l1 + l2 * l2)
-                if lt > lim:
-                    sc = F64(0.0)
-                    if lt > F64(0.0):
-                        sc = lim / lt
-                    l1 = l1 * sc
-                    l2 = l2 * sc
+            l1, l2 = cone_project(out[r + 1], out[r + 2], mu[c] * out[r], pyramid)
             out[r + 1] = l1
             out[r + 2] = l2
 
@@ -346,11 +362,11 @@ def _unknown_column(W: wp.array2d(dtype=wp.float64), row_start: wp.array(dtype=w
 
 @wp.func
 def friction_finish(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
-                               row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
-                               mu: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64), m: int, nc: int,
-                               pyramid: int, tolerance: wp.float64, max_steps: int,
-                               fwork: wp.array2d(dtype=wp.float64), fiwork: wp.array2d(dtype=wp.int32),
-                               A: wp.array2d(dtype=wp.float64), N: wp.array2d(dtype=wp.float64)):
+                    row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
+                    mu: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64), m: int, nc: int,
+                    pyramid: int, tolerance: wp.float64, max_steps: int, fwork: wp.array2d(dtype=wp.float64),
+                    fiwork: wp.array2d(dtype=wp.int32), A: wp.array2d(dtype=wp.float64),
+                    N: wp.array2d(dtype=wp.float64)):
     """The friction finish on one thread (the host's kernel, or a lane of the device's block),
     from ``lam`` (the NumPy reference, ``friction_active_set`` of test/lcp_reference.py, makes
     the same states, steps and choices, its sums by BLAS and LAPACK: equal to rounding). The
@@ -517,15 +533,7 @@ def friction_finish(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float
                 limc = mu[c] * wp.max(new[r], zero)
                 lt1 = new[r + 1]
                 lt2 = new[r + 2]
-                a11 = W[r + 1, r + 1]
-                a22 = W[r + 2, r + 2]
-                a12 = F64(0.5) * (W[r + 1, r + 2] + W[r + 2, r + 1])
-                det = a11 * a22 - a12 * a12
-                s1 = lt1
-                s2 = lt2
-                if det > zero:
-                    s1 = lt1 - (a22 * dl[r + 1] - a12 * dl[r + 2]) / det
-                    s2 = lt2 - (a11 * dl[r + 2] - a12 * dl[r + 1]) / det
+                s1, s2 = stick_point(W, r, lt1, lt2, dl[r + 1], dl[r + 2])
                 if pyramid != 0:
                     h1 = _held_component(h1, lt1, s1, limc)
                     h2 = _held_component(h2, lt2, s2, limc)
@@ -583,12 +591,13 @@ def pgs_kernel(
     contacts of the arrays (which may be larger: reused buffers). One thread: launched with
     dim 1 on the CPU.
 
-    ``finish`` (an LCP with friction): ``first_sweeps`` sweeps, then up to
+    ``finish`` (contact.friction_active_set; :func:`finishes_friction` says where it applies):
+    ``first_sweeps`` sweeps, then up to
     :data:`FRICTION_FINISHES` of :func:`friction_finish` (its steps counted), each followed by
     sweeps from the better lambda (:data:`FRICTION_SWEEPS` between two, the last one's taking
     what is left of ``max_iterations``); the work arrays are the finish's.
     """
-    if finish == 0:
+    if finishes_friction(m, nc, finish) == 0:
         it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, max_iterations, tolerance, pyramid, lam, delta)
     else:
         it, res = pgs_sweeps(W, d0, row_start, n_rows, mu, m, nc, wp.min(first_sweeps, max_iterations), tolerance,
@@ -774,7 +783,7 @@ class PGS:
         a["n_rows"][:nc] = rows
         a["mu"][:nc] = mu
         finish = self.active_set and nc == m  # the contacts' rows partition the m rows: no friction rows
-        if self.active_set and self.friction_active_set and nc < m <= FRICTION_FINISH_ROWS:  # the kernel finishes it
+        if self.active_set and self.friction_active_set and nc < m:  # the kernel finishes it (or sweeps alone)
             return self._sweeps(lam0, m, nc, max_iterations, tolerance, pyramid, finish=True)
         first = min(self.first_sweeps, max_iterations) if finish else max_iterations
         lam, its, res = self._sweeps(lam0, m, nc, first, tolerance, pyramid)

@@ -62,3 +62,8 @@ class CutStats:
     apply_ms: float = 0.0
     correction_ms: float = 0.0
     debris_ms: float = 0.0
+
+
+# CutStats' parts of cut_ms (besides surface_ms), with the names the benchmarks print them by
+CUT_PARTS = {"plan_ms": "planning", "apply_ms": "FEM, state and identities", "correction_ms": "correction",
+             "debris_ms": "debris"}

@@ -33,10 +33,8 @@ from ..cutting import DEFAULT_SNAP
 from ..report import Progress
 from ..scenarios.brain import Surgeon, inverted_tets, tumour_drop, tumour_freed
 from ..scene import load_scene, read_scene
+from ..stats import CUT_PARTS
 from .common import columns, figure, parser, publish, resolved_device, save_figure
-
-
-CUT_PARTS = ("plan_ms", "apply_ms", "correction_ms", "debris_ms")  # of a step's cut_ms (see CutStats)
 
 
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
@@ -221,7 +219,7 @@ def main(argv=None) -> int:
         "cut_steps": len(cut), "cut_ms_median": float(np.median(cut)) if len(cut) else 0.0,
         "cut_ms_p99": float(np.percentile(cut, 99)) if len(cut) else 0.0,
         **{f"{k[:-3]}_ms_median": float(np.median([r[k] for r in rows if r["modified"]])) if len(cut) else 0.0
-           for k in ("surface_ms",) + CUT_PARTS},
+           for k in ("surface_ms", *CUT_PARTS)},
         "contacts_mean": float(np.mean([r["contacts"] for r in rows])),
         "max_penetration": max((r["max_penetration"] for r in rows if r["max_penetration"] is not None),
                                default=None),  # over the steps that measured it (contact penetration_every)

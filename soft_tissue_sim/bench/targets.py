@@ -39,6 +39,7 @@ import numpy as np
 import warp as wp
 
 from ..scene import load_scene, read_scene, resolve_device, resolve_path
+from ..stats import CUT_PARTS
 from . import RESULTS_DIR, write_result
 from .timing import apply_timing, refresh_timing, timed_steps
 
@@ -114,9 +115,7 @@ def beam_split(stats) -> str:
         return float(np.mean([f(stats[i]) for i in idx])) if idx else float("nan")
 
     whole = lambda s: s["total_ms"] + s.get("cut_ms", 0.0)  # noqa: E731
-    parts = ", ".join(f"{name} {mean(cut, lambda s, k=k: s.get(k, 0.0)):.2f}" for name, k in (
-        ("planning", "plan_ms"), ("FEM, state and identities", "apply_ms"), ("correction", "correction_ms"),
-        ("debris", "debris_ms")))
+    parts = ", ".join(f"{name} {mean(cut, lambda s, k=k: s.get(k, 0.0)):.2f}" for k, name in CUT_PARTS.items())
     return (f"steps between cuts {mean(between, whole):.2f} (solve {mean(between, lambda s: s['solve_ms']):.2f}), "
             f"a cut's step {mean(cut, whole):.2f} of which its cutting phase {mean(cut, lambda s: s['cut_ms']):.2f} "
             f"({parts}), the step after a cut {mean(after, whole):.2f} (solve {mean(after, lambda s: s['solve_ms']):.2f})")
@@ -200,11 +199,9 @@ def cut_rows(rows) -> list:
         return [_row(n, None, "ms", g, note="no step with a modification") for n, g in
                 (("brain_cut_ms_median", 5.0), ("brain_cut_ms_p99", 20.0))]
     cut = np.array([r["cut_ms"] for r in mod])
-    parts = {k: np.array([r.get(k, 0.0) for r in mod]) for k in
-             ("plan_ms", "apply_ms", "correction_ms", "surface_ms", "debris_ms")}
+    names = {**CUT_PARTS, "surface_ms": "contact surface"}
+    parts = {k: np.array([r.get(k, 0.0) for r in mod]) for k in names}
     rest = cut - sum(parts.values())
-    names = {"plan_ms": "planning", "apply_ms": "FEM, state and identities", "correction_ms": "the preconditioner's "
-             "correction", "surface_ms": "contact surface", "debris_ms": "debris"}
     note = (f"{len(mod)} steps with a modification; wall time of the host's cutting phase, medians: "
             + ", ".join(f"{names[k]} {np.median(v):.2f}" for k, v in parts.items())
             + f", the rest (the state's reads, plans that changed nothing) {np.median(rest):.2f} ms")

@@ -16,7 +16,7 @@ from ..material import ParameterError
 from ..mesh import (TetMesh, all_four, centroids, edge_table_after_change, extent, interior_faces_after_removal,
                     interior_faces_after_split, tet_quality)
 from ..sherman_morrison import Modification
-from ..stats import CutStats
+from ..stats import CUT_PARTS, CutStats
 from .geometry import _path_planes, faces_cut_by_triangles, sweep_triangles, tets_near_box
 from .records import CutPlan, CutResult, Tissue, TopologyChange
 from .subdivision import CutState, faces_on_cut, subdivide_for_cut
@@ -288,8 +288,7 @@ class Cutter:
         return CutStats(cuts=self.modifications, tets_changed=sum(r.tets_changed for r in done),
                         affected_nodes=sum(r.affected_nodes for r in done), cut_ms=sum(r.ms for r in results),
                         smf_u_ms=sum(r.smf_u_ms for r in done), smf_q_ms=sum(r.smf_q_ms for r in done),
-                        **{k: sum(getattr(r, k) for r in done) for k in ("plan_ms", "apply_ms", "correction_ms",
-                                                                          "debris_ms")})
+                        **{k: sum(getattr(r, k) for r in done) for k in CUT_PARTS})
 
     # ------------------------------------------------------------- cutting
     def cut_triangles(self, tissue: Tissue, triangles, frame: str = "world", stroke: str | None = None) -> CutPlan:

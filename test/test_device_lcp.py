@@ -44,10 +44,7 @@ def _device_pgs(W, d0, lam0, row_start, rows, mu, cap, tol, pyramid=False, first
     device): (lambda, info = [sweeps, residual, W usable], delta)."""
     lcp = DeviceLCP(cap, device or DEVICE)
     m = len(d0)
-    lcp.stage(np.zeros((m, 4), np.int32), np.zeros((m, 4, 3)), d0, lam0, row_start, rows, mu)
-    Wd = np.zeros((cap, cap))
-    Wd[:m, :m] = W
-    lcp.W.assign(Wd)
+    lcp.stage_problem(W, d0, lam0, row_start, rows, mu)
     lcp.solve(max_iterations, tol, pyramid, first)
     return lcp.lam.numpy()[:m], lcp.info.numpy(), lcp.delta.numpy()[:m]
 
@@ -130,10 +127,7 @@ def test_the_device_friction_finish_solves_the_default_scenes_lcps_as_the_host()
     for W, d0, row_start, rows, mu, lam0, tol, pyramid, max_iterations in sets:
         m = len(d0)
         lh, ih, rh = host.solve(W, d0, row_start, rows, mu, max_iterations, tol, pyramid, lam0)
-        lcp.stage(np.zeros((m, 4), np.int32), np.zeros((m, 4, 3)), d0, lam0, row_start, rows, mu)
-        Wd = np.zeros((SMALL, SMALL))
-        Wd[:m, :m] = W
-        lcp.W.assign(Wd)
+        lcp.stage_problem(W, d0, lam0, row_start, rows, mu)
         lcp.solve(max_iterations, tol, pyramid, FIRST_SWEEPS, True)
         info = lcp.info.numpy()
         ld = lcp.lam.numpy()[:m]

@@ -62,21 +62,31 @@ def recording(keep):
         PGS.solve = solve
 
 
+def along_trajectory(sim, steps: int):
+    """Steps ``sim`` (the default scene) along the node benchmark's trajectory (the scalpel
+    lowered, pressed and swayed), closing it at the end; yields (step index, the scalpel's name,
+    the step's statistics, its wall time in ms) after each step."""
+    from .node import _trajectory
+
+    try:
+        name = sim.instrument_names()[0]
+        at, _script = _trajectory(sim, name)
+        for i in range(steps):
+            sim.set_instrument_pose(name, at(i * sim.dt), (0.0, 0.0, 0.0, 1.0))
+            t0 = time.perf_counter()
+            stats = sim.step()
+            yield i, name, stats, 1e3 * (time.perf_counter() - t0)
+    finally:
+        sim.close()
+
+
 def default_sets(steps: int, every: int) -> list:
     """The default scene's LCPs along the node benchmark's trajectory (CPU), every ``every``-th."""
     from ..scene import load_scene
-    from .node import _trajectory
 
     with recording(lambda m: m > 0) as sets:
-        sim = load_scene("default.yaml", device="cpu")
-        try:
-            name = sim.instrument_names()[0]
-            at, _script = _trajectory(sim, name)
-            for i in range(steps):
-                sim.set_instrument_pose(name, at(i * sim.dt), (0.0, 0.0, 0.0, 1.0))
-                sim.step()
-        finally:
-            sim.close()
+        for _ in along_trajectory(load_scene("default.yaml", device="cpu"), steps):
+            pass
     return sets[::every]
 
 
@@ -115,10 +125,7 @@ def device_solve(problem, cap: int, device, reps: int = 3, friction_finish: bool
     W, d0, row_start, rows, mu, lam0, tol, pyramid, max_it = problem
     m = len(d0)
     lcp = DeviceLCP(cap, device)
-    lcp.stage(np.zeros((m, 4), np.int32), np.zeros((m, 4, 3)), d0, lam0, row_start, rows, mu)
-    Wd = np.zeros((cap, cap))
-    Wd[:m, :m] = W
-    lcp.W.assign(Wd)
+    lcp.stage_problem(W, d0, lam0, row_start, rows, mu)
     lcp.solve(max_it, tol, pyramid, FIRST_SWEEPS, friction_finish)  # loaded
     wp.synchronize_device(device)
     t0 = time.perf_counter()
@@ -179,27 +186,19 @@ def trajectory_run(device, steps: int, contact: dict) -> dict:
     the step that asks for it, so that runs are comparable) with ``contact`` options: per step the
     scalpel's force, the LCP's iterations and residual, the wall time; positions every 10th step."""
     from ..scene import load_scene
-    from .node import _trajectory
 
     sim = load_scene("default.yaml", device=device, overrides={"contact": contact,
                                                                   "solver": {"ldlt": {"deterministic": True}}})
     tol = sim.contact.options["tolerance"]
     force, its, above, wall, x = [], [], 0, [], []
-    try:
-        name = sim.instrument_names()[0]
-        at, _script = _trajectory(sim, name)
-        for i in range(steps):
-            sim.set_instrument_pose(name, at(i * sim.dt), (0.0, 0.0, 0.0, 1.0))
-            t0 = time.perf_counter()
-            d = sim.step().as_dict()
-            wall.append(1e3 * (time.perf_counter() - t0))
-            force.append(sim.instrument_wrench(name)[0].copy())
-            its.append(d.get("gs_iterations", 0) or 0)
-            above += (d.get("lcp_residual", 0.0) or 0.0) > tol
-            if i % 10 == 0:
-                x.append(sim.positions())
-    finally:
-        sim.close()
+    for i, name, stats, ms in along_trajectory(sim, steps):
+        d = stats.as_dict()
+        wall.append(ms)
+        force.append(sim.instrument_wrench(name)[0].copy())
+        its.append(d.get("gs_iterations", 0) or 0)
+        above += (d.get("lcp_residual", 0.0) or 0.0) > tol
+        if i % 10 == 0:
+            x.append(sim.positions())
     return {"force": np.array(force), "iterations": np.array(its), "above": above, "wall": np.array(wall),
             "x": np.array(x)}
 

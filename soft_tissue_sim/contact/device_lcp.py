@@ -526,6 +526,16 @@ class DeviceLCP:
         h["coef"][:m] = coef
         self._in.send(self.FIELDS)
 
+    def stage_problem(self, W: np.ndarray, d0: np.ndarray, lam0: np.ndarray, row_start: np.ndarray,
+                      n_rows: np.ndarray, mu: np.ndarray) -> None:
+        """An LCP given with its W (a recorded one, a test's) into the buffers for :meth:`solve`:
+        :meth:`stage` without rows (no dx is made from them), W written in its leading block."""
+        m = len(d0)
+        self.stage(np.zeros((m, 4), np.int32), np.zeros((m, 4, 3)), d0, lam0, row_start, n_rows, mu)
+        padded = np.zeros((self.rows, self.rows))
+        padded[:m, :m] = W
+        self.W.assign(padded)
+
     def key(self, inner, free: wp.array, dt: float, options: tuple) -> tuple:
         """What :meth:`launch`'s launches depend on (the buffers are fixed while the node count
         holds; their views for this count are made here, so that the launches allocate

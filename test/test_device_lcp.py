@@ -103,7 +103,10 @@ def test_the_device_friction_finish_takes_the_host_finishs_steps(cone, rows):
             # on a GPU (fused multiply-adds) a choice of the finish may fall the other way
             if cpu or sd["gs_iterations"] == sh["gs_iterations"]:
                 assert sd["gs_iterations"] == sh["gs_iterations"]
-                assert sd["lcp_residual"] == pytest.approx(sh["lcp_residual"], rel=1e-6, abs=1e-15 if cpu else 1e-11)
+                # the residual is rounding's to the bit on the CPU; on a GPU it is that of the last
+                # sweep's own rounding, on the same side of the tolerance
+                assert sd["lcp_residual"] == pytest.approx(sh["lcp_residual"], rel=1e-6, abs=1e-15 if cpu else 0.3e-10)
+                assert (sd["lcp_residual"] <= 1e-10) == (sh["lcp_residual"] <= 1e-10)
             else:
                 other += 1
             finished += sh["gs_iterations"] > FIRST_SWEEPS and sh["lcp_residual"] <= 1e-10

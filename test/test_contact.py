@@ -124,17 +124,19 @@ def test_the_active_set_option_reaches_the_lcp_solver_and_both_settings_rest_the
 
 
 def test_the_friction_active_set_option_reaches_the_lcp_solver():
-    """contact.friction_active_set (default false): the PGS's finish of LCPs with friction. A
-    block landing on a floor with friction (12 contacts at its bottom nodes, nearly repeated
-    constraints): the sweeps alone stop at their 200 above 1e-9 m on the landing, the finish
-    reaches it at every step in fewer iterations; both rest the block with its weight."""
+    """contact.friction_active_set (default auto: on for the host's solves): the PGS's finish of
+    LCPs with friction. A block landing on a floor with friction (12 contacts at its bottom
+    nodes, nearly repeated constraints): the sweeps alone stop at their 200 above 1e-9 m on the
+    landing, the finish reaches it at every step in fewer iterations; both rest the block with
+    its weight."""
     floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
     tol = 1e-9
     worst, its, weight = {}, {}, {}
     for on in (False, True):
-        contact = {"friction": 0.3, "tolerance": tol, **({"friction_active_set": True} if on else {})}
+        contact = {"friction": 0.3, "tolerance": tol, **({} if on else {"friction_active_set": False})}
         with load_scene(scene(obstacles=[floor], contact=contact)) as sim:
-            assert sim.contact.options["friction_active_set"] is on and sim.contact._pgs.friction_active_set is on
+            assert sim.contact.options["friction_active_set"] == ("auto" if on else False)
+            assert sim.contact._pgs.friction_active_set is on
             steps = [sim.step().extra for _ in range(60)]
             worst[on] = max(s["lcp_residual"] for s in steps)
             its[on] = np.mean([s["gs_iterations"] for s in steps])
@@ -143,6 +145,21 @@ def test_the_friction_active_set_option_reaches_the_lcp_solver():
     assert worst[True] <= tol < worst[False]
     assert its[True] < its[False]
     np.testing.assert_allclose(weight[True], weight[False], rtol=0, atol=1e-9 * weight[False][2])
+
+
+def test_the_friction_finish_runs_where_the_option_says():
+    """friction_active_set auto finishes the host's solves and leaves the device's block to its
+    sweeps; true and false are both everywhere; active_set false turns both off."""
+    from soft_tissue_sim.contact.device_lcp import launch_args
+    from soft_tissue_sim.contact.options import friction_finish_on, parse_options
+
+    for asked, host, device in (("auto", True, False), (True, True, True), (False, False, False)):
+        o = parse_options({"friction_active_set": asked})
+        assert (friction_finish_on(o, device=False), friction_finish_on(o, device=True)) == (host, device)
+        assert launch_args(o)[4] is device
+        off = parse_options({"friction_active_set": asked, "active_set": False})
+        assert not friction_finish_on(off, device=False) and not launch_args(off)[4]
+    assert parse_options({})["friction_active_set"] == "auto"
 
 
 def test_a_body_resting_in_contact_takes_fewer_iterations_with_the_warm_start():

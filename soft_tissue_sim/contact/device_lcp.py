@@ -50,6 +50,7 @@ import warp as wp
 
 from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
+from .options import friction_finish_on
 from .pgs import (_FBEST, _FCOUNT, _FOUT, FIRST_SWEEPS, FIWORK_ROWS, FRICTION_FINISHES, FRICTION_STEPS, FRICTION_SWEEPS,
                   FWORK_ROWS, contact_update, face_substitute, finishes_friction, friction_finish, jacobi_change,
                   row_delta)
@@ -573,11 +574,11 @@ def launch_args(options: dict) -> tuple:
     """:meth:`DeviceLCP.launch`'s arguments after dt from the contact options (part of a graph's
     key): the frictionless LCP finished by the active-set method after the host's first sweeps
     (option ``active_set``), else sweeps only; one with friction finished as the host does where
-    ``friction_active_set`` (with ``active_set``) asks."""
+    ``friction_active_set`` asks it of the device (:func:`.options.friction_finish_on`)."""
     o = options
     first = FIRST_SWEEPS if o["active_set"] else int(o["max_iterations"])
     return (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid", first,
-            bool(o["active_set"] and o["friction_active_set"]))
+            friction_finish_on(o, device=True))
 
 
 class PendingLCP:

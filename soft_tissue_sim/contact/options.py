@@ -10,9 +10,11 @@ Scene options (all optional)::
       tolerance: 1.0e-8      # [m] LCP residual (largest W_rr |change of lambda_r| in a sweep)
       active_set: true       # a frictionless LCP: finish the sweeps by an exact active-set
                              # method (contact.pgs); false: sweeps only
-      friction_active_set: false  # an LCP with friction: finish the sweeps by an active-set
+      friction_active_set: auto  # an LCP with friction: finish the sweeps by an active-set
                              # method on the contacts' states (contact.pgs; on the device, the
-                             # LCP's block, contact.device_lcp); needs active_set
+                             # LCP's block, contact.device_lcp); needs active_set. auto: on the
+                             # host's solves, not in the device's block (one lane's finish
+                             # costs a GPU step more than the sweeps it saves)
       self_collision: false  # tissue surface nodes against the tissue's own triangles
       facing: 0.5            # same-component self contact only if n_node . n_triangle <= -facing
       self_depth: null       # [m] deepest penetration behind a tissue triangle taken as real
@@ -28,6 +30,8 @@ Scene options (all optional)::
       penetration_every: 1   # measure the deepest penetration left after the correction (a
                              # detection at the corrected positions) every this many steps
                              # (0: never); unmeasured steps report max_penetration None
+
+:func:`friction_finish_on` says where the friction finish runs.
 
 Invariant: :func:`parse_options` returns every key of :data:`DEFAULTS`, validated, or raises
 :class:`~soft_tissue_sim.material.ParameterError` with a message.
@@ -46,7 +50,7 @@ DEFAULTS = {
     "max_iterations": 200,
     "tolerance": 1e-8,
     "active_set": True,
-    "friction_active_set": False,
+    "friction_active_set": "auto",
     "self_collision": False,
     "facing": 0.5,
     "self_depth": None,
@@ -83,11 +87,20 @@ def parse_options(cfg) -> dict:
     rows = o["device_lcp_rows"]
     if isinstance(rows, bool) or not isinstance(rows, int) or not 0 <= rows <= 256:
         raise ParameterError(f"contact device_lcp_rows must be an integer in [0, 256], got {rows!r}")
-    for key in ("self_collision", "active_set", "friction_active_set", "device_rows"):
+    for key in ("self_collision", "active_set", "device_rows"):
         if not isinstance(o[key], bool):
             raise ParameterError(f"contact {key} must be true or false, got {o[key]!r}")
+    if not isinstance(o["friction_active_set"], bool) and o["friction_active_set"] != "auto":
+        raise ParameterError(f"contact friction_active_set must be true, false or auto, got {o['friction_active_set']!r}")
     if o["friction_cone"] not in ("disk", "pyramid"):
         raise ParameterError(f"contact friction_cone must be 'disk' or 'pyramid', got {o['friction_cone']!r}")
     if o["compliance"] not in COMPLIANCES:
         raise ParameterError(f"contact compliance must be one of {', '.join(COMPLIANCES)}, got {o['compliance']!r}")
     return o
+
+
+def friction_finish_on(options: dict, device: bool) -> bool:
+    """Whether an LCP with friction is finished by the active-set method (``friction_active_set``
+    with ``active_set``): on the host's solves (``device`` False) or in the device's block."""
+    asked = options["friction_active_set"]
+    return bool(options["active_set"]) and (asked is True or (asked == "auto" and not device))

@@ -25,8 +25,9 @@ passive set is the method's warm start, as in the PGS-subspace-minimization meth
 Kocvara and Zowe, and Morales, Nocedal and Smelyanskiy) and finishes with
 :func:`active_set`. With friction the Coulomb problem is not a quadratic program, and where
 nearly repeated contacts share a force (an instrument's tip: the node it presses and the faces
-around it) the sweeps converge slowly; by default they run alone. :func:`friction_active_set`
-(``contact.friction_active_set``; the device's block has it too) finishes them instead: it
+around it) the sweeps converge slowly. :func:`friction_active_set` (``contact.
+friction_active_set``: by default the host's solves; the device's block has it too) finishes
+them: it
 solves the linear system of the contacts' current states (off, sticking, sliding) and follows
 the states the solution asks for, keeping the iterate of least residual, between rounds of
 sweeps.

@@ -58,11 +58,11 @@ def test_recording_restores_the_host_solver():
 
 def test_the_trajectory_compares_each_lcp_setting_with_the_converged_one():
     """The default scene's trajectory (its first 160 steps: the scalpel lowered and pressed) with
-    each setting: the converged run is its own reference (no error), the shipped and finished
-    runs have fewer iterations and an error of their own, the finish fewer iterations and steps
-    above the tolerance than the sweeps alone."""
+    each setting: the converged run is its own reference (no error), the sweeps alone and the
+    finished runs have fewer iterations and an error of their own, the finish fewer iterations
+    and steps above the tolerance than the sweeps alone."""
     f = lcp.trajectory("cpu", 160)
-    ref, shipped, finish = f["converged"], f["shipped"], f["friction_finish"]
+    ref, shipped, finish = f["converged"], f["sweeps"], f["friction_finish"]
     assert f["steps"] == 160
     assert ref["wrench_error_p99"] == 0.0 and ref["positions_max_error_m"] == 0.0
     assert ref["iterations_mean"] > shipped["iterations_mean"] > finish["iterations_mean"] > 1.0

@@ -324,6 +324,14 @@ def orthonormalize_kernel(acc: wp.array(dtype=wp.mat33d), out: wp.array(dtype=wp
 
 
 @wp.kernel
+def _orthonormalize_subset_kernel(nodes: wp.array(dtype=wp.int32), acc: wp.array(dtype=wp.mat33d),
+                                  out: wp.array(dtype=wp.mat33d)):
+    """out[s] = the rotation of acc[nodes[s]] (:func:`orthonormalize_kernel` on those nodes)."""
+    s = wp.tid()
+    out[s] = rotation_from(acc[nodes[s]])
+
+
+@wp.kernel
 def _gather_rotations_kernel(src: wp.array(dtype=wp.int32), old: wp.array(dtype=wp.mat33d),
                              R: wp.array(dtype=wp.mat33d)):
     """R[e] = old[src[e]] where src[e] >= 0 (a tet taking over its source's rotation)."""
@@ -347,13 +355,23 @@ def _same_rest_shape(X, T, X_old, T_old) -> np.ndarray:
     indices; only the other corners' positions are gathered and compared. The coordinates are
     compared column by column and a tet's 4 flags read together (:func:`..mesh.all_four`)."""
     n = min(len(X), len(X_old))
-    kept = np.zeros(len(X), bool)
-    kept[:n] = _same_points(X[:n], X_old[:n])  # nodes with the same index and rest position
-    same = np.ascontiguousarray((T == T_old) & kept[T], dtype=bool).reshape(-1, 4)
+    kept_common = _same_points(X[:n], X_old[:n])  # nodes with the same index and rest position
+    if kept_common.all():  # an index both tets hold is below n (T_old's are): a kept node
+        same = np.equal(T, T_old).reshape(-1, 4)
+    else:
+        kept = np.zeros(len(X), bool)
+        kept[:n] = kept_common
+        same = np.ascontiguousarray((T == T_old) & kept[T], dtype=bool).reshape(-1, 4)
     other = ~same
     if other.any():
         same[other] = _same_points(np.take(X, T[other], axis=0), np.take(X_old, T_old[other], axis=0))
     return all_four(same)
+
+
+def _bucket(k: int) -> int:
+    """The count a scratch array of ``k`` entries is reserved with: the next power of two (at
+    least 16), so that calls of similar sizes share one set of views."""
+    return max(16, 1 << (int(k) - 1).bit_length())
 
 
 def _same_points(P, Q) -> np.ndarray:
@@ -399,18 +417,24 @@ class CorotationalFEM:
         X = mesh.points.astype(np.float64)
         T = mesh.tets.astype(np.int32)
         prev = getattr(self, "_rest_tets", None)
-        reuse, src = np.zeros(m, bool), None
+        reuse, src, in_place = np.zeros(m, bool), None, False
         if tet_source is not None and prev is not None:
             src = np.asarray(tet_source, dtype=np.int64)
-            if src.shape != (m,) or (m and (src.min() < -1 or src.max() >= len(prev[1]))):
+            lo, hi = (int(src.min()), int(src.max())) if m and src.shape == (m,) else (0, -1)
+            if src.shape != (m,) or lo < -1 or hi >= len(prev[1]):
                 raise ValueError(f"tet_source must hold one index in [-1, {len(prev[1])}) per tet ({m}), got "
                                  f"shape {src.shape}")
-            k = np.flatnonzero(src >= 0)
-            reuse[k] = _same_rest_shape(X, np.take(T, k, axis=0), prev[0], np.take(prev[1], src[k], axis=0))
+            in_place = len(prev[1]) == m and np.array_equal(src, np.arange(m))  # each tet its source's index
+            if in_place:
+                reuse = _same_rest_shape(X, T, prev[0], prev[1])
+            elif lo >= 0:
+                reuse = _same_rest_shape(X, T, prev[0], np.take(prev[1], src, axis=0))
+            else:
+                k = np.flatnonzero(src >= 0)
+                reuse[k] = _same_rest_shape(X, np.take(T, k, axis=0), prev[0], np.take(prev[1], src[k], axis=0))
         host = self.__dict__.setdefault("_element_host", {})  # the element data on the device, as sent
         # every tet in place with its source's shape (a node split): the rest data is the old one
-        same_place = bool(m and len(prev[1]) == m and reuse.all() and np.array_equal(src, np.arange(m))) \
-            if src is not None else False
+        same_place = bool(m and in_place and reuse.all())
         kept = set()  # the element fields known unchanged (not sent again)
         if same_place:
             Dm_inv, vol = host["Dm_inv"], host["volume"]
@@ -431,7 +455,7 @@ class CorotationalFEM:
             Dm_inv[new] = np.linalg.inv(Dm)
         mats = mesh.material_ids
         old_mats = host.get("material_ids")
-        if (src is not None and old_mats is not None and (m == 0 or src.min() >= 0)
+        if (src is not None and old_mats is not None and (m == 0 or lo >= 0)
                 and np.array_equal(mats, old_mats if same_place else np.take(old_mats, src))):
             if same_place:  # each tet's material as its source's: the same (mu, lambda, rho)
                 mu, lam, rho = host["mu"], host["lam"], host["rho"]
@@ -459,13 +483,13 @@ class CorotationalFEM:
                 ("_rot_acc", wp.mat33d, None), ("_node_rot", wp.mat33d, None), ("_ones", wp.float64, 1.0),
                 ("_all_tets", wp.int32, lambda cap: np.arange(cap, dtype=np.int32)), ("_rows", wp.int32, None),
                 ("_cols", wp.int32, None), ("_vals", wp.mat33d, None), ("_sub_R", wp.mat33d, None),
-                ("_sub_acc", wp.mat33d, None), ("_sub_node_R", wp.mat33d, None))}
+                ("_sub_node_R", wp.mat33d, None))}
         packed, grow = self._packed, self._grow
         # the element rotations the new tets take over from their sources: in place where each
         # keeps its source's index (a node split), else gathered from a copy of the old ones
         carry = src is not None and reuse.any() and getattr(self, "rotations", None) is not None
         gather = carry and (m > grow["rotations"].capacity
-                            or not np.array_equal(np.flatnonzero(reuse), src[reuse]))
+                            or not (in_place or np.array_equal(np.flatnonzero(reuse), src[reuse])))
         if gather:
             old = grow["_rot_old"].view(self.n_tets)
             wp.copy(old, self.rotations)
@@ -503,14 +527,26 @@ class CorotationalFEM:
         self.node_rotations_current = False  # update_node_rotations ran after the last update_rotations
         self._rot_acc = grow["_rot_acc"].view(n)
         self._node_rot = grow["_node_rot"].view(n)
-        # COO triplets of A: 16 blocks per element + one diagonal block per node.
-        nt = 16 * m + n
-        self._all_tets = grow["_all_tets"].view(m)
-        self._rows = grow["_rows"].view(nt)  # assemble_triplets writes every entry
-        self._cols = grow["_cols"].view(nt)
-        self._vals = grow["_vals"].view(nt)
         self.total_mass = float(lumped.sum())
         self._rest_tets = (X, T)  # with _element_host: what the next set_mesh may take over (tet_source)
+
+    # COO triplets of A (assemble_triplets writes every entry): 16 blocks per element + one
+    # diagonal block per node; views of the kept allocations, made when first read after a change
+    @property
+    def _all_tets(self) -> wp.array:
+        return self._grow["_all_tets"].view(self.n_tets)
+
+    @property
+    def _rows(self) -> wp.array:
+        return self._grow["_rows"].view(16 * self.n_tets + self.n_nodes)
+
+    @property
+    def _cols(self) -> wp.array:
+        return self._grow["_cols"].view(16 * self.n_tets + self.n_nodes)
+
+    @property
+    def _vals(self) -> wp.array:
+        return self._grow["_vals"].view(16 * self.n_tets + self.n_nodes)
 
     def set_fixed_nodes(self, fixed_nodes) -> None:
         free = np.ones(self.n_nodes)
@@ -540,18 +576,20 @@ class CorotationalFEM:
         node rotations of those nodes from these tets alone. Returns the tets' rotations."""
         k, d = len(ids), self.device
         sub = self._sub
-        counts = {"ids": k, "tets": k, "Dm_inv": k, "volume": k, "nodes": 0 if nodes is None else len(nodes)}
-        sub.reserve(counts)
-        sub.host("ids")[...] = ids
-        sub.host("tets")[...] = np.take(self._rest_tets[1], ids, axis=0)
-        sub.host("Dm_inv")[...] = np.take(self._element_host["Dm_inv"], ids, axis=0)
+        # the fields hold their first k (nodes: len(nodes)) entries; their counts are rounded up
+        # (_bucket) and the launches cover those entries alone
+        b = _bucket(k)
+        sub.reserve({"ids": b, "tets": b, "Dm_inv": b, "volume": b, "nodes": sub.counts["nodes"] if nodes is None else _bucket(len(nodes))})
+        sub.host("ids")[:k] = ids
+        np.take(self._rest_tets[1], ids, axis=0, out=sub.host("tets")[:k])
+        np.take(self._element_host["Dm_inv"], ids, axis=0, out=sub.host("Dm_inv")[:k])
         fields = ["ids", "tets", "Dm_inv"]
         if nodes is not None:
-            sub.host("volume")[...] = np.take(self._element_host["volume"], ids)
-            sub.host("nodes")[...] = nodes
+            np.take(self._element_host["volume"], ids, out=sub.host("volume")[:k])
+            sub.host("nodes")[:len(nodes)] = nodes
             fields += ["volume", "nodes"]
         sub.send(fields)
-        R = self._grow["_sub_R"].view(k)
+        R = self._grow["_sub_R"].view(b)
         wp.launch(element_rotations_kernel, k, [x, sub.array("tets"), sub.array("Dm_inv"), R], device=d)
         wp.launch(_scatter_rotations_kernel, k, [sub.array("ids"), R, self.rotations], device=d)
         return R
@@ -572,10 +610,9 @@ class CorotationalFEM:
         self._rot_acc.zero_()
         wp.launch(node_rotation_accumulate_kernel, len(ids), [sub.array("tets"), sub.array("volume"), R, self._rot_acc],
                   device=d)
-        acc, R_nodes = g["_sub_acc"].view(len(nodes)), g["_sub_node_R"].view(len(nodes))
-        wp.launch(_gather_rotations_kernel, len(nodes), [sub.array("nodes"), self._rot_acc, acc], device=d)
-        wp.launch(orthonormalize_kernel, len(nodes), [acc, R_nodes], device=d)
-        out[nodes] = to_host(R_nodes)[0]
+        R_nodes = g["_sub_node_R"].view(sub.counts["nodes"])
+        wp.launch(_orthonormalize_subset_kernel, len(nodes), [sub.array("nodes"), self._rot_acc, R_nodes], device=d)
+        out[nodes] = to_host(R_nodes)[0][:len(nodes)]
         return out
 
     def add_elastic_forces(self, x: wp.array, f: wp.array) -> None:
@@ -653,19 +690,19 @@ class CorotationalFEM:
         """The filtered A = m_coef M + k_coef K as COO triplets of 3x3 blocks on the device:
         (rows, cols, values), 16 blocks per element (zero where they touch a fixed node) and one
         per node (the identity on fixed nodes, zero elsewhere). Duplicates add up."""
+        rows, cols, vals = self._rows, self._cols, self._vals
         wp.launch(
             element_blocks_subset_kernel,
             self.n_tets,
             [self._all_tets, self.tets, self.free, self.Dm_inv, self.volume, self.mu, self.lam, self.rho,
-             self.rotations, float(k_coef), float(m_coef), int(self.consistent_mass), self._rows, self._cols,
-             self._vals],
+             self.rotations, float(k_coef), float(m_coef), int(self.consistent_mass), rows, cols, vals],
             device=self.device,
         )
         wp.launch(
-            fixed_identity_kernel, self.n_nodes, [self.free, 16 * self.n_tets, self._rows, self._cols, self._vals],
+            fixed_identity_kernel, self.n_nodes, [self.free, 16 * self.n_tets, rows, cols, vals],
             device=self.device,
         )
-        return self._rows, self._cols, self._vals
+        return rows, cols, vals
 
     def element_blocks(self, tet_ids, m_coef: float, k_coef: float):
         """The filtered 3x3 blocks of A = m_coef M + k_coef K contributed by the elements ``tet_ids``,
@@ -683,20 +720,21 @@ class CorotationalFEM:
             self._block_ids = PackedArrays({"ids": wp.int32}, d)
             g["_block_rows"], g["_block_cols"] = GrowArray(wp.int32, d), GrowArray(wp.int32, d)
             g["_block_vals"] = GrowArray(wp.mat33d, d)
-        sent = self._block_ids
-        sent.reserve({"ids": len(ids)})
-        sent.host("ids")[...] = ids
+        # the buffers' counts rounded up (_bucket): the launch writes the first k blocks
+        sent, b = self._block_ids, _bucket(len(ids))
+        sent.reserve({"ids": b})
+        sent.host("ids")[:len(ids)] = ids
         sent.send(("ids",))
-        vals = g["_block_vals"].view(k)
+        vals = g["_block_vals"].view(16 * b)
         wp.launch(
             element_blocks_subset_kernel,
             len(ids),
             [sent.array("ids"), self.tets, self.free, self.Dm_inv, self.volume, self.mu, self.lam, self.rho,
-             self.rotations, float(k_coef), float(m_coef), int(self.consistent_mass), g["_block_rows"].view(k),
-             g["_block_cols"].view(k), vals],
+             self.rotations, float(k_coef), float(m_coef), int(self.consistent_mass), g["_block_rows"].view(16 * b),
+             g["_block_cols"].view(16 * b), vals],
             device=d,
         )
-        return rows, cols, to_host(vals)[0].copy()  # a copy: the buffers serve the next call
+        return rows, cols, to_host(vals)[0][:k].copy()  # a copy: the buffers serve the next call
 
     def assembly_state(self, m_coef: float, k_coef: float) -> AssemblyState:
         """Host copies of what the filtered A = m_coef M + k_coef K depends on now (the element

@@ -4,7 +4,8 @@ Records the LCPs the host solves (:meth:`soft_tissue_sim.contact.pgs.PGS.solve`)
 on Warp's CPU backend, then solves each again, timed:
 
 * ``default``: the default scene along the node benchmark's trajectory (``--steps`` steps: the
-  scalpel lowered, pressed and swayed; friction, about 15 rows), every ``--every``-th set;
+  scalpel lowered, pressed and swayed; friction, about 15 rows), every ``--every``-th set, as
+  the sweeps alone leave them (the warm starts of a run without the friction finish);
 * ``resection``: the shipped scripted resection (``bench brain``'s session; frictionless, self
   contacts of the cut's faces), its sets of more than 32 rows, ``--large`` of them at random
   (0: not run).
@@ -81,11 +82,14 @@ def along_trajectory(sim, steps: int):
 
 
 def default_sets(steps: int, every: int) -> list:
-    """The default scene's LCPs along the node benchmark's trajectory (CPU), every ``every``-th."""
+    """The default scene's LCPs along the node benchmark's trajectory (CPU), every ``every``-th,
+    as the sweeps alone leave them (the device's default, ``friction_active_set`` false: each
+    set's warm start is the last step's swept forces)."""
     from ..scene import load_scene
 
+    sim = load_scene("default.yaml", device="cpu", overrides={"contact": {"friction_active_set": False}})
     with recording(lambda m: m > 0) as sets:
-        for _ in along_trajectory(load_scene("default.yaml", device="cpu"), steps):
+        for _ in along_trajectory(sim, steps):
             pass
     return sets[::every]
 

@@ -148,18 +148,22 @@ def test_the_friction_active_set_option_reaches_the_lcp_solver():
 
 
 def test_the_friction_finish_runs_where_the_option_says():
-    """friction_active_set auto finishes the host's solves and leaves the device's block to its
-    sweeps; true and false are both everywhere; active_set false turns both off."""
+    """friction_active_set auto finishes the LCPs with friction on the CPU and leaves them to the
+    sweeps on a GPU (the host's solves and the device's block alike, so that a run keeps one
+    kind); true and false are both everywhere; active_set false turns both off."""
     from soft_tissue_sim.contact.device_lcp import launch_args
     from soft_tissue_sim.contact.options import friction_finish_on, parse_options
 
-    for asked, host, device in (("auto", True, False), (True, True, True), (False, False, False)):
+    for asked, cpu, gpu in (("auto", True, False), (True, True, True), (False, False, False)):
         o = parse_options({"friction_active_set": asked})
-        assert (friction_finish_on(o, device=False), friction_finish_on(o, device=True)) == (host, device)
-        assert launch_args(o)[4] is device
+        assert (friction_finish_on(o, gpu=False), friction_finish_on(o, gpu=True)) == (cpu, gpu)
+        assert launch_args(o, False)[4] is cpu and launch_args(o, True)[4] is gpu
         off = parse_options({"friction_active_set": asked, "active_set": False})
-        assert not friction_finish_on(off, device=False) and not launch_args(off)[4]
+        assert not friction_finish_on(off, gpu=False) and not launch_args(off, False)[4]
     assert parse_options({})["friction_active_set"] == "auto"
+    floor = {"type": "plane", "name": "floor", "point": [0.0, 0.0, FLOOR_Z], "normal": [0.0, 0.0, 1.0]}
+    with load_scene(scene(obstacles=[floor], contact={"friction": 0.3})) as sim:
+        assert sim.contact._pgs.friction_active_set is (not wp.get_device(sim.device).is_cuda)
 
 
 def test_a_body_resting_in_contact_takes_fewer_iterations_with_the_warm_start():

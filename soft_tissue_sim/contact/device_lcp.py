@@ -570,15 +570,16 @@ class DeviceLCP:
                         device=self.device)
 
 
-def launch_args(options: dict) -> tuple:
+def launch_args(options: dict, gpu: bool) -> tuple:
     """:meth:`DeviceLCP.launch`'s arguments after dt from the contact options (part of a graph's
     key): the frictionless LCP finished by the active-set method after the host's first sweeps
     (option ``active_set``), else sweeps only; one with friction finished as the host does where
-    ``friction_active_set`` asks it of the device (:func:`.options.friction_finish_on`)."""
+    ``friction_active_set`` asks it of a simulation on a GPU (``gpu``) or on the CPU
+    (:func:`.options.friction_finish_on`)."""
     o = options
     first = FIRST_SWEEPS if o["active_set"] else int(o["max_iterations"])
     return (int(o["max_iterations"]), float(o["tolerance"]), o["friction_cone"] == "pyramid", first,
-            friction_finish_on(o, device=True))
+            friction_finish_on(o, gpu))
 
 
 class PendingLCP:
@@ -588,7 +589,7 @@ class PendingLCP:
 
     def __init__(self, lcp: DeviceLCP, inner, free: wp.array, dt: float, options: dict, m: int, finish):
         self.lcp, self.inner, self.free, self.dt, self.m = lcp, inner, free, float(dt), int(m)
-        self._args = launch_args(options)
+        self._args = launch_args(options, lcp.device.is_cuda)
         self._finish = finish
 
     def key(self) -> tuple:

@@ -13,8 +13,8 @@ Scene options (all optional)::
       friction_active_set: auto  # an LCP with friction: finish the sweeps by an active-set
                              # method on the contacts' states (contact.pgs; on the device, the
                              # LCP's block, contact.device_lcp); needs active_set. auto: on the
-                             # host's solves, not in the device's block (one lane's finish
-                             # costs a GPU step more than the sweeps it saves)
+                             # CPU, not on a GPU (one lane's finish costs a GPU step more than
+                             # the sweeps it saves)
       self_collision: false  # tissue surface nodes against the tissue's own triangles
       facing: 0.5            # same-component self contact only if n_node . n_triangle <= -facing
       self_depth: null       # [m] deepest penetration behind a tissue triangle taken as real
@@ -99,8 +99,11 @@ def parse_options(cfg) -> dict:
     return o
 
 
-def friction_finish_on(options: dict, device: bool) -> bool:
+def friction_finish_on(options: dict, gpu: bool) -> bool:
     """Whether an LCP with friction is finished by the active-set method (``friction_active_set``
-    with ``active_set``): on the host's solves (``device`` False) or in the device's block."""
+    with ``active_set``) in a simulation on a GPU (``gpu``) or on the CPU. ``auto`` finishes
+    them on the CPU only: on a GPU the device's block solves the small sets, where the finish
+    costs more than it saves, and the host's solves of the larger ones follow suit (sweeps
+    started from finished forces crawl: a run keeps one kind)."""
     asked = options["friction_active_set"]
-    return bool(options["active_set"]) and (asked is True or (asked == "auto" and not device))
+    return bool(options["active_set"]) and (asked is True or (asked == "auto" and not gpu))

@@ -89,7 +89,7 @@ class ContactSolver:
         # (record, lambda, node uids, node count) of the last step's contacts where they were solved
         # from device rows: their Contacts and warm start are made from it when asked for
         self._device_read = None
-        self._pgs = PGS(o["active_set"], friction_active_set=friction_finish_on(o, device=False))
+        self._pgs = PGS(o["active_set"], friction_active_set=friction_finish_on(o, gpu=wp.get_device(self.device).is_cuda))
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
         self._device_rows: DeviceRows | None = None  # the rows built on the device (device_rows), idem
         self._last_rows = 0  # the last step's constraint rows (where the next step's rows are built)
@@ -598,7 +598,7 @@ class DeviceStep:
         self.solver, self.body, self.inner, self.limit = solver, body, inner, int(limit)
         o = solver.options
         self.lcp, self.rows = solver._device_lcp, solver._device_rows
-        self._args = launch_args(o)
+        self._args = launch_args(o, self.lcp.device.is_cuda)
         self.dt = float(body.integrator.dt)
 
     def key(self) -> tuple:

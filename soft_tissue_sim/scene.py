@@ -344,22 +344,21 @@ class Simulation:
         return self.contact.instruments if self.contact is not None else {}
 
     def _modify(self, plan: CutPlan) -> CutResult:
-        """Apply a planned topology change and remove the debris it leaves; the plan's result,
-        completed, says what was done."""
+        """Apply a planned topology change with the removal of the debris it leaves, as one
+        change; the plan's result, completed, says what was done."""
         if plan.change is None:
             return plan.result
         res = plan.result
         t0 = time.perf_counter()
         res.plan_ms = 1000.0 * (t0 - plan.t0)
-        res.correction_ms = self._apply_topology(plan)
-        t1 = time.perf_counter()
-        res.apply_ms = 1000.0 * (t1 - t0) - res.correction_ms
-        debris = self.cutting.debris(plan.change.tissue())  # the body as the change left it (no read)
+        debris = self.cutting.debris(plan.change.tissue())  # the body as the change leaves it (no read)
         if debris is not None and debris.change is not None:
-            self._apply_topology(debris)
-            self.cutting.absorb_debris(res, debris.result)
+            self.cutting.absorb_debris(plan, debris)
+        t1 = time.perf_counter()
+        res.debris_ms = 1000.0 * (t1 - t0)
+        res.correction_ms = self._apply_topology(plan)
         t2 = time.perf_counter()
-        res.debris_ms = 1000.0 * (t2 - t1)
+        res.apply_ms = 1000.0 * (t2 - t1) - res.correction_ms
         res.ms = 1000.0 * (t2 - plan.t0)
         return res
 

@@ -247,6 +247,103 @@ def test_a_sliver_cut_free_is_removed_as_debris_unless_disabled(min_fragment):
             assert sim.step().converged
 
 
+@pytest.mark.parametrize("backend", ["cholmod", "dense"])
+def test_the_debris_removal_made_part_of_the_cut_gives_the_two_changes_result(backend):
+    """The cut and the removal of the debris it leaves are applied as one change
+    (TopologyChange.then): the same mesh, node identities and state as the cut and then the
+    removal applied one after the other, and the preconditioner corrected for the one change
+    as for the two (exact corrections: the same steps to the solver's tolerance)."""
+    sims = []
+    for min_fragment in (8, 0):
+        cfg = beam_scene(n_long=6, backend=backend)
+        cfg["cutting"]["min_fragment"] = min_fragment
+        sim = load_scene(cfg)
+        for _ in range(3):
+            sim.step()
+        res = _corner_shave(sim)
+        assert res.changed
+        if min_fragment == 0:  # the debris removed by a second change
+            frag = type(sim.cutting).small_fragments(type("C", (), {"min_fragment": 8})(), sim.mesh,
+                                                     sim.fem.free.numpy())
+            assert frag.any() and sim.remove_tets(frag).changed
+        else:
+            assert res.debris_tets > 0 and sim.cutting.modifications == 1
+        sims.append(sim)
+    one, two = sims
+    try:
+        np.testing.assert_array_equal(one.mesh.tets, two.mesh.tets)
+        np.testing.assert_array_equal(one.mesh.points, two.mesh.points)
+        np.testing.assert_array_equal(one.node_uids, two.node_uids)
+        np.testing.assert_array_equal(one.positions(), two.positions())
+        np.testing.assert_array_equal(one.fem.volume.numpy(), two.fem.volume.numpy())
+        np.testing.assert_array_equal(one.fem.lumped_mass.numpy(), two.fem.lumped_mass.numpy())
+        for _ in range(3):
+            a, b = one.step(), two.step()
+            assert a.converged and b.converged and abs(a.iterations - b.iterations) <= 1
+        np.testing.assert_allclose(one.positions(), two.positions(), rtol=0, atol=1e-9)
+    finally:
+        for sim in sims:
+            sim.close()
+
+
+def _shave_blade(P):
+    """_corner_shave's blade for rest points P."""
+    hi, h = P.max(axis=0), 0.008
+    a, b = [hi[0] - h - 0.002, hi[1] + 0.002, hi[2] + 0.002], [hi[0] + 0.002, hi[1] - h - 0.002, hi[2] + 0.002]
+    return sweep_triangles(a, b, [a[0], a[1], hi[2] - 0.03], [b[0], b[1], hi[2] - 0.03])
+
+
+@pytest.mark.parametrize("first, then", [("remove", "remove"), ("remove", "cut"), ("cut", "remove")])
+def test_two_topology_changes_composed_are_the_two_applied_in_turn(first, then):
+    """TopologyChange.then: a change and one planned on its result, applied as one change, leave
+    the mesh, node identities, state and FEM of the two applied in turn, and a preconditioner
+    corrected for the one as for the two (the same steps to the solver's tolerance). Removals
+    of original tets and of a cut's new ones, and a cut after a removal."""
+    sims = [load_scene({**beam_scene(n_long=6), "cutting": {"min_fragment": 0, "correction": "sherman_morrison"}})
+            for _ in range(2)]
+    try:
+        for sim in sims:
+            for _ in range(3):
+                sim.step()
+
+        def plan(sim, kind, tissue, k):
+            if kind == "cut":
+                return sim.cutting.cut_triangles(tissue, _shave_blade(tissue.mesh.points), frame="rest")
+            # tets of the free end's last layer, the lowest (first removal) or the next ones (second)
+            c = tissue.mesh.points[tissue.mesh.tets].mean(axis=1)
+            end = c[:, 0] > c[:, 0].max() - 0.004
+            y, z = -0.01 + 0.006 * k, -0.01
+            return sim.cutting.remove_tets(tissue, end & (c[:, 1] < y + 0.006) & (c[:, 1] > y) & (c[:, 2] < z + 0.006))
+
+        one, two = sims
+        p1 = plan(one, first, one.tissue(), 0)
+        p2 = plan(one, then, p1.change.tissue(), 1)
+        assert p1.change is not None and p2.change is not None and len(p2.change.removed_tets)
+        c1, c2 = p1.change, p2.change
+        p1.change = c = c1.then(c2)
+        # each created node takes the rotation of the original node the two changes name
+        source = dict(zip(c1.created.tolist(), c1.old_uids[c1.rotation_source].tolist()))
+        source.update({u: source.get(s, s) for u, s in zip(c2.created.tolist(), c2.old_uids[c2.rotation_source].tolist())})
+        assert sorted(c.created.tolist()) == sorted(set(source) & set(c.node_uids.tolist()))
+        assert c.old_uids[c.rotation_source].tolist() == [source[u] for u in c.created.tolist()]
+        assert one._modify(p1).changed
+        for k, kind in enumerate((first, then)):  # the same plans, on the simulation's own tissue each time
+            assert two._modify(plan(two, kind, two.tissue(), k)).changed
+        np.testing.assert_array_equal(one.mesh.tets, two.mesh.tets)
+        np.testing.assert_array_equal(one.mesh.points, two.mesh.points)
+        np.testing.assert_array_equal(one.node_uids, two.node_uids)
+        np.testing.assert_array_equal(one.positions(), two.positions())
+        for name in ("volume", "lumped_mass", "Dm_inv", "free"):
+            np.testing.assert_array_equal(getattr(one.fem, name).numpy(), getattr(two.fem, name).numpy())
+        for _ in range(3):
+            a, b = one.step(), two.step()
+            assert a.converged and b.converged and abs(a.iterations - b.iterations) <= 1
+        np.testing.assert_allclose(one.positions(), two.positions(), rtol=0, atol=1e-9)
+    finally:
+        for sim in sims:
+            sim.close()
+
+
 @pytest.mark.parametrize("scheme", ["split", "subdivide"])
 def test_cut_through_empty_space_changes_nothing_and_says_so(scheme):
     with load_scene(beam_scene(scheme=scheme)) as sim:

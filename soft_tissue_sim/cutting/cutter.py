@@ -439,16 +439,14 @@ class Cutter:
             return None
         return self._removal(tissue, debris, time.perf_counter())
 
-    def absorb_debris(self, res: CutResult, debris: CutResult) -> None:
-        """Count the applied removal of debris ``debris`` in the result ``res`` of the change
-        that left it."""
-        res.debris_tets = debris.tets_changed
-        res.nodes_removed += debris.nodes_removed
-        res.affected_nodes += debris.affected_nodes
-        res.perturbation_nodes = debris.perturbation_nodes
-        res.smf_u_ms += debris.smf_u_ms
-        res.smf_q_ms += debris.smf_q_ms
-        res.message += f"; {res.debris_tets} debris tets of fragments under {self.min_fragment} tets removed"
+    def absorb_debris(self, plan: CutPlan, debris: CutPlan) -> None:
+        """Make the removal of the debris ``debris`` (planned on ``plan``'s result) part of
+        ``plan``: one change for the simulation to apply, its result counting both."""
+        res = plan.result
+        plan.change = plan.change.then(debris.change)
+        res.debris_tets = debris.result.tets_changed
+        res.nodes_removed += debris.result.nodes_removed
+        plan.note += f"; {res.debris_tets} debris tets of fragments under {self.min_fragment} tets removed"
 
     # ------------------------------------------------------------- planning
     def _change(self, tissue: Tissue, new_tets, source, removed_ids, added_ids, keep, kept_tets=None, mats=None,

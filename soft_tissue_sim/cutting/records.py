@@ -31,9 +31,9 @@ class CutResult:
     smf_q_ms: float = 0.0  # Q = (I + N S)^-1 N
     surface_ms: float = 0.0  # the contact surface's rebuild (API requests; a step's is in its CutStats)
     # the parts of ``ms`` (a change applied): planning it (geometry, the new mesh and state),
-    # applying it to the FEM, the state and the node identities, the preconditioner's
-    # correction (its U and Q in ``smf_*``), and finding and removing the debris it left (that
-    # removal's correction included; its U and Q are in ``smf_*`` too)
+    # finding the debris it would leave and planning their removal into it (one change),
+    # applying it to the FEM, the state and the node identities, and the preconditioner's
+    # correction (its U and Q in ``smf_*``)
     plan_ms: float = 0.0
     apply_ms: float = 0.0
     correction_ms: float = 0.0
@@ -85,6 +85,38 @@ class TopologyChange:
         """The body once this change is applied, as cutting reads it (what the simulation
         would read back from the device: the same arrays)."""
         return Tissue(self.mesh, self.x, self.v, self.node_uids, self.free, self.dv)
+
+    def then(self, after: TopologyChange) -> TopologyChange:
+        """This change followed by ``after`` (a change of this one's result) as one change of
+        this one's mesh: what the simulation applies once instead of twice (the removal of the
+        debris a cut leaves). Its removed tets are this one's and the original tets ``after``
+        removes; its added tets, those of the final mesh that come from this one's added tets; a
+        node this one creates and ``after`` removes is neither created nor removed."""
+        if self.tet_source is None or after.tet_source is None:
+            raise ValueError("composing topology changes needs both changes' tet sources")
+        mid_added = np.zeros(self.mesh.n_tets, bool)
+        mid_added[self.added_tets] = True
+        gone = np.asarray(after.removed_tets, np.int64)
+        kept_gone = gone[~mid_added[gone]]  # original tets (kept by this change) that ``after`` removes
+        removed_tets = np.union1d(self.removed_tets, self.tet_source[kept_gone]).astype(np.int64)
+        src = np.asarray(after.tet_source, np.int64)
+        from_added = np.zeros(after.mesh.n_tets, bool)
+        has = src >= 0
+        from_added[has] = mid_added[src[has]]
+        from_added[np.asarray(after.added_tets, np.int64)] = True
+        added_tets = np.flatnonzero(from_added)
+        tet_source = np.where(has, self.tet_source[np.maximum(src, 0)], -1)
+        # the nodes created by either that the final mesh keeps, each with the original node whose
+        # rotation it takes (for ``after``'s, through its source in this change's result)
+        alive = np.isin(self.created, after.node_uids)
+        n_old, rot = len(self.old_uids), np.asarray(self.rotation_source, np.int64)
+        mid_rot = np.concatenate([np.arange(n_old), rot])[_positions(np.concatenate([self.old_uids, self.created]),
+                                                                     self.node_uids)]
+        created = np.concatenate([self.created[alive], after.created]).astype(np.int64)
+        rotation_source = np.concatenate([rot[alive], mid_rot[np.asarray(after.rotation_source, np.int64)]])
+        removed = np.union1d(self.removed, np.setdiff1d(after.removed, self.created)).astype(np.int64)
+        return TopologyChange(after.mesh, after.x, after.v, after.node_uids, after.free, removed_tets, added_tets,
+                              created, removed, rotation_source, self.old_uids, self.old_free, tet_source, after.dv)
 
     def modification(self, version: int, old_blocks, new_blocks, R_nodes: np.ndarray) -> Modification:
         """The change of A (eq. 5-7) from the removed tets' element blocks (old numbering) and the

@@ -215,15 +215,18 @@ def test_blade_triangle_against_a_tet_section(tri, expect):
     assert (len(hit) == 1) == expect
 
 
-def _corner_shave(sim):
-    """A blade across the free end's top corner edge that cuts off only the tets touching it."""
-    P = sim.mesh.points
+def _shave_blade(P):
+    """A blade across the top corner edge of the free end of the beam of rest points P, cutting
+    off only the tets touching it."""
     hi = P.max(axis=0)
     h = 0.008  # less than the 1 cm spacing: only the corner column's edge tets are cut off (6 tets: the
     # mirrored split cuts each corner cell of this beam along the diagonal plane across that edge)
     a, b = [hi[0] - h - 0.002, hi[1] + 0.002, hi[2] + 0.002], [hi[0] + 0.002, hi[1] - h - 0.002, hi[2] + 0.002]
-    return sim.cut_triangles(sweep_triangles(a, b, [a[0], a[1], hi[2] - 0.03], [b[0], b[1], hi[2] - 0.03]),
-                             frame="rest")
+    return sweep_triangles(a, b, [a[0], a[1], hi[2] - 0.03], [b[0], b[1], hi[2] - 0.03])
+
+
+def _corner_shave(sim):
+    return sim.cut_triangles(_shave_blade(sim.mesh.points), frame="rest")
 
 
 @pytest.mark.parametrize("min_fragment", [0, 8])
@@ -269,28 +272,26 @@ def test_the_debris_removal_made_part_of_the_cut_gives_the_two_changes_result(ba
         else:
             assert res.debris_tets > 0 and sim.cutting.modifications == 1
         sims.append(sim)
-    one, two = sims
     try:
-        np.testing.assert_array_equal(one.mesh.tets, two.mesh.tets)
-        np.testing.assert_array_equal(one.mesh.points, two.mesh.points)
-        np.testing.assert_array_equal(one.node_uids, two.node_uids)
-        np.testing.assert_array_equal(one.positions(), two.positions())
-        np.testing.assert_array_equal(one.fem.volume.numpy(), two.fem.volume.numpy())
-        np.testing.assert_array_equal(one.fem.lumped_mass.numpy(), two.fem.lumped_mass.numpy())
-        for _ in range(3):
-            a, b = one.step(), two.step()
-            assert a.converged and b.converged and abs(a.iterations - b.iterations) <= 1
-        np.testing.assert_allclose(one.positions(), two.positions(), rtol=0, atol=1e-9)
+        _same_bodies(*sims)
     finally:
         for sim in sims:
             sim.close()
 
 
-def _shave_blade(P):
-    """_corner_shave's blade for rest points P."""
-    hi, h = P.max(axis=0), 0.008
-    a, b = [hi[0] - h - 0.002, hi[1] + 0.002, hi[2] + 0.002], [hi[0] + 0.002, hi[1] - h - 0.002, hi[2] + 0.002]
-    return sweep_triangles(a, b, [a[0], a[1], hi[2] - 0.03], [b[0], b[1], hi[2] - 0.03])
+def _same_bodies(one, two):
+    """The two simulations hold the same mesh, node identities, state and FEM, and take the
+    same next steps (to the solver's tolerance)."""
+    np.testing.assert_array_equal(one.mesh.tets, two.mesh.tets)
+    np.testing.assert_array_equal(one.mesh.points, two.mesh.points)
+    np.testing.assert_array_equal(one.node_uids, two.node_uids)
+    np.testing.assert_array_equal(one.positions(), two.positions())
+    for name in ("volume", "lumped_mass", "Dm_inv", "free"):
+        np.testing.assert_array_equal(getattr(one.fem, name).numpy(), getattr(two.fem, name).numpy())
+    for _ in range(3):
+        a, b = one.step(), two.step()
+        assert a.converged and b.converged and abs(a.iterations - b.iterations) <= 1
+    np.testing.assert_allclose(one.positions(), two.positions(), rtol=0, atol=1e-9)
 
 
 @pytest.mark.parametrize("first, then", [("remove", "remove"), ("remove", "cut"), ("cut", "remove")])
@@ -329,16 +330,7 @@ def test_two_topology_changes_composed_are_the_two_applied_in_turn(first, then):
         assert one._modify(p1).changed
         for k, kind in enumerate((first, then)):  # the same plans, on the simulation's own tissue each time
             assert two._modify(plan(two, kind, two.tissue(), k)).changed
-        np.testing.assert_array_equal(one.mesh.tets, two.mesh.tets)
-        np.testing.assert_array_equal(one.mesh.points, two.mesh.points)
-        np.testing.assert_array_equal(one.node_uids, two.node_uids)
-        np.testing.assert_array_equal(one.positions(), two.positions())
-        for name in ("volume", "lumped_mass", "Dm_inv", "free"):
-            np.testing.assert_array_equal(getattr(one.fem, name).numpy(), getattr(two.fem, name).numpy())
-        for _ in range(3):
-            a, b = one.step(), two.step()
-            assert a.converged and b.converged and abs(a.iterations - b.iterations) <= 1
-        np.testing.assert_allclose(one.positions(), two.positions(), rtol=0, atol=1e-9)
+        _same_bodies(one, two)
     finally:
         for sim in sims:
             sim.close()

@@ -54,6 +54,20 @@ def test_the_resection_rows_include_the_cut_rows(monkeypatch):
     assert "brain_resection_step_median_ms" in rows and "brain_resection_fps" in rows
 
 
+def test_the_resection_note_splits_the_steps_by_kind():
+    """Modified steps, the steps right after one (not modified themselves), the other steps of
+    more than 32 contacts, the rest: each kind's median, p99 and count."""
+    mod = [False, True, False, True, True, False, False, False]
+    contacts = [40, 50, 40, 0, 0, 0, 33, 5]
+    wall = [1.0, 20.0, 9.0, 30.0, 40.0, 7.0, 5.0, 2.0]
+    rows = [{"wall_ms": w, "modified": m, "contacts": c} for w, m, c in zip(wall, mod, contacts)]
+    note = targets.resection_split(rows)
+    assert f"with a modification {np.median([20.0, 30.0, 40.0]):.2f} / {np.percentile([20.0, 30.0, 40.0], 99):.2f} (3)" in note
+    assert f"right after one {np.median([9.0, 7.0]):.2f} / {np.percentile([9.0, 7.0], 99):.2f} (2)" in note
+    assert "other steps of more than 32 contacts 3.00 / 4.96 (2)" in note  # steps 0 and 6
+    assert "the others 2.00 / 2.00 (1)" in note
+
+
 def test_the_cut_beam_note_splits_the_steps_by_their_place_around_the_cuts():
     """Steps 1, 4, 7 cut; 2, 5, 8 follow a cut; the others are between cuts."""
     stats = []

@@ -427,8 +427,6 @@ class CorotationalFEM:
             in_place = len(prev[1]) == m and np.array_equal(src, np.arange(m))  # each tet its source's index
             if in_place:
                 reuse = _same_rest_shape(X, T, prev[0], prev[1])
-            elif lo >= 0:
-                reuse = _same_rest_shape(X, T, prev[0], np.take(prev[1], src, axis=0))
             else:
                 k = np.flatnonzero(src >= 0)
                 reuse[k] = _same_rest_shape(X, np.take(T, k, axis=0), prev[0], np.take(prev[1], src[k], axis=0))
@@ -536,17 +534,12 @@ class CorotationalFEM:
     def _all_tets(self) -> wp.array:
         return self._grow["_all_tets"].view(self.n_tets)
 
-    @property
-    def _rows(self) -> wp.array:
-        return self._grow["_rows"].view(16 * self.n_tets + self.n_nodes)
+    def _triplet_view(self, name: str) -> wp.array:
+        return self._grow[name].view(16 * self.n_tets + self.n_nodes)
 
-    @property
-    def _cols(self) -> wp.array:
-        return self._grow["_cols"].view(16 * self.n_tets + self.n_nodes)
-
-    @property
-    def _vals(self) -> wp.array:
-        return self._grow["_vals"].view(16 * self.n_tets + self.n_nodes)
+    _rows = property(lambda self: self._triplet_view("_rows"))
+    _cols = property(lambda self: self._triplet_view("_cols"))
+    _vals = property(lambda self: self._triplet_view("_vals"))
 
     def set_fixed_nodes(self, fixed_nodes) -> None:
         free = np.ones(self.n_nodes)

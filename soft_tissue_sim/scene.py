@@ -351,9 +351,7 @@ class Simulation:
         res = plan.result
         t0 = time.perf_counter()
         res.plan_ms = 1000.0 * (t0 - plan.t0)
-        debris = self.cutting.debris(plan.change.tissue())  # the body as the change leaves it (no read)
-        if debris is not None and debris.change is not None:
-            self.cutting.absorb_debris(plan, debris)
+        self.cutting.join_debris(plan)
         t1 = time.perf_counter()
         res.debris_ms = 1000.0 * (t1 - t0)
         res.correction_ms = self._apply_topology(plan)

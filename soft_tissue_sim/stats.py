@@ -57,8 +57,8 @@ class CutStats:
     smf_q_ms: float = 0.0  # Q = (I + N S)^-1 N (eq. 9)
     # the cutting phase's parts, summed over the step's changes (CutResult's): planning, the
     # FEM, state and identities, the preconditioner's correction, the debris (found and planned
-    # into the change); the rest of
-    # cut_ms (less surface_ms) is the state's reads and the planning of what changed nothing
+    # into the change); the rest of cut_ms (less surface_ms) is the state's reads and the
+    # planning of what changed nothing
     plan_ms: float = 0.0
     apply_ms: float = 0.0
     correction_ms: float = 0.0

@@ -431,17 +431,18 @@ class Cutter:
         small = (count < self.min_fragment) & ~anchored
         return small[tet_lab]
 
-    def debris(self, tissue: Tissue) -> CutPlan | None:
-        """After a change: the removal of the small free fragments it left (a lone tet shaved off
-        by the blade would otherwise tumble through the cut at free-fall speed), or None."""
-        debris = self.small_fragments(tissue.mesh, tissue.free)
-        if not debris.any() or debris.all():
-            return None
-        return self._removal(tissue, debris, time.perf_counter())
-
-    def absorb_debris(self, plan: CutPlan, debris: CutPlan) -> None:
-        """Make the removal of the debris ``debris`` (planned on ``plan``'s result) part of
-        ``plan``: one change for the simulation to apply, its result counting both."""
+    def join_debris(self, plan: CutPlan) -> None:
+        """Make the removal of the small free fragments ``plan``'s change would leave (a lone tet
+        shaved off by the blade would otherwise tumble through the cut at free-fall speed) part
+        of that change: one change for the simulation to apply, its result counting both. Read
+        from the planned change itself (no read of the body)."""
+        tissue = plan.change.tissue()
+        gone = self.small_fragments(tissue.mesh, tissue.free)
+        if not gone.any() or gone.all():
+            return
+        debris = self._removal(tissue, gone, time.perf_counter())
+        if debris.change is None:
+            return
         res = plan.result
         plan.change = plan.change.then(debris.change)
         res.debris_tets = debris.result.tets_changed

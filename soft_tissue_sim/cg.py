@@ -24,8 +24,10 @@ Vectors are ``wp.array(dtype=wp.vec3d)`` (node-major). The operator is a callabl
 :class:`DevicePCG` is the same iteration with every scalar (r.z, p.Ap, alpha, beta, the
 residual, the iteration count and the "go on" flag) in device arrays, computed by kernels,
 and the loop a ``wp.capture_while`` on that flag: no host synchronisation until the end of
-the solve. On CUDA it is captured once as a graph (per vector size, operator, preconditioner
-pattern and coefficients) and replayed each step. It needs a preconditioner whose ``apply``
+the solve. Its launches read the node count from a device array and run over a grid set by
+the capacity of its work vectors, so with ``graph=True`` the solve is captured once as a graph
+(per work-vector capacity, operator, preconditioner pattern and coefficients) and replayed each
+step, across node counts within that capacity. It needs a preconditioner whose ``apply``
 only launches (``device_capable()``): none, jacobi, or a device factor
 (:mod:`soft_tissue_sim.device_preconditioner`); otherwise it runs the host-scalar :meth:`PCG.solve`.
 """
@@ -64,9 +66,12 @@ def _xpby_kernel(z: wp.array(dtype=wp.vec3d), beta: wp.float64, p: wp.array(dtyp
 
 
 @wp.kernel
-def _block_apply_kernel(Dinv: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d), z: wp.array(dtype=wp.vec3d)):
+def _block_apply_kernel(count: wp.array(dtype=wp.int32), Dinv: wp.array(dtype=wp.mat33d),
+                        r: wp.array(dtype=wp.vec3d), z: wp.array(dtype=wp.vec3d)):
+    """z = Dinv r on the first count[0] blocks (launched over Dinv's capacity)."""
     i = wp.tid()
-    z[i] = Dinv[i] * r[i]
+    if i < count[0]:
+        z[i] = Dinv[i] * r[i]
 
 
 @wp.kernel
@@ -134,23 +139,32 @@ class IdentityPreconditioner:
 
 
 class BlockJacobiPreconditioner:
-    """Inverse of the 3x3 diagonal blocks of A, rebuilt every step (cheap)."""
+    """Inverse of the 3x3 diagonal blocks of A, rebuilt every step (cheap). The blocks are views
+    of kept allocations (:class:`soft_tissue_sim.buffers.GrowArray`) and ``apply`` reads the node
+    count from a device array written by ``begin_step``, launched over the allocation's
+    capacity: a captured ``apply`` holds for every node count within it (``graph_key``)."""
 
     name = "jacobi"
 
     def __init__(self):
         self._D = self._Dinv = None
+        self._bufs = None
+        self._count = None
 
     def begin_step(self, system) -> None:
         fem = system.fem
-        if self._D is None or self._D.shape[0] != fem.n_nodes:
-            self._D = wp.zeros(fem.n_nodes, dtype=wp.mat33d, device=fem.device)
-            self._Dinv = wp.zeros_like(self._D)
+        n = fem.n_nodes
+        if self._bufs is None or self._bufs[0].device != wp.get_device(fem.device):
+            self._bufs = (GrowArray(wp.mat33d, fem.device), GrowArray(wp.mat33d, fem.device))
+            self._count = wp.zeros(1, dtype=wp.int32, device=fem.device)
+        self._D, self._Dinv = (b.view(n) for b in self._bufs)
+        wp.launch(_set_count_kernel, 1, [self._count, int(n)], device=fem.device)
         fem.diagonal_blocks(system.m_coef, system.k_coef, self._D)
-        wp.launch(_invert_blocks_kernel, fem.n_nodes, [self._D, fem.free, self._Dinv], device=fem.device)
+        wp.launch(_invert_blocks_kernel, n, [self._D, fem.free, self._Dinv], device=fem.device)
 
     def apply(self, r: wp.array, z: wp.array) -> None:
-        wp.launch(_block_apply_kernel, r.shape[0], [self._Dinv, r, z], device=r.device)
+        inv = self._bufs[1]
+        wp.launch(_block_apply_kernel, inv.capacity, [self._count, inv.buffer, r, z], device=r.device)
 
     def stats(self) -> dict:
         return {}
@@ -165,7 +179,7 @@ class BlockJacobiPreconditioner:
         return self._Dinv is not None
 
     def graph_key(self) -> tuple:
-        return (self._Dinv.ptr, self._Dinv.shape[0])
+        return (self._Dinv.ptr, self._bufs[1].capacity, self._count.ptr)
 
 
 class PCG:
@@ -316,11 +330,13 @@ def block_sum(v: wp.float64) -> wp.float64: ...
 
 
 @wp.kernel
-def _dot_partial_kernel(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), n: int,
+def _dot_partial_kernel(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), count: wp.array(dtype=wp.int32),
                         partials: wp.array(dtype=wp.float64)):
-    """partials[block] = the block's share of a.b (grid-stride); deterministic order."""
+    """partials[block] = the block's share of a.b over the first count[0] entries (grid-stride);
+    deterministic order."""
     t = wp.tid()
     nt = wp.block_dim()
+    n = count[0]
     total = partials.shape[0] * nt
     acc = wp.float64(0.0)
     for i in range(t, n, total):
@@ -340,6 +356,43 @@ def _sum_partials(partials: wp.array(dtype=wp.float64), t: int, nt: int):
     for k in range(t, partials.shape[0], nt):
         acc += partials[k]
     return block_sum(acc)
+
+
+@wp.kernel
+def _set_count_kernel(count: wp.array(dtype=wp.int32), n: int):
+    count[0] = n
+
+
+@wp.kernel
+def _pcg_residual_kernel(count: wp.array(dtype=wp.int32), b: wp.array(dtype=wp.vec3d),
+                         Ax: wp.array(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d), blocks: int):
+    """r = b - Ax over the first count[0] entries (grid-stride over ``blocks`` blocks)."""
+    t = wp.tid()
+    n = count[0]
+    for i in range(t, n, blocks * wp.block_dim()):
+        r[i] = b[i] - Ax[i]
+
+
+@wp.kernel
+def _pcg_start_kernel(count: wp.array(dtype=wp.int32), b: wp.array(dtype=wp.vec3d),
+                      x: wp.array(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d), blocks: int):
+    """The cold start: x = 0, r = b over the first count[0] entries (grid-stride over ``blocks``
+    blocks)."""
+    t = wp.tid()
+    n = count[0]
+    for i in range(t, n, blocks * wp.block_dim()):
+        x[i] = wp.vec3d()
+        r[i] = b[i]
+
+
+@wp.kernel
+def _pcg_copy_kernel(count: wp.array(dtype=wp.int32), src: wp.array(dtype=wp.vec3d), dst: wp.array(dtype=wp.vec3d),
+                     blocks: int):
+    """dst = src over the first count[0] entries (grid-stride over ``blocks`` blocks)."""
+    t = wp.tid()
+    n = count[0]
+    for i in range(t, n, blocks * wp.block_dim()):
+        dst[i] = src[i]
 
 
 @wp.kernel
@@ -367,12 +420,13 @@ def _pcg_init_kernel(s: wp.array(dtype=wp.float64), flag: wp.array(dtype=wp.int3
 @wp.kernel
 def _pcg_warm_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64),
                      b: wp.array(dtype=wp.vec3d), x: wp.array(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d),
-                     n: int, blocks: int):
+                     count: wp.array(dtype=wp.int32), blocks: int):
     """The warm start kept or dropped: r.r of the guess (the sum of ``partials``, added up by
-    every block) against b.b (slot BB); unless it is smaller, x = 0 and r = b (grid-stride over
-    ``blocks`` blocks)."""
+    every block) against b.b (slot BB); unless it is smaller, x = 0 and r = b over the first
+    count[0] entries (grid-stride over ``blocks`` blocks)."""
     t = wp.tid()
     nt = wp.block_dim()
+    n = count[0]
     rr = _sum_partials(partials, t % nt, nt)
     if not (rr < s[_BB]):
         for i in range(t, n, blocks * nt):
@@ -388,18 +442,20 @@ def _pcg_alpha_axpy2_kernel(
     Ap: wp.array(dtype=wp.vec3d),
     x: wp.array(dtype=wp.vec3d),
     r: wp.array(dtype=wp.vec3d),
-    n: int,
+    count: wp.array(dtype=wp.int32),
     rr_partials: wp.array(dtype=wp.float64),
 ):
     """alpha = r.z / p.Ap (p.Ap the sum of ``partials``, added up by every block), x += alpha p,
-    r -= alpha A p and each block's share of the new r.r into ``rr_partials`` (grid-stride over
-    ``rr_partials.shape[0]`` blocks, the order of :func:`_dot_partial_kernel`). r.z is read from
+    r -= alpha A p over the first count[0] entries and each block's share of the new r.r into
+    ``rr_partials`` (grid-stride over ``rr_partials.shape[0]`` blocks, the order of
+    :func:`_dot_partial_kernel`). r.z is read from
     the slot RZN, where the first iteration and the beta kernel put it; block 0 records p.Ap,
     alpha and r.z (RZ, the denominator of the next beta). A breakdown (p.Ap <= 0: A not SPD
     along p, b = 0, or NaN) leaves x and r as they are and stops the loop (the check)."""
     t = wp.tid()
     nt = wp.block_dim()
     lane = t % nt
+    n = count[0]
     pAp = _sum_partials(partials, lane, nt)
     rz = s[_RZN]
     alpha = wp.float64(0.0)
@@ -449,12 +505,14 @@ def _pcg_check_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp
 
 @wp.kernel
 def _pcg_beta_xpby_kernel(partials: wp.array(dtype=wp.float64), s: wp.array(dtype=wp.float64),
-                          z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d), n: int, blocks: int):
+                          z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d), count: wp.array(dtype=wp.int32),
+                          blocks: int):
     """beta = r.z (the sum of ``partials``, added up by every block) / the previous r.z (slot RZ,
-    left as it is here), p = z + beta p (grid-stride over ``blocks`` blocks); block 0 records
-    the new r.z (slot RZN, read by the alpha kernel) and beta."""
+    left as it is here), p = z + beta p over the first count[0] entries (grid-stride over
+    ``blocks`` blocks); block 0 records the new r.z (slot RZN, read by the alpha kernel) and beta."""
     t = wp.tid()
     nt = wp.block_dim()
+    n = count[0]
     rzn = _sum_partials(partials, t % nt, nt)
     beta = rzn / s[_RZ]
     if t == 0:
@@ -474,10 +532,16 @@ class DevicePCG(PCG):
     that the loop body starts with the preconditioner: no application is wasted after
     convergence), and the same end: after the loop one product A x, the true residual and
     ||x|| by device reductions (still no host read until the solve is over; the ||A||
-    estimate is made before, outside any capture). ``graph=True`` captures the whole solve
-    (CUDA graph with a conditional while node; Warp's API capture on the CPU) on the second
-    solve with the same key -- vector size, array addresses, the operator's ``graph_key()``
-    (found on a bound method's owner) and the preconditioner's -- and replays it afterwards;
+    estimate is made before, outside any capture). Every launch of the solve reads the node
+    count from the device array :attr:`count` (written by :meth:`resize`) and runs over a grid
+    fixed by the capacity of the work vectors, so the launches hold for every count up to that
+    capacity. ``graph=True`` captures the whole solve (CUDA graph with a conditional while
+    node; Warp's API capture on the CPU) on the second solve with the same key -- the launch
+    geometry (the work vectors' capacity and addresses), the addresses of b and x, the
+    operator's ``graph_key()`` (found on a bound method's owner) and the preconditioner's --
+    and replays it afterwards, for any count within the capacity: the operator and the
+    preconditioner must then read the count on the device too (their keys hold no count), and
+    the kernels never take it from the shape of b or x (views captured at an older count);
     once a capture has succeeded (its kernels are loaded), a new key (a cut, a new factor
     pattern, a changed dt) is captured at its first solve (:class:`soft_tissue_sim.graphs.Replayer`,
     ``eager``; a replaced graph is released where no factorization runs). A capture that fails
@@ -510,22 +574,34 @@ class DevicePCG(PCG):
     replays = property(lambda self: self.replay.replays)
 
     def resize(self, n: int) -> None:
+        """Work vectors for ``n`` nodes (zeroed), ``n`` written to :attr:`count` on the device (a
+        launch: stream-ordered). The captured graphs are dropped only where the launch geometry
+        changes (the work vectors outgrew their capacity), not for a new ``n`` within it."""
         super().resize(n)
         d = self.device
         if getattr(self, "_s", None) is None:
             self._s = wp.zeros(_NSCAL, dtype=wp.float64, device=d)
             self._flag = wp.zeros(1, dtype=wp.int32, device=d)
+            self.count = wp.zeros(1, dtype=wp.int32, device=d)
             self._partials_buf = GrowArray(wp.float64, d)
             self._rr_partials_buf = GrowArray(wp.float64, d)
+            self._geometry = None
+        wp.launch(_set_count_kernel, 1, [self.count, int(n)], device=d)
         # dot products: a block per chunk, then one block adds the partial sums (no allocation,
-        # deterministic; Warp's array_inner allocates scratch, which a conditional graph body forbids)
+        # deterministic; Warp's array_inner allocates scratch, which a conditional graph body forbids);
+        # as many blocks for every count within the work vectors' common capacity
+        cap = min(b.capacity for b in self._bufs)
         self._block = _RED_BLOCK if d.is_cuda else 1
-        nb = min(128, max(1, -(-n // (2 * _RED_BLOCK)))) if d.is_cuda else 1
+        nb = min(128, max(1, -(-cap // (2 * _RED_BLOCK)))) if d.is_cuda else 1
         self._partials = self._partials_buf.view(nb)
         self._rr_partials = self._rr_partials_buf.view(nb)  # r.r by the alpha kernel, while others read _partials
         for a in (self._s, self._flag, self._partials, self._rr_partials):
             a.zero_()
-        self.replay.clear()  # a graph of the old size is released where no factorization runs
+        geometry = (cap, nb, self._block, self.r.ptr, self.z.ptr, self.p.ptr, self.Ap.ptr,
+                    self._partials.ptr, self._rr_partials.ptr)
+        if geometry != self._geometry:
+            self._geometry = geometry
+            self.replay.clear()  # graphs of the old buffers are released where no factorization runs
 
     # ------------------------------------------------------------------ pieces
     def _blocks(self, kernel, args):
@@ -533,51 +609,62 @@ class DevicePCG(PCG):
         wp.launch(kernel, self._partials.shape[0] * self._block, args, device=self.device, block_dim=self._block)
 
     def _ddot(self, a, b):
-        self._blocks(_dot_partial_kernel, [a, b, a.shape[0], self._partials])
+        self._blocks(_dot_partial_kernel, [a, b, self.count, self._partials])
 
     def _scalar(self, kernel, args, partials=None):
         """``kernel`` on one block, adding up ``partials`` (default: the dot products')."""
         wp.launch(kernel, self._block, [self._partials if partials is None else partials] + args,
                   device=self.device, block_dim=self._block)
 
+    def _residual(self, b):
+        """r = b - A x with A x in ``Ap``."""
+        self._blocks(_pcg_residual_kernel, [self.count, b, self.Ap, self.r, self._partials.shape[0]])
+
+    def _precondition(self, preconditioner):
+        """z = P^-1 r (the identity's copy by a kernel reading :attr:`count`: ``wp.copy`` would
+        capture the size)."""
+        if isinstance(preconditioner, IdentityPreconditioner):
+            self._blocks(_pcg_copy_kernel, [self.count, self.r, self.z, self._partials.shape[0]])
+        else:
+            preconditioner.apply(self.r, self.z)
+
     def _tail(self, matvec, x):
         """A p, p.Ap, alpha, x += alpha p, r -= alpha A p, r.r, stopping test."""
         matvec(self.p, self.Ap)
         self._ddot(self.p, self.Ap)
         self._blocks(_pcg_alpha_axpy2_kernel,
-                     [self._partials, self._s, self.p, self.Ap, x, self.r, self.n, self._rr_partials])
+                     [self._partials, self._s, self.p, self.Ap, x, self.r, self.count, self._rr_partials])
         self._scalar(_pcg_check_kernel, [self._s, self._flag, self.tolerance, float(self.max_iterations)],
                      self._rr_partials)
 
     def _run(self, matvec, b, x, preconditioner):
-        dev, n = self.device, self.n
+        dev, nb = self.device, self._partials.shape[0]
         self._ddot(b, b)
         self._scalar(_pcg_store_kernel, [self._s, _BB])
         if self.warm_start:  # r = b - A x, or x = 0 and r = b where that is not smaller than b
             matvec(x, self.Ap)
-            wp.launch(_residual_kernel, n, [b, self.Ap, self.r], device=dev)
+            self._residual(b)
             self._ddot(self.r, self.r)
-            self._blocks(_pcg_warm_kernel, [self._partials, self._s, b, x, self.r, n, self._partials.shape[0]])
+            self._blocks(_pcg_warm_kernel, [self._partials, self._s, b, x, self.r, self.count, nb])
         else:
-            x.zero_()
-            wp.copy(self.r, b)
+            self._blocks(_pcg_start_kernel, [self.count, b, x, self.r, nb])
         wp.launch(_pcg_init_kernel, 1, [self._s, self._flag], device=dev)
-        preconditioner.apply(self.r, self.z)
-        wp.copy(self.p, self.z)
+        self._precondition(preconditioner)
+        self._blocks(_pcg_copy_kernel, [self.count, self.z, self.p, nb])
         self._ddot(self.r, self.z)
         self._scalar(_pcg_store_kernel, [self._s, _RZN])
         self._tail(matvec, x)
 
         def body():
-            preconditioner.apply(self.r, self.z)
+            self._precondition(preconditioner)
             self._ddot(self.r, self.z)
-            self._blocks(_pcg_beta_xpby_kernel, [self._partials, self._s, self.z, self.p, n, self._partials.shape[0]])
+            self._blocks(_pcg_beta_xpby_kernel, [self._partials, self._s, self.z, self.p, self.count, nb])
             self._tail(matvec, x)
 
         wp.capture_while(self._flag, body)
         # the true residual b - A x and ||x|| (convergence is judged on them)
         matvec(x, self.Ap)
-        wp.launch(_residual_kernel, n, [b, self.Ap, self.r], device=dev)
+        self._residual(b)
         self._ddot(self.r, self.r)
         self._scalar(_pcg_store_kernel, [self._s, _RTRUE])
         self._ddot(x, x)
@@ -592,7 +679,7 @@ class DevicePCG(PCG):
         pkey = pk()
         if pkey is None:  # an apply that cannot be captured (cuDSS's solve allocates)
             return None
-        return (self.n, b.ptr, x.ptr, self.r.ptr, mk(), pkey, self.tolerance, self.max_iterations, self.warm_start)
+        return (self._geometry, b.ptr, x.ptr, mk(), pkey, self.tolerance, self.max_iterations, self.warm_start)
 
     def solve(self, matvec, b: wp.array, x: wp.array, preconditioner) -> CGResult:
         done = self.launch(matvec, b, x, preconditioner)

@@ -112,12 +112,15 @@ def rotation_from(F: wp.mat33d):
 
 @wp.kernel
 def element_rotations_kernel(
+    count: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     tets: wp.array(dtype=wp.vec4i),
     Dm_inv: wp.array(dtype=wp.mat33d),
     R_out: wp.array(dtype=wp.mat33d),
 ):
     e = wp.tid()
+    if e >= count[0]:
+        return
     t = tets[e]
     x0 = x[t[0]]
     Ds = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
@@ -126,6 +129,7 @@ def element_rotations_kernel(
 
 @wp.kernel
 def elastic_force_kernel(
+    count: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     tets: wp.array(dtype=wp.vec4i),
     Dm_inv: wp.array(dtype=wp.mat33d),
@@ -137,6 +141,8 @@ def elastic_force_kernel(
 ):
     """f += -V R sigma(sym(R^T F - I)) g_i (accumulated; f must be initialised)."""
     e = wp.tid()
+    if e >= count[0]:
+        return
     t = tets[e]
     x0 = x[t[0]]
     Ds = wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
@@ -150,6 +156,7 @@ def elastic_force_kernel(
 
 @wp.kernel
 def stiffness_product_kernel(
+    count: wp.array(dtype=wp.int32),
     p: wp.array(dtype=wp.vec3d),
     free: wp.array(dtype=wp.float64),
     tets: wp.array(dtype=wp.vec4i),
@@ -165,6 +172,8 @@ def stiffness_product_kernel(
 ):
     """out += k_coef K (free*p) + m_coef M_consistent (free*p), K corotated (accumulated)."""
     e = wp.tid()
+    if e >= count[0]:
+        return
     t = tets[e]
     Dinv = Dm_inv[e]
     Re = R[e]
@@ -185,6 +194,7 @@ def stiffness_product_kernel(
 
 @wp.kernel
 def combine_kernel(
+    count: wp.array(dtype=wp.int32),
     p: wp.array(dtype=wp.vec3d),
     free: wp.array(dtype=wp.float64),
     lumped_mass: wp.array(dtype=wp.float64),
@@ -197,6 +207,8 @@ def combine_kernel(
 ):
     """z = alpha * (filtered A p) + beta * y, with A p = m_coef m_i p_i + Kp_i on free nodes, p_i on fixed."""
     i = wp.tid()
+    if i >= count[0]:
+        return
     Ap = p[i]
     if free[i] > _F64(0.0):
         Ap = m_coef * lumped_mass[i] * p[i] + Kp[i]
@@ -306,21 +318,42 @@ def diagonal_blocks_kernel(
 
 @wp.kernel
 def node_rotation_accumulate_kernel(
+    count: wp.array(dtype=wp.int32),
     tets: wp.array(dtype=wp.vec4i),
     volume: wp.array(dtype=wp.float64),
     R: wp.array(dtype=wp.mat33d),
     acc: wp.array(dtype=wp.mat33d),
 ):
     e = wp.tid()
+    if e >= count[0]:
+        return
     t = tets[e]
     for k in range(4):
         wp.atomic_add(acc, t[k], volume[e] * R[e])
 
 
 @wp.kernel
-def orthonormalize_kernel(acc: wp.array(dtype=wp.mat33d), out: wp.array(dtype=wp.mat33d)):
+def orthonormalize_kernel(count: wp.array(dtype=wp.int32), acc: wp.array(dtype=wp.mat33d),
+                          out: wp.array(dtype=wp.mat33d)):
     i = wp.tid()
-    out[i] = rotation_from(acc[i])
+    if i < count[0]:
+        out[i] = rotation_from(acc[i])
+
+
+@wp.kernel
+def zero_vectors_kernel(count: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.vec3d)):
+    """out[i] = 0 for i < count[0]."""
+    i = wp.tid()
+    if i < count[0]:
+        out[i] = wp.vec3d()
+
+
+@wp.kernel
+def zero_matrices_kernel(count: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.mat33d)):
+    """out[i] = 0 for i < count[0]."""
+    i = wp.tid()
+    if i < count[0]:
+        out[i] = wp.mat33d()
 
 
 @wp.kernel
@@ -380,7 +413,13 @@ def _same_points(P, Q) -> np.ndarray:
 
 
 class CorotationalFEM:
-    """Rest-state data and per-step corotational operators of one tetrahedral body."""
+    """Rest-state data and per-step corotational operators of one tetrahedral body.
+
+    The per-step launches (rotations, forces, products, node rotations) cover the arrays'
+    capacities (:attr:`node_dim`, :attr:`tet_dim`) and read the node and tet counts from the
+    device (:attr:`counts`), never from the arrays' shapes: a graph captured of them stays valid
+    across topology changes while the allocations hold (the :meth:`graph_key` of an operator
+    names the addresses and these dimensions, not the counts)."""
 
     def __init__(
         self,
@@ -470,8 +509,8 @@ class CorotationalFEM:
         if getattr(self, "_packed", None) is None:
             # rest data: the fields that change with every mesh first (one run), then the element
             # data, which a node split leaves as it was; src: the tets' rotation sources (a gather)
-            self._packed = PackedArrays({"rest": wp.vec3d, "lumped_mass": wp.float64, "free": wp.float64,
-                                         "tets": wp.vec4i, "src": wp.int32, "Dm_inv": wp.mat33d,
+            self._packed = PackedArrays({"counts": wp.int32, "rest": wp.vec3d, "lumped_mass": wp.float64,
+                                         "free": wp.float64, "tets": wp.vec4i, "src": wp.int32, "Dm_inv": wp.mat33d,
                                          "volume": wp.float64, "mu": wp.float64, "lam": wp.float64,
                                          "rho": wp.float64}, d)
             self._sub = PackedArrays({"ids": wp.int32, "tets": wp.vec4i, "Dm_inv": wp.mat33d, "volume": wp.float64,
@@ -482,6 +521,7 @@ class CorotationalFEM:
                 ("_all_tets", wp.int32, lambda cap: np.arange(cap, dtype=np.int32)), ("_rows", wp.int32, None),
                 ("_cols", wp.int32, None), ("_vals", wp.mat33d, None), ("_sub_R", wp.mat33d, None),
                 ("_sub_node_R", wp.mat33d, None))}
+            self._no_count = wp.array([np.iinfo(np.int32).max], dtype=wp.int32, device=d)  # subset launches
         packed, grow = self._packed, self._grow
         # the element rotations the new tets take over from their sources: in place where each
         # keeps its source's index (a node split), else gathered from a copy of the old ones
@@ -491,8 +531,8 @@ class CorotationalFEM:
         if gather:
             old = grow["_rot_old"].view(self.n_tets)
             wp.copy(old, self.rotations)
-        data = {"rest": X, "lumped_mass": lumped, "free": free, "tets": T, "Dm_inv": Dm_inv, "volume": vol,
-                "mu": mu, "lam": lam, "rho": rho}
+        data = {"counts": np.array([n, m], np.int32), "rest": X, "lumped_mass": lumped, "free": free, "tets": T,
+                "Dm_inv": Dm_inv, "volume": vol, "mu": mu, "lam": lam, "rho": rho}
         if gather:
             data["src"] = np.where(reuse, src, -1).astype(np.int32)
         realloc = packed.reserve({k: len(data[k]) if k in data else m for k in packed.fields})
@@ -512,6 +552,9 @@ class CorotationalFEM:
         for name in data:
             if name != "src":
                 setattr(self, name, packed.array(name))
+        # the counts on the device (node, tet) and the launches' dimensions (the capacities)
+        self.n_nodes_dev, self.n_tets_dev = self.counts[0:1], self.counts[1:2]
+        self.node_dim, self.tet_dim = packed.capacity["rest"], packed.capacity["tets"]
         self.fixed_nodes = np.flatnonzero(free == 0.0)
         self.rotations = grow["rotations"].view(m)
         self._carried = None
@@ -558,8 +601,8 @@ class CorotationalFEM:
         ids = self._carried if changed_only else (None if tets is None else np.asarray(tets, np.int64))
         self._carried = None
         if ids is None:
-            wp.launch(element_rotations_kernel, self.n_tets, [x, self.tets, self.Dm_inv, self.rotations],
-                      device=self.device)
+            wp.launch(element_rotations_kernel, self.tet_dim, [self.n_tets_dev, x, self.tets, self.Dm_inv,
+                                                               self.rotations], device=self.device)
         elif len(ids):
             self._subset_rotations(x, ids)
 
@@ -583,7 +626,8 @@ class CorotationalFEM:
             fields += ["volume", "nodes"]
         sub.send(fields)
         R = self._grow["_sub_R"].view(b)
-        wp.launch(element_rotations_kernel, k, [x, sub.array("tets"), sub.array("Dm_inv"), R], device=d)
+        wp.launch(element_rotations_kernel, k, [self._no_count, x, sub.array("tets"), sub.array("Dm_inv"), R],
+                  device=d)
         wp.launch(_scatter_rotations_kernel, k, [sub.array("ids"), R, self.rotations], device=d)
         return R
 
@@ -601,8 +645,8 @@ class CorotationalFEM:
         R = self._subset_rotations(x, ids, nodes)
         d, sub, g = self.device, self._sub, self._grow
         self._rot_acc.zero_()
-        wp.launch(node_rotation_accumulate_kernel, len(ids), [sub.array("tets"), sub.array("volume"), R, self._rot_acc],
-                  device=d)
+        wp.launch(node_rotation_accumulate_kernel, len(ids),
+                  [self._no_count, sub.array("tets"), sub.array("volume"), R, self._rot_acc], device=d)
         R_nodes = g["_sub_node_R"].view(sub.counts["nodes"])
         wp.launch(_orthonormalize_subset_kernel, len(nodes), [sub.array("nodes"), self._rot_acc, R_nodes], device=d)
         out[nodes] = to_host(R_nodes)[0][:len(nodes)]
@@ -612,58 +656,62 @@ class CorotationalFEM:
         """f += elastic forces at positions x, with the current element rotations."""
         wp.launch(
             elastic_force_kernel,
-            self.n_tets,
-            [x, self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rotations, f],
+            self.tet_dim,
+            [self.n_tets_dev, x, self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rotations, f],
             device=self.device,
         )
 
     def system_product(self, p, y, z, alpha, beta, m_coef, k_coef) -> None:
         """z = alpha * A p + beta * y with A = m_coef M + k_coef K, filtered on fixed nodes."""
-        self._Kp.zero_()
+        self._zero(self._Kp)
         wp.launch(
             stiffness_product_kernel,
-            self.n_tets,
-            [p, self.free, self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
+            self.tet_dim,
+            [self.n_tets_dev, p, self.free, self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
              float(k_coef), float(m_coef) if self.consistent_mass else 0.0, self._Kp],
             device=self.device,
         )
         wp.launch(
             combine_kernel,
-            self.n_nodes,
-            [p, self.free, self.lumped_mass, 0.0 if self.consistent_mass else float(m_coef), self._Kp,
+            self.node_dim,
+            [self.n_nodes_dev, p, self.free, self.lumped_mass, 0.0 if self.consistent_mass else float(m_coef), self._Kp,
              float(alpha), y, float(beta), z],
             device=self.device,
         )
 
     def stiffness_product(self, p: wp.array, out: wp.array) -> None:
         """out = K p (unfiltered corotated stiffness, no mass): used for b and damping."""
-        out.zero_()
+        self._zero(out)
         wp.launch(
             stiffness_product_kernel,
-            self.n_tets,
-            [p, self._ones(), self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations, 1.0, 0.0, out],
+            self.tet_dim,
+            [self.n_tets_dev, p, self._ones(), self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations, 1.0, 0.0, out],
             device=self.device,
         )
+
+    def _zero(self, out: wp.array) -> None:
+        """out[i] = 0 for the current nodes (a launch reading the count: capturable across sizes)."""
+        wp.launch(zero_vectors_kernel, self.node_dim, [self.n_nodes_dev, out], device=self.device)
 
     def _ones(self) -> wp.array:
         return self._grow["_ones"].view(self.n_nodes)
 
     def mass_product(self, p: wp.array, out: wp.array) -> None:
         """out = M p (lumped or consistent, unfiltered)."""
-        out.zero_()
+        self._zero(out)
         if self.consistent_mass:
             wp.launch(
                 stiffness_product_kernel,
-                self.n_tets,
-                [p, self._ones(), self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
+                self.tet_dim,
+                [self.n_tets_dev, p, self._ones(), self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
                  0.0, 1.0, out],
                 device=self.device,
             )
         else:
             wp.launch(
                 combine_kernel,
-                self.n_nodes,
-                [p, self._ones(), self.lumped_mass, 1.0, out, 1.0, out, 0.0, out],
+                self.node_dim,
+                [self.n_nodes_dev, p, self._ones(), self.lumped_mass, 1.0, out, 1.0, out, 0.0, out],
                 device=self.device,
             )
 
@@ -747,10 +795,11 @@ class CorotationalFEM:
         """Per-node rotations (n, mat33d, on the device): the volume-weighted average of the
         element rotations around each node, projected back onto SO(3) (the rotations of eq. 2).
         Launches only; uses the element rotations of the last :meth:`update_rotations`."""
-        self._rot_acc.zero_()
-        wp.launch(node_rotation_accumulate_kernel, self.n_tets, [self.tets, self.volume, self.rotations, self._rot_acc],
+        wp.launch(zero_matrices_kernel, self.node_dim, [self.n_nodes_dev, self._rot_acc], device=self.device)
+        wp.launch(node_rotation_accumulate_kernel, self.tet_dim,
+                  [self.n_tets_dev, self.tets, self.volume, self.rotations, self._rot_acc], device=self.device)
+        wp.launch(orthonormalize_kernel, self.node_dim, [self.n_nodes_dev, self._rot_acc, self._node_rot],
                   device=self.device)
-        wp.launch(orthonormalize_kernel, self.n_nodes, [self._rot_acc, self._node_rot], device=self.device)
         self.node_rotations_current = True
         return self._node_rot
 

@@ -29,6 +29,13 @@ The matrix is symmetric and stored row-major (C order); LAPACK and cuSOLVER see 
 column-major transpose, the same matrix. On the CPU ``potri`` fills one triangle, which
 :func:`symmetrize_kernel` mirrors. Arrays are Warp arrays; CuPy (GPU) or NumPy (CPU) view them
 without copies for the library calls (``xp``).
+
+Capacity. The inverse in use is an (n3, n3) view with a fixed row stride L (the leading
+dimension, :func:`leading_dimension`: n3 with headroom, a multiple of 96) into a store whose
+address holds while n3 <= L; its size n3 is also kept in a one-element device array, written by
+a launch on the stream of the change. :meth:`DenseInverse.apply` is launched over the capacity
+(L / 3 nodes) and reads the size from that array, so that a graph captured with it stays valid
+across the size changes of cuts (:meth:`DenseInverse.graph_key` holds no size).
 """
 
 from __future__ import annotations
@@ -40,13 +47,20 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from .buffers import GrowArray, PackedArrays, typed_view
+from .buffers import GrowArray, PackedArrays, capacity_for, typed_view
 from .cg import block_sum
 from .transfer import PINNED, to_host
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
 BLOCK = 256  # threads per node in the matrix-vector product on CUDA
+LD_MULTIPLE = 96  # leading dimensions are multiples of this: whole nodes, rows 128-byte aligned in float32
+
+
+def leading_dimension(n3: int) -> int:
+    """The leading dimension of a store made for n3 DOFs: n3 with headroom
+    (:func:`~soft_tissue_sim.buffers.capacity_for`), rounded up to a multiple of ``LD_MULTIPLE``."""
+    return -(-capacity_for(int(n3)) // LD_MULTIPLE) * LD_MULTIPLE
 
 
 @wp.kernel
@@ -99,6 +113,23 @@ def regrow_kernel(old: wp.array2d(dtype=wp.float64), keep: wp.array(dtype=wp.int
 
 
 @wp.kernel
+def pad_identity_kernel(P: wp.array2d(dtype=wp.float64), k: int):
+    """P[i, j] = P[j, i] = the identity's entry for j = k + t, launched over (i, t) in
+    (n, added): rows and columns k .. n - 1 of the (n, n) P made identity rows in place (eq. 10's
+    padding)."""
+    i, t = wp.tid()
+    j = k + t
+    v = wp.where(i == j, wp.float64(1.0), wp.float64(0.0))
+    P[i, j] = v
+    P[j, i] = v
+
+
+@wp.kernel
+def set_count_kernel(count: wp.array(dtype=wp.int32), n: int):
+    count[0] = n
+
+
+@wp.kernel
 def rotate_in_kernel(dR: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d), s: wp.array(dtype=wp.float64)):
     """s = dR^T r, node by node, flattened (the right rotation of eq. 2)."""
     i = wp.tid()
@@ -106,6 +137,18 @@ def rotate_in_kernel(dR: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d),
     s[3 * i] = v[0]
     s[3 * i + 1] = v[1]
     s[3 * i + 2] = v[2]
+
+
+@wp.kernel
+def rotate_in_count_kernel(dR: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d), s: wp.array(dtype=wp.float64),
+                           count: wp.array(dtype=wp.int32)):
+    """:func:`rotate_in_kernel` for the nodes i with 3 i < count[0] (launched over a capacity)."""
+    i = wp.tid()
+    if 3 * i < count[0]:
+        v = wp.transpose(dR[i]) * r[i]
+        s[3 * i] = v[0]
+        s[3 * i + 1] = v[1]
+        s[3 * i + 2] = v[2]
 
 
 @wp.kernel
@@ -117,16 +160,20 @@ def narrow_kernel(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.fl
 
 @wp.kernel
 def dense_apply_kernel(P: wp.array2d(dtype=Any), s: wp.array(dtype=wp.float64),
-                       dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d)):
-    """z_i = dR_i (P s)_i: a block of threads per node i, its three rows of P (double or single
-    precision) against s, summed in double precision, the left rotation of eq. (2) applied to
-    the result."""
+                       dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
+                       count: wp.array(dtype=wp.int32)):
+    """z_i = dR_i (P s)_i for the nodes i with 3 i < n3 = count[0] (launched over a capacity; P
+    read through its strides, its first n3 rows and columns): a block of threads per node i, its
+    three rows of P (double or single precision) against s, summed in double precision, the left
+    rotation of eq. (2) applied to the result."""
     t = wp.tid()
     nt = wp.block_dim()
     i = t // nt
     lane = t - i * nt
-    n3 = s.shape[0]
+    n3 = count[0]
     r = 3 * i
+    if r >= n3:  # the whole block (one node) leaves
+        return
     a0 = wp.float64(0.0)
     a1 = wp.float64(0.0)
     a2 = wp.float64(0.0)
@@ -146,7 +193,8 @@ def dense_apply_kernel(P: wp.array2d(dtype=Any), s: wp.array(dtype=wp.float64),
 # builds them: an overload first met at a launch would rebuild the module then
 for _p in (wp.float64, wp.float32):
     wp.overload(dense_apply_kernel, {"P": wp.array2d(dtype=_p), "s": wp.array(dtype=wp.float64),
-                                     "dR": wp.array(dtype=wp.mat33d), "z": wp.array(dtype=wp.vec3d)})
+                                     "dR": wp.array(dtype=wp.mat33d), "z": wp.array(dtype=wp.vec3d),
+                                     "count": wp.array(dtype=wp.int32)})
 
 
 @wp.func
@@ -224,22 +272,79 @@ def _square_view(buf: GrowArray, n: int) -> wp.array:
     return typed_view(buf.view(n * n), 0, buf.dtype, (n, n))
 
 
-def fold_into(xp, P, rows, N) -> None:
-    """P <- P - U Q U^T in place (``xp`` arrays), U = P[:, rows], Q = (I + N S)^-1 N with
-    S = U[rows] (:func:`~soft_tissue_sim.sherman_morrison.woodbury_q`): :meth:`DenseInverse.fold`'s
-    arithmetic."""
+def strided_square(buf: wp.array, n: int, ld: int) -> wp.array:
+    """An (n, n) row-major view of the flat array ``buf`` with row stride ``ld`` elements (keeps it
+    alive)."""
+    size = wp.types.type_size_in_bytes(buf.dtype)
+    a = wp.array(ptr=buf.ptr, dtype=buf.dtype, shape=(n, n), strides=(ld * size, size), device=buf.device)
+    a._ref = buf
+    return a
+
+
+class _Store:
+    """A flat device array replaced (contents lost) only when a larger one is asked for."""
+
+    def __init__(self, dtype, device):
+        self.dtype = dtype
+        self.device = device
+        self.buffer: wp.array | None = None
+        self.allocations = 0
+
+    def reserve(self, count: int) -> wp.array:
+        """The array, of at least ``count`` elements."""
+        if self.buffer is None or self.buffer.shape[0] < count:
+            self.buffer = None  # the old one goes first where no view holds it
+            self.buffer = wp.empty(int(count), dtype=self.dtype, device=self.device)
+            self.allocations += 1
+        return self.buffer
+
+    def release(self) -> None:
+        self.buffer = None
+
+
+def fold_into(xp, P, rows, N, blas=None, stream: int = 0) -> None:
+    """P <- P - U Q U^T in place (``xp`` arrays; P may have a row stride), U = P[:, rows],
+    Q = (I + N S)^-1 N with S = U[rows] (:func:`~soft_tissue_sim.sherman_morrison.woodbury_q`):
+    :meth:`DenseInverse.fold`'s arithmetic. ``blas`` (GPU): a cuBLAS handle (nvmath-python's
+    bindings) for the rank update, a ``dgemm`` into P with its leading dimension, on the raw
+    CUDA stream ``stream``; without one, an ``xp`` expression."""
     from .sherman_morrison import woodbury_q
 
     r = xp.asarray(rows)
     U = xp.ascontiguousarray(P[r].T)  # columns of the symmetric P: rows are contiguous
     Q = woodbury_q(xp.asarray(N), U[r], xp)
-    V = U @ Q
-    if xp is np:
+    V = xp.ascontiguousarray(U @ Q)
+    if blas is None:
         P -= U @ V.T
     else:
-        import cupy.cublas
+        gemm_update(blas, P, U, V, stream)
 
-        cupy.cublas.gemm("N", "T", U, V, out=P, alpha=-1.0, beta=1.0)
+
+_MINUS_ONE = np.array([-1.0])
+_ONE = np.array([1.0])
+
+
+def gemm_update(h, P, U, V, stream: int = 0) -> None:
+    """P <- P - U V^T in place with cuBLAS's ``dgemm`` (handle ``h``, raw stream ``stream``): P an
+    (n, n) row-major CuPy array with unit column stride and row stride ld (its leading
+    dimension), U and V C-contiguous (n, k). cuBLAS sees the column-major P^T (ld ld) and updates
+    it as P^T - V U^T: op(A) = V, given as the column-major (k, n) V^T (transposed, lda k), and
+    op(B) = U^T, the column-major (k, n) U^T (lda k)."""
+    from nvmath.bindings import cublas
+
+    n, k = U.shape
+    item = P.itemsize
+    if P.dtype != np.float64 or P.strides[1] != item or P.strides[0] % item or P.shape != (n, n):
+        raise ValueError(f"gemm_update needs an (n, n) float64 matrix with unit column stride, got "
+                         f"{P.dtype} {P.shape} strides {P.strides}")
+    if V.shape != (n, k) or not (U.flags.c_contiguous and V.flags.c_contiguous):
+        raise ValueError("gemm_update needs C-contiguous U and V of one shape (n, k)")
+    if n == 0 or k == 0:
+        return
+    ld = P.strides[0] // item
+    cublas.set_stream(h, int(stream))
+    cublas.dgemm(h, 1, 0, n, n, k, _MINUS_ONE.ctypes.data, V.data.ptr, k, U.data.ptr, k,
+                 _ONE.ctypes.data, P.data.ptr, ld)  # (transa T, transb N)
 
 
 def array_module(device):
@@ -282,9 +387,14 @@ class DenseInverse:
     ``request(triplets, n3, stream)`` assembles A into the work buffer on ``stream`` (the
     simulation's); ``factorize(stream)`` turns it into A^-1 in place on another stream (the
     factor's: this is what runs beside the steps); ``install(stream)`` copies it into the
-    buffer in use (a fixed address, so captured graphs stay valid) and reports failure
-    (A not positive definite). Between installs, :meth:`fold` applies corrections and
-    :meth:`regrow` changes the node set of the inverse in use.
+    store in use and reports failure (A not positive definite). Between installs, :meth:`fold`
+    applies corrections and :meth:`regrow` changes the node set of the inverse in use.
+
+    The inverse in use :attr:`inv` is an (n3, n3) view with row stride :attr:`ld` into a store
+    whose address holds while n3 <= ld (installs and regrows of any such size included; a larger
+    one reallocates it with a new leading dimension); its size is also in a device array that
+    :meth:`apply` reads, so that a captured :meth:`apply` serves every size up to the capacity
+    (see the module docstring).
 
     ``precision``: of the matrix :meth:`apply` reads, ``"float64"`` (the inverse in use) or
     ``"float32"`` (a single-precision copy of it, kept up to date; see the module docstring).
@@ -300,22 +410,24 @@ class DenseInverse:
         self.device = wp.get_device(device)
         self.precision = precision
         self.xp = array_module(self.device)
-        self.inv: wp.array | None = None  # (n3, n3) the inverse in use: a view of one of the stores
-        # the inverse in use and a regrow's target, alternately (kept across node-count changes:
-        # a cut allocates nothing), and a regrow's indices, sent from page-locked memory
+        self.inv: wp.array | None = None  # (n3, n3) the inverse in use: a view of store 0, row stride ld
+        self.inv32: wp.array | None = None  # precision float32: its single-precision copy (same layout)
+        self.work: wp.array | None = None  # (n3, n3) the next one (contiguous)
+        self._ld = 0  # the stores' leading dimension (0: none yet)
+        # (ld^2 each) the inverse in use, and a regrow's gather target; the single-precision copy;
+        # kept across node-count changes while n3 <= ld (a cut allocates nothing)
         self._store = self._empty_stores()
-        self._in_store = 0  # the store holding self.inv
-        self._s_buf = GrowArray(wp.float64, self.device)
-        self._keep_in = PackedArrays({"keep": wp.int32}, self.device)
-        self.inv32: wp.array | None = None  # precision float32: its single-precision copy
-        self.work: wp.array | None = None  # (n3, n3) the next one
-        # the work buffer, the GPU's second buffer and the single-precision copy as views of
-        # allocations kept across node-count changes (a request or a cut after a cut allocates
-        # nothing while they hold)
+        self._inv32_buf = _Store(wp.float32, self.device)
+        # (ld, ld) views of the stores: the matrix apply reads (its first count[0] rows and columns)
+        self._full: wp.array | None = None
+        self._full32: wp.array | None = None
+        self._s: wp.array | None = None  # (ld,) the rotated vector of apply
+        self._count = wp.zeros(1, dtype=wp.int32, device=self.device)  # n3, as apply reads it
+        self._keep_in = PackedArrays({"keep": wp.int32}, self.device)  # a regrow's indices (page-locked)
+        # the work buffer and the GPU's second buffer as views of allocations kept across
+        # node-count changes (a request after a cut allocates nothing while they hold)
         self._work_buf = GrowArray(wp.float64, self.device)
         self._rhs_buf = GrowArray(wp.float64, self.device)
-        self._inv32_buf = GrowArray(wp.float32, self.device)
-        self._s: wp.array | None = None
         self._info = wp.zeros(2, dtype=wp.int32, device=self.device)
         # GPU: the info copied to page-locked memory at the end of a factorization, on its stream,
         # so that an install (after the factorization's last event) reads it without a wait
@@ -328,7 +440,8 @@ class DenseInverse:
         self._result = None  # the buffer holding the finished inverse
         self._lwork = 0
         self._workspace = None
-        self._blas = None  # cuBLAS
+        self._blas = None  # cuBLAS (the factorization's)
+        self._fold_blas = None  # cuBLAS (the folds', on the simulation's thread and stream)
         self._one = np.ones(1)  # the host scalar of the cuBLAS calls
         self._W = None  # delassus: W on the device (grown to the largest m x m seen)
         self._deferred = 0  # the depth of changing() scopes open
@@ -339,6 +452,12 @@ class DenseInverse:
     @property
     def n3(self) -> int:
         return 0 if self.inv is None else self.inv.shape[0]
+
+    @property
+    def ld(self) -> int:
+        """The leading dimension (row stride) of the inverse in use and its copy: the capacity in
+        DOFs (0 before the first install)."""
+        return self._ld
 
     def assemble(self, triplets, n3: int, stream=None, topology=None) -> None:
         """The work buffer = A (n3 x n3) from 3x3 block triplets: on the CPU now, on ``stream``;
@@ -378,9 +497,19 @@ class DenseInverse:
 
             self._blas = cublas.create()
         if not self._fold_ready:  # the fold's library calls made once now (CuPy's kernels and
-            with xp_stream(self.xp, stream):  # handles), not at the first cut
-                fold_into(self.xp, self.xp.eye(6), np.arange(3), 0.5 * np.eye(3))
+            with xp_stream(self.xp, stream):  # handles, the fold's cuBLAS handle), not at the first cut
+                fold_into(self.xp, self.xp.eye(6), np.arange(3), 0.5 * np.eye(3), self._fold_handle(),
+                          stream.cuda_stream if stream is not None else 0)
             self._fold_ready = True
+
+    def _fold_handle(self):
+        """GPU: the cuBLAS handle of the folds (not the factorization's, which another thread may
+        be using on another stream)."""
+        if self._fold_blas is None:
+            from nvmath.bindings import cublas
+
+            self._fold_blas = cublas.create()
+        return self._fold_blas
 
     def factorize(self, stream=None) -> None:
         """Work buffer A -> A^-1, on ``stream``: cuSOLVER and cuBLAS calls and, by column
@@ -457,27 +586,51 @@ class DenseInverse:
         wp.launch(symmetrize_kernel, (n, n), [self.work], device=self.device, stream=stream)
 
     def install(self, stream=None) -> str | None:
-        """The finished work buffer becomes the inverse in use; returns why not, or None. Call
-        it once the factorization's stream has passed its end (on a GPU the info is then read
-        from page-locked memory without a wait)."""
+        """The finished work buffer (contiguous n x n) becomes the inverse in use, copied on
+        ``stream`` into the strided store (same address and leading dimension while n <= ld; the
+        size array written on ``stream`` where n changes); returns why not, or None. Call it once
+        the factorization's stream has passed its end (on a GPU the info is then read from
+        page-locked memory without a wait)."""
         info = self._info_host.numpy() if self._info_host is not None else self._info.numpy()
         if info[0] != 0 or info[1] != 0:
             return (f"dense factorization failed (potrf info {info[0]}, inverse info {info[1]}): "
                     "A is not positive definite")
-        n = self.work.shape[0]
+        n = self._result.shape[0]
         if self.inv is None or self.inv.shape[0] != n:
-            self.inv = self._square(self._in_store, n)
-            self._s = self._s_buf.view(n)  # written whole by each apply before it is read
+            if n > self._ld:
+                self.inv = self.inv32 = None  # its contents are not needed: the old store goes first
+            self._reserve(n)
+            self._resize(n, stream)
         wp.copy(self.inv, self._result, stream=stream)
         self._narrow(stream)
         return None
 
     def _empty_stores(self) -> tuple:
-        return GrowArray(wp.float64, self.device), GrowArray(wp.float64, self.device)
+        return _Store(wp.float64, self.device), _Store(wp.float64, self.device)
 
-    def _square(self, k: int, n: int) -> wp.array:
-        """An (n, n) view of store ``k`` (see :func:`_square_view`)."""
-        return _square_view(self._store[k], n)
+    def _reserve(self, n: int) -> bool:
+        """Store 0 and the rotated vector for n DOFs: where n > ld, reallocated with a new leading
+        dimension (:func:`leading_dimension`; contents lost, the inverse in use still readable
+        through :attr:`inv` until it is replaced; the second store and the single-precision copy
+        follow at their next use). Returns whether it reallocated."""
+        if n <= self._ld:
+            return False
+        ld = leading_dimension(n)
+        self._store[1].release()
+        self._full = self._full32 = self.inv32 = None
+        self._ld = ld
+        self._full = strided_square(self._store[0].reserve(ld * ld), ld, ld)
+        self._s = wp.empty(ld, dtype=wp.float64, device=self.device)
+        return True
+
+    def _view(self, k: int, n: int) -> wp.array:
+        """The (n, n) view of store ``k`` with row stride ld."""
+        return strided_square(self._store[k].reserve(self._ld * self._ld), n, self._ld)
+
+    def _resize(self, n: int, stream=None) -> None:
+        """The inverse in use := the (n, n) view of store 0; the size array := n, on ``stream``."""
+        self.inv = self._view(0, n)
+        wp.launch(set_count_kernel, 1, [self._count, n], device=self.device, stream=stream)
 
     @contextlib.contextmanager
     def changing(self):
@@ -500,31 +653,46 @@ class DenseInverse:
             self._stale = True
             return
         self._stale = False
-        n = self.inv.shape[0]
+        n, ld = self.inv.shape[0], self._ld
+        buf = self._inv32_buf.reserve(ld * ld)
+        if self._full32 is None or self._full32._ref is not buf:
+            self._full32 = strided_square(buf, ld, ld)
+            self.inv32 = None
         if self.inv32 is None or self.inv32.shape[0] != n:
-            self.inv32 = _square_view(self._inv32_buf, n)
+            self.inv32 = strided_square(buf, n, ld)
         wp.launch(narrow_kernel, (n, n), [self.inv, self.inv32], device=self.device, stream=stream)
 
     @property
     def applied(self) -> wp.array:
-        """The matrix :meth:`apply` reads: the inverse in use, or its single-precision copy."""
+        """The matrix :meth:`apply` reads: the inverse in use, or its single-precision copy
+        ((n3, n3) views, row stride ld)."""
         return self.inv32 if self.precision == "float32" else self.inv
+
+    def _applied_full(self) -> wp.array | None:
+        """:attr:`applied`'s store as an (ld, ld) view (what a captured apply holds)."""
+        return self._full32 if self.precision == "float32" else self._full
 
     # ------------------------------------------------------------- using it
     def apply(self, r: wp.array, z: wp.array, dR: wp.array) -> None:
-        """z = dR A^-1 dR^T r (eq. 2): launches only (capturable in a graph)."""
-        n = r.shape[0]
-        wp.launch(rotate_in_kernel, n, [dR, r, self._s], device=self.device)
+        """z = dR A^-1 dR^T r (eq. 2) for the current size n3 (read on the device): launches only,
+        over the capacity (ld / 3 nodes), so that a captured one serves every n3 <= ld. r, z and
+        dR need n3 / 3 entries; their shapes are not read."""
+        nodes = self._ld // 3
+        wp.launch(rotate_in_count_kernel, nodes, [dR, r, self._s, self._count], device=self.device)
         block = BLOCK if self.device.is_cuda else 1
-        wp.launch(dense_apply_kernel, n * block, [self.applied, self._s, dR, z], device=self.device,
-                  block_dim=block)
+        wp.launch(dense_apply_kernel, nodes * block, [self._applied_full(), self._s, dR, z, self._count],
+                  device=self.device, block_dim=block)
 
-    def graph_key(self) -> tuple:
-        P = self.applied
-        return (P.ptr, P.shape[0], self._s.ptr)
+    def graph_key(self) -> tuple | None:
+        """What a captured :meth:`apply` depends on besides its arguments (no size: see
+        :meth:`apply`); None before an install."""
+        P = self._applied_full()
+        if self.inv is None or P is None:
+            return None
+        return (P.ptr, self._ld, self._s.ptr, self._count.ptr)
 
     def matrix(self):
-        """The inverse in use as an ``xp`` array (a view)."""
+        """The inverse in use as an ``xp`` array (a view, row stride ld)."""
         return xp_view(self.xp, self.inv)
 
     def delassus(self, nodes: wp.array, coef: wp.array, dR: wp.array, m: int | None = None) -> np.ndarray:
@@ -560,29 +728,52 @@ class DenseInverse:
         corrected inverse of eq. (5)-(7) for the perturbation N (host). Runs on the
         simulation's stream, Q included: nothing is read back."""
         xp = self.xp
-        with xp_stream(xp, wp.get_stream(self.device) if self.device.is_cuda else None):
+        if self.device.is_cuda:
+            stream = wp.get_stream(self.device)
+            with xp_stream(xp, stream):
+                fold_into(xp, self.matrix(), rows, N, self._fold_handle(), stream.cuda_stream)
+        else:
             fold_into(xp, self.matrix(), rows, N)
         self._narrow()
 
     def regrow(self, keep: np.ndarray, added: int) -> None:
         """Change the node set of the inverse in use: keep the DOFs ``keep`` (in that order),
-        then append ``added`` DOFs as identity rows (eq. 10's padding). One gather on the
-        simulation's stream, into the other store (nothing allocated while the stores hold;
-        the indices sent from page-locked memory)."""
-        n = int(len(keep)) + int(added)
-        target = 1 - self._in_store
-        new = self._square(target, n)
+        then append ``added`` DOFs as identity rows (eq. 10's padding), on the simulation's stream.
+        The result stays in store 0 (same address and leading dimension) while the new size is
+        <= ld: in place where ``keep`` is a prefix 0..k-1 (the padding written, nothing moved),
+        else gathered into the second store and copied back (its first rows, one contiguous
+        copy). A larger size gathers into a reallocated store 0. Nothing is allocated while the
+        stores hold; the indices go up from page-locked memory."""
+        keep = np.asarray(keep)
+        k, added = int(len(keep)), int(added)
+        n = k + added
+        old, ld = self.inv, self._ld
+        if n <= ld and np.array_equal(keep, np.arange(k)):
+            if n != old.shape[0]:
+                self._resize(n)
+            if added:
+                wp.launch(pad_identity_kernel, (n, added), [self.inv, k], device=self.device)
+            self._narrow()
+            return
         staged = self._keep_in
-        staged.reserve({"keep": len(keep)})
+        staged.reserve({"keep": k})
         staged.host("keep")[...] = keep
         staged.send(("keep",))
-        wp.launch(regrow_kernel, (n, n), [self.inv, staged.array("keep"), new], device=self.device)
-        self.inv, self._in_store = new, target
-        self._s = self._s_buf.view(n)
+        if n > ld:  # outgrown: straight into the new store (the old one is read through old)
+            self._reserve(n)
+            self._resize(n)
+            wp.launch(regrow_kernel, (n, n), [old, staged.array("keep"), self.inv], device=self.device)
+        else:
+            ld = self._ld
+            wp.launch(regrow_kernel, (n, n), [old, staged.array("keep"), self._view(1, n)], device=self.device)
+            wp.copy(self._store[0].buffer, self._store[1].buffer, count=(n - 1) * ld + n)
+            if n != old.shape[0]:
+                self._resize(n)
         self._narrow()
 
     def reset(self) -> None:
-        """Forget the inverse in use (a new one must be installed before the next apply)."""
+        """Forget the inverse in use (a new one must be installed before the next apply; the
+        stores are kept)."""
         self.inv = self.inv32 = None
 
     def close(self) -> None:
@@ -591,12 +782,17 @@ class DenseInverse:
 
             cusolverDn.destroy(self._handle)
             self._handle = None
-        if self._blas is not None:
-            from nvmath.bindings import cublas
+        for attr in ("_blas", "_fold_blas"):
+            h = getattr(self, attr)
+            if h is not None:
+                from nvmath.bindings import cublas
 
-            cublas.destroy(self._blas)
-            self._blas = None
+                cublas.destroy(h)
+                setattr(self, attr, None)
+        self._fold_ready = False
         self.inv = self.inv32 = self.work = self._workspace = self._rhs = self._result = self._triplets = None
+        self._full = self._full32 = self._s = None
+        self._ld = 0
         self._store = self._empty_stores()
-        self._work_buf, self._rhs_buf, self._inv32_buf = (GrowArray(b.dtype, self.device) for b in
-                                                          (self._work_buf, self._rhs_buf, self._inv32_buf))
+        self._inv32_buf = _Store(wp.float32, self.device)
+        self._work_buf, self._rhs_buf = (GrowArray(b.dtype, self.device) for b in (self._work_buf, self._rhs_buf))

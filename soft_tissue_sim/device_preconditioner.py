@@ -40,6 +40,7 @@ import scipy.sparse as sps
 import warp as wp
 
 from . import graphs
+from .buffers import GrowArray
 from .sherman_morrison import Modification, perturbation
 from .sm_partition import partitioned_stream
 from .transfer import Staged
@@ -185,6 +186,9 @@ class AsyncDevicePreconditioner:
         self._pool = None  # the background thread that enqueues factorizations (CUDA, asynchronous)
         self._gen = 0
         self._rotation_cmd = None  # (its arrays, the recorded launch of the relative rotations)
+        # dR: a view of an allocation kept across node-count changes (its address, which a
+        # captured apply holds, changes only when the node count outgrows it)
+        self._dR_buf = GrowArray(wp.mat33d, self.device)
         self.worker_error = None
         self._reset_counters()
 
@@ -382,7 +386,7 @@ class AsyncDevicePreconditioner:
             self._refresh_now(system)
         n = fem.n_nodes
         if self.dR is None or self.dR.shape[0] != n:
-            self.dR = wp.empty(n, dtype=wp.mat33d, device=self.device)
+            self.dR = self._dR_buf.view(n)
         if self.rotate:  # the launch's arguments packed once while the arrays hold (a recorded launch)
             key = (R.ptr, self.R_ref.ptr, self.dR.ptr, n)
             if self._rotation_cmd is None or self._rotation_cmd[0] != key:
@@ -475,8 +479,10 @@ class AsyncDevicePreconditioner:
         return self.backend.graph_key() is not None
 
     def graph_key(self) -> tuple | None:
+        """The backend's key and dR's address: no node count (the dense backend's apply reads its
+        size on the device; dR keeps its address while the node count holds in its allocation)."""
         k = self.backend.graph_key()
-        return None if k is None else k + (self.dR.ptr, self.dR.shape[0])
+        return None if k is None else k + (self.dR.ptr,)
 
     def apply_columns(self, B: np.ndarray) -> np.ndarray:
         """P^-1 B for a block of columns B (3n, c), host in and out."""
@@ -546,8 +552,11 @@ class AsyncDevicePreconditioner:
         self.backend.apply_rows(nodes, coef, lam, sizes, self.dR, scale, free, out)
 
     def delassus_key(self) -> tuple:
-        """What :meth:`delassus_matrix`'s launch depends on besides its arguments."""
-        return self.backend.inv.ptr, self.backend.n3, self.dR.ptr
+        """What :meth:`delassus_matrix`'s and :meth:`apply_rows`' launches depend on besides their
+        arguments: the inverse's address and leading dimension, its size (apply_rows is launched
+        over the node count), dR's address."""
+        b = self.backend
+        return b.inv.ptr, getattr(b, "ld", None), b.n3, self.dR.ptr
 
     # -------------------------------------------------------------- lifecycle
     def invalidate(self) -> None:

@@ -45,10 +45,21 @@ wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
 
 @wp.kernel
-def _gravity_kernel(mass: wp.array(dtype=wp.float64), g: wp.vec3d, ext: wp.array(dtype=wp.vec3d),
-                    f: wp.array(dtype=wp.vec3d)):
+def _gravity_kernel(count: wp.array(dtype=wp.int32), mass: wp.array(dtype=wp.float64), g: wp.vec3d,
+                    ext: wp.array(dtype=wp.vec3d), f: wp.array(dtype=wp.vec3d)):
     i = wp.tid()
-    f[i] = mass[i] * g + ext[i]
+    if i < count[0]:
+        f[i] = mass[i] * g + ext[i]
+
+
+@wp.kernel
+def _copy_state_kernel(count: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d),
+                       x0: wp.array(dtype=wp.vec3d), v0: wp.array(dtype=wp.vec3d)):
+    """x0 = x, v0 = v for the current nodes."""
+    i = wp.tid()
+    if i < count[0]:
+        x0[i] = x[i]
+        v0[i] = v[i]
 
 
 @wp.kernel
@@ -67,6 +78,7 @@ def _update_kernel(
 
 @wp.kernel
 def _rhs_kernel(
+    count: wp.array(dtype=wp.int32),
     f: wp.array(dtype=wp.vec3d),
     Mdv: wp.array(dtype=wp.vec3d),
     Mv: wp.array(dtype=wp.vec3d),
@@ -81,7 +93,8 @@ def _rhs_kernel(
     (dv = 0, c_k = dt beta + dt^2) and, re-linearised, -g(v_k) = dt f(x_k) - M (v_k - v_t)
     - dt alpha M v_k - dt beta K_k v_k (c_k = dt beta)."""
     i = wp.tid()
-    b[i] = free[i] * (dt * f[i] - Mdv[i] - c_m * Mv[i] - c_k * Kv[i])
+    if i < count[0]:
+        b[i] = free[i] * (dt * f[i] - Mdv[i] - c_m * Mv[i] - c_k * Kv[i])
 
 
 @wp.kernel
@@ -344,11 +357,13 @@ class BackwardEuler:
         return (float(self.m_coef), float(self.k_coef))
 
     def graph_key(self) -> tuple:
-        """What a captured ``matvec`` depends on (array addresses and sizes, coefficients): a
-        graph replay is valid while this is unchanged (see cg.DevicePCG)."""
+        """What a captured ``matvec`` depends on (array addresses, the launches' dimensions,
+        coefficients): a graph replay is valid while this is unchanged (see cg.DevicePCG). The
+        node and tet counts are not in it: the launches read them on the device, so a topology
+        change that keeps the allocations keeps the key."""
         f = self.fem
-        arrays = (f.tets, f.Dm_inv, f.volume, f.mu, f.lam, f.rho, f.rotations, f.free, f.lumped_mass, f._Kp)
-        return (f.n_nodes, f.n_tets, bool(f.consistent_mass), float(self.m_coef), float(self.k_coef),
+        arrays = (f.counts, f.tets, f.Dm_inv, f.volume, f.mu, f.lam, f.rho, f.rotations, f.free, f.lumped_mass, f._Kp)
+        return (f.node_dim, f.tet_dim, bool(f.consistent_mass), float(self.m_coef), float(self.k_coef),
                 tuple(a.ptr for a in arrays))
 
     def build_key(self) -> tuple:
@@ -378,19 +393,19 @@ class BackwardEuler:
         """The launches of :meth:`build`."""
         fem, dt = self.fem, self.dt
         if self.keep_start:
-            wp.copy(self._x0, self.x)
-            wp.copy(self._v0, self.v)
+            wp.launch(_copy_state_kernel, fem.node_dim, [fem.n_nodes_dev, self.x, self.v, self._x0, self._v0],
+                      device=self.device)
         fem.update_rotations(self.x)
-        wp.launch(_gravity_kernel, fem.n_nodes, [fem.lumped_mass, wp.vec3d(*self.gravity), self.f_ext, self.f],
-                  device=self.device)
+        wp.launch(_gravity_kernel, fem.node_dim,
+                  [fem.n_nodes_dev, fem.lumped_mass, wp.vec3d(*self.gravity), self.f_ext, self.f], device=self.device)
         fem.add_elastic_forces(self.x, self.f)
         fem.stiffness_product(self.v, self._Kv)
         if self.damping.mass > 0.0:
             fem.mass_product(self.v, self._Mv)
         else:
-            self._Mv.zero_()
-        wp.launch(_rhs_kernel, fem.n_nodes,
-                  [self.f, self._zero, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass, self.k_coef, self.b],
+            fem._zero(self._Mv)
+        wp.launch(_rhs_kernel, fem.node_dim,
+                  [fem.n_nodes_dev, self.f, self._zero, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass, self.k_coef, self.b],
                   device=self.device)
         if self.node_rotations_in_build:
             fem.update_node_rotations()
@@ -402,8 +417,8 @@ class BackwardEuler:
         """b = -g(v_k) at the current state x_k = x_t + dt v_k (rotations updated to x_k)."""
         fem, dt = self.fem, self.dt
         fem.update_rotations(self.x)
-        wp.launch(_gravity_kernel, fem.n_nodes, [fem.lumped_mass, wp.vec3d(*self.gravity), self.f_ext, self.f],
-                  device=self.device)
+        wp.launch(_gravity_kernel, fem.node_dim,
+                  [fem.n_nodes_dev, fem.lumped_mass, wp.vec3d(*self.gravity), self.f_ext, self.f], device=self.device)
         fem.add_elastic_forces(self.x, self.f)
         wp.launch(_difference_kernel, fem.n_nodes, [self.v, self._v_t, self._dvel], device=self.device)
         fem.mass_product(self._dvel, self._Mdv)
@@ -415,8 +430,8 @@ class BackwardEuler:
             fem.mass_product(self.v, self._Mv)
         else:
             self._Mv.zero_()
-        wp.launch(_rhs_kernel, fem.n_nodes,
-                  [self.f, self._Mdv, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass,
+        wp.launch(_rhs_kernel, fem.node_dim,
+                  [fem.n_nodes_dev, self.f, self._Mdv, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass,
                    dt * self.damping.stiffness, self.b], device=self.device)
 
     def step(self) -> StepStats:
@@ -552,8 +567,10 @@ class BackwardEuler:
 
     def _state_arrays_key(self) -> tuple:
         """What the update, the correction and the guard's launches depend on: the operator's
-        graph_key (FEM arrays, sizes, coefficients), the state's and the guard's arrays, dt."""
-        return self.graph_key(), self.x.ptr, self.v.ptr, self._guard.ptr, float(self.dt)
+        graph_key (FEM arrays, dimensions, coefficients), the node and tet counts (these launches
+        are sized by them), the state's and the guard's arrays, dt."""
+        f = self.fem
+        return self.graph_key(), f.n_nodes, f.n_tets, self.x.ptr, self.v.ptr, self._guard.ptr, float(self.dt)
 
     def energy(self) -> tuple[float, float, float]:
         """(kinetic, gravitational potential, elastic) energy at the current state."""

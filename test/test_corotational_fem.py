@@ -229,7 +229,8 @@ def test_a_split_keeps_the_device_arrays_of_unchanged_element_data():
     f.set_mesh(split, np.arange(9), tet_source=np.arange(mesh.n_tets))
     assert all(getattr(f, k) is before[k] for k in names)
     assert f.tets is not None and np.array_equal(f.tets.numpy(), split.tets)
-    assert sorted(f.uploads) == ["free", "lumped_mass", "rest", "tets"]
+    assert sorted(f.uploads) == ["counts", "free", "lumped_mass", "rest", "tets"]
+    assert f.counts.numpy().tolist() == [split.n_nodes, split.n_tets]  # what the launches read
     f.set_mesh(TetMesh(split.points, split.tets[5:]), np.arange(9), tet_source=np.arange(5, mesh.n_tets))
     assert not any(getattr(f, k) is before[k] for k in names)
     assert {"Dm_inv", "volume", "mu", "lam", "rho"} <= set(f.uploads)
@@ -274,3 +275,56 @@ def test_edge_ownership_equals_a_stable_sort_of_the_edges_on_random_faces():
         ref = np.zeros(3 * f, np.int32)
         ref[order[np.concatenate(([True], ks[1:] != ks[:-1]))]] = 1
         np.testing.assert_array_equal(edge_ownership(faces), ref.reshape(-1, 3))
+
+
+def test_the_steps_launches_captured_at_one_mesh_replay_right_after_a_topology_change():
+    """The per-step launches read the node and tet counts on the device and cover the
+    capacities: a graph of them captured before a node split (more nodes) and before a removal
+    (fewer tets) gives, replayed after it, what plain launches at the new mesh give; the launch
+    dimensions hold while the allocations do."""
+    from soft_tissue_sim.mesh import TetMesh
+
+    mesh = beam_mesh(6, n_cross=3, spacing=0.01)
+    mat = MaterialTable({0: Material(1e5, 0.3, 1000.0)})
+    f = CorotationalFEM(mesh, mat, "cpu", fixed_nodes=np.arange(9))
+    cap = f.node_dim
+    rng = np.random.default_rng(3)
+    arrays = {k: wp.zeros(cap, dtype=wp.vec3d, device="cpu") for k in ("x", "p", "force", "Ap", "Kp")}
+
+    def launches():
+        f.update_rotations(arrays["x"])
+        f.add_elastic_forces(arrays["x"], arrays["force"])
+        f.system_product(arrays["p"], arrays["p"], arrays["Ap"], 1.0, 0.0, 1.0, 1e-4)
+        f.stiffness_product(arrays["p"], arrays["Kp"])
+        f.update_node_rotations()
+
+    def fill(n):
+        X = f.rest.numpy() + 1e-3 * rng.standard_normal((n, 3))
+        for k, v in (("x", X), ("p", rng.standard_normal((n, 3))), ("force", np.zeros((n, 3)))):
+            h = arrays[k].numpy()
+            h[:n] = v
+            arrays[k].assign(h)
+
+    def outputs(n):
+        return [arrays[k].numpy()[:n].copy() for k in ("force", "Ap", "Kp")] + [f._node_rot.numpy()[:n].copy(),
+                                                                             f.rotations.numpy().copy()]
+
+    fill(mesh.n_nodes)
+    with wp.ScopedCapture(device="cpu") as cap_:
+        launches()
+    split = _split_node(mesh, 30)
+    removed = TetMesh(split.points, split.tets[5:])
+    for new, src in ((split, np.arange(mesh.n_tets)), (removed, np.arange(5, split.n_tets))):
+        dims = (f.node_dim, f.tet_dim)
+        f.set_mesh(new, np.arange(9), tet_source=src)
+        assert (f.node_dim, f.tet_dim) == dims and f.node_dim >= new.n_nodes
+        fill(new.n_nodes)
+        state = [arrays[k].numpy().copy() for k in ("x", "p", "force")]
+        wp.capture_launch(cap_.graph)
+        replayed = outputs(new.n_nodes)
+        for k, v in zip(("x", "p", "force"), state):
+            arrays[k].assign(v)
+        launches()
+        for a, b in zip(replayed, outputs(new.n_nodes)):
+            np.testing.assert_array_equal(a, b)
+        assert np.abs(replayed[1]).max() > 0.0 and np.isfinite(replayed[3]).all()

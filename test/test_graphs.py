@@ -62,7 +62,9 @@ def test_a_resized_pcg_parks_its_graph_and_a_step_without_factorization_releases
     with _captured_sim() as sim:
         cg = sim.integrator.cg
         old = cg.replay.latest()
-        cg.resize(cg.n)
+        cg.resize(cg.n + 1)  # within the work vectors' capacity: the graph holds
+        assert cg.replay.latest() is old and graphs.parked() == 0
+        cg.resize(10 * cg.n)  # beyond it: new vectors, the graph is parked
         assert cg.replay.latest() is None and graphs.parked() == 1
         assert graphs._parked[0] is old
         captures = cg.captures
@@ -75,7 +77,7 @@ def test_graphs_stay_parked_while_the_preconditioner_factorizes():
     with _captured_sim() as sim:
         sim.preconditioner.factorizing = lambda: True
         cg = sim.integrator.cg
-        cg.resize(cg.n)
+        cg.replay.clear()
         sim.step()
         assert graphs.parked() == 1  # a release now would wait for the factorization
         sim.preconditioner.factorizing = lambda: False
@@ -100,7 +102,7 @@ def test_the_same_trajectory_with_graphs_replaced_by_resizes():
     with _captured_sim() as a, _captured_sim() as b:
         for k in range(4):
             if k % 2 == 0:
-                b.integrator.cg.resize(b.integrator.cg.n)  # b re-captures every other step
+                b.integrator.cg.replay.clear()  # b re-captures every other step
             a.step()
             b.step()
         # equal up to the order of the FEM kernels' atomic sums on a GPU (bit for bit on the CPU)
@@ -215,28 +217,51 @@ def test_an_eager_replayer_captures_new_keys_at_their_first_use():
     rep.clear()
 
 
-def test_after_a_mesh_change_the_steps_launches_are_captured_at_their_first_use():
-    """A removal changes the arrays' sizes: the next step's build is captured at once (its
-    replayer has captured before), not launched plainly first, and the new surface's detection
-    replayer is made knowing its kernels loaded; the launches after the solve, whose read-back
-    buffers follow the arrays' sizes, are captured once their key holds for a second use."""
+def test_a_mesh_change_within_the_capacities_keeps_the_build_and_pcg_graphs():
+    """A removal changes the node and tet counts but not the allocations: the build's and the
+    PCG's graphs (their launches read the counts on the device) replay across it, not captured
+    again; the launches after the solve, sized by the counts, are captured for the new key once
+    it holds for a second use; the new surface's detection replayer is made knowing its kernels
+    loaded. The trajectory is that of plain launches (test_the_captured_build_... and below)."""
     with _pressed_block(True, cutting=True) as sim:
         top = float(sim.mesh.points[:, 2].max())
         for k in range(4):
             sim.set_instrument_pose("probe", [0.021, 0.011, top + 0.004 - 0.0005 * k], [0, 0, 0, 1])
             sim.step()
         integ = sim.integrator
-        build, after = integ._build_replay, integ._after_replay
-        assert build.captures >= 1 and after.captures >= 1
-        counts = (build.captures, after.captures)
+        build, after, pcg = integ._build_replay, integ._after_replay, integ.cg.replay
+        assert build.captures >= 1 and after.captures >= 1 and pcg.captures >= 1
+        counts = (build.captures, after.captures, pcg.captures)
+        replays = (build.replays, pcg.replays)
         old = sim.contact._topo
+        n = (sim.mesh.n_nodes, sim.mesh.n_tets)
         assert sim.remove_elements(sim.positions()[-1], 0.012).changed
+        assert (sim.mesh.n_nodes, sim.mesh.n_tets) != n
         sim.step()
-        assert (build.captures, after.captures) == (counts[0] + 1, counts[1])
+        assert (build.captures, after.captures, pcg.captures) == counts
+        assert build.replays == replays[0] + 1 and pcg.replays == replays[1] + 1
         for _ in range(2):  # (on a GPU its read-back buffers are new at the first: a new key once more)
             sim.step()
-        assert (build.captures, after.captures) == (counts[0] + 1, counts[1] + 1)
+        assert (build.captures, after.captures, pcg.captures) == (counts[0], counts[1] + 1, counts[2])
         assert sim.contact._topo is not old and sim.contact._topo.replay.loaded == (old.replay.captures > 0)
+
+
+def test_graphs_replayed_across_mesh_changes_give_the_steps_of_plain_launches():
+    """Two removals, the build's and the PCG's graphs replayed across both: the same trajectory
+    as plain launches (bit for bit on the CPU; on a GPU up to the order of atomic sums)."""
+    with _pressed_block(True, cutting=True) as a, _pressed_block(False, cutting=True) as b:
+        top = float(a.mesh.points[:, 2].max())
+        for k in range(9):
+            for sim in (a, b):
+                sim.set_instrument_pose("probe", [0.021, 0.011, top + 0.004 - 0.0005 * k], [0, 0, 0, 1])
+                if k in (3, 6):
+                    assert sim.remove_elements(sim.positions()[-1 - k], 0.008).changed
+                sim.step()
+            assert a.mesh.n_nodes == b.mesh.n_nodes and a.mesh.n_tets == b.mesh.n_tets
+            np.testing.assert_allclose(a.positions(), b.positions(), rtol=0.0, atol=1e-12)
+            np.testing.assert_allclose(a.velocities(), b.velocities(), rtol=0.0, atol=1e-10)
+        assert a.integrator.cg.replay.captures == 1 and a.integrator._build_replay.captures == 1
+        assert b.integrator.cg.replay.captures == 0
 
 
 def _pressed_block(graph: bool, cutting: bool = False, device_rows: bool = True):

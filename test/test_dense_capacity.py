@@ -256,10 +256,15 @@ def test_the_preconditioner_key_holds_across_a_cut():
         pre.begin_step(sim.integrator)
         key, n = pre.graph_key(), sim.mesh.n_nodes
         assert lengthwise(sim, 0.035, 0.08).changed
-        assert corrected_vs_fresh(sim, rng) < 1e-8
+        corrected = corrected_vs_fresh(sim, np.random.default_rng(1))
         assert sim.mesh.n_nodes > n and pre.backend.n3 == 3 * sim.mesh.n_nodes
         assert 3 * sim.mesh.n_nodes <= pre.backend.ld
         assert pre.graph_key() == key
+        # as close to A_new^-1 as a fresh factor of A_new made on this device is (each device's
+        # inverse has its own rounding)
+        pre.refresh(sim.integrator)
+        fresh = corrected_vs_fresh(sim, np.random.default_rng(1))
+        assert corrected < max(1e-8, 10.0 * fresh)
         assert sim.step().converged
 
 

@@ -158,3 +158,33 @@ def test_a_retried_free_motion_keeps_the_instruments_step_poses(monkeypatch):
         np.testing.assert_array_equal(b1, b0)
     # the retry refactorizes (a fresh factor), so the state differs only within the solver tolerance
     np.testing.assert_allclose(x1, x0, rtol=0.0, atol=1e-8)
+
+
+def test_the_device_lcp_module_is_built_only_for_its_own_block_sizes(monkeypatch):
+    """Warp builds a module once per block size it is launched with. The device LCP's module
+    (tile kernels, long to build) is launched by its block alone (LANES, or WIDE_LANES beyond
+    the narrow kernel's rows): the host LCP's path, taken here for every set (device_lcp_rows
+    0, a dense factor), launches none of its kernels plainly, which would build the whole
+    module again for another block size in the middle of a run."""
+    from warp._src import context
+
+    from soft_tissue_sim.contact import device_lcp
+
+    loads = []
+    load = context.Module.load
+
+    def record(self, device, block_dim=None, *args, **kwargs):
+        loads.append((self.name, block_dim))
+        return load(self, device, block_dim, *args, **kwargs)
+
+    monkeypatch.setattr(context.Module, "load", record)
+    cfg = _scene(DEVICE)
+    cfg["solver"]["ldlt"]["backend"] = "dense"
+    cfg["contact"]["device_lcp_rows"] = 0
+    with load_scene(cfg) as sim:
+        for k in range(4):
+            _press(sim, 0.0005 * k)
+            st = sim.step()
+        assert st.as_dict().get("contacts", 0) > 0 and not st.as_dict().get("lcp_device")
+    sizes = {b for name, b in loads if name == device_lcp.__name__ and b is not None}
+    assert sizes <= {device_lcp.LANES, device_lcp.WIDE_LANES}, sizes

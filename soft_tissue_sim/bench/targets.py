@@ -282,6 +282,10 @@ def _compile_kernels(device) -> None:
         except ImportError:  # optional GPU libraries absent: those modules are not used either
             pass
     t0 = time.perf_counter()
+    if wp.get_device(device).is_cuda:  # the host's contact solver first, as a simulation on a GPU loads it
+        from ..contact.pgs import load_host_solver
+
+        load_host_solver()
     wp.force_load(device=device)
     print(f"  [kernels built in {time.perf_counter() - t0:.1f} s]", file=sys.stderr, flush=True)
 

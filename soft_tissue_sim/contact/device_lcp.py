@@ -60,16 +60,9 @@ WIDE_LANES = 128  # the block of device_pgs_wide_kernel (W's check and the activ
 SMALL = 32  # the rows of the narrower kernel (the default limit of contact.device_lcp_rows)
 BIG = 256  # the most rows of a device LCP (the limit of contact.device_lcp_rows)
 # no gradients are taken here; the module is built once per block size launched (LANES, and
-# WIDE_LANES where a larger row limit is asked for)
+# WIDE_LANES where a larger row limit is asked for): its kernels are launched with those only
+# (a plain launch, 256 threads on CUDA, would build the whole module once more)
 wp.set_module_options({"enable_backward": False, "block_dim": LANES})
-
-
-@wp.kernel
-def scaled_free_kernel(y: wp.array(dtype=wp.vec3d), s: wp.float64, free: wp.array(dtype=wp.float64),
-                       out: wp.array(dtype=wp.vec3d)):
-    """out = s y on the free nodes, 0 on the fixed ones."""
-    i = wp.tid()
-    out[i] = (s * free[i]) * y[i]
 
 
 @wp.func

@@ -35,6 +35,8 @@ sweeps.
 
 from __future__ import annotations
 
+import sys
+
 from typing import Any
 
 import numpy as np
@@ -706,6 +708,14 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
         passive[j] = True
         joined = j
     return lam, steps
+
+
+def load_host_solver() -> None:
+    """Build (or load from the kernel cache) this module's kernels for the CPU now. On a GPU the
+    host solves the contact sets beyond the device's rows: a simulation there loads them at its
+    start, so that the first such set does not wait for the CPU build mid-run (seconds on a cold
+    kernel cache)."""
+    wp.load_module(sys.modules[__name__], device="cpu")
 
 
 class PGS:

@@ -27,18 +27,28 @@ from ..material import ParameterError
 from ..stats import ContactStats
 from ..transfer import to_host
 from .compliance import compliance, positive_definite
-from .device_lcp import DeviceLCP, PendingLCP, launch_args, scaled_free_kernel
+from .device_lcp import DeviceLCP, PendingLCP, launch_args
 from .device_rows import DeviceRows
 from .detection import SurfaceTopology, collect, launch_detection, launch_min_gap, launch_start, upload_objects
 from .geometry import cross, tangent_basis
 from .jacobian import ConstraintRows
 from .options import friction_finish_on, parse_options
-from .pgs import PGS
+from .pgs import PGS, load_host_solver
 from .records import ContactResponse, Contacts
 from .warm import WarmStart, contact_names
 
 
 _SIGN = np.array([1.0, -1.0])  # by a row's own (self-collision) flag: the sign of its triangle's weights
+
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
+
+@wp.kernel
+def scaled_free_kernel(y: wp.array(dtype=wp.vec3d), s: wp.float64, free: wp.array(dtype=wp.float64),
+                       out: wp.array(dtype=wp.vec3d)):
+    """out = s y on the free nodes, 0 on the fixed ones (the host LCP's correction on the device)."""
+    i = wp.tid()
+    out[i] = (s * free[i]) * y[i]
 
 
 class ContactSolver:
@@ -89,7 +99,10 @@ class ContactSolver:
         # (record, lambda, node uids, node count) of the last step's contacts where they were solved
         # from device rows: their Contacts and warm start are made from it when asked for
         self._device_read = None
-        self._pgs = PGS(o["active_set"], friction_active_set=friction_finish_on(o, gpu=wp.get_device(self.device).is_cuda))
+        gpu = wp.get_device(self.device).is_cuda
+        self._pgs = PGS(o["active_set"], friction_active_set=friction_finish_on(o, gpu=gpu))
+        if gpu:
+            load_host_solver()
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
         self._device_rows: DeviceRows | None = None  # the rows built on the device (device_rows), idem
         self._last_rows = 0  # the last step's constraint rows (where the next step's rows are built)

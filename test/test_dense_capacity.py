@@ -32,15 +32,20 @@ def _spd(n3, rng):
     return B @ B.T / n3 + 0.5 * np.eye(n3)
 
 
+def _factor_into(D, A):
+    """A^-1 made in D's work buffer and installed."""
+    D.work = wp.array(A, dtype=wp.float64, device=DEVICE)
+    if D.device.is_cuda:
+        D._prepare_gpu(A.shape[0], None)
+    D.factorize()
+    assert D.install() is None
+
+
 def _installed(A, precision="float64"):
     """A DenseInverse with A^-1 installed (and the reference inverse it holds, checked against A)."""
     n3 = A.shape[0]
     D = DI.DenseInverse(DEVICE, precision)
-    D.work = wp.array(A, dtype=wp.float64, device=DEVICE)
-    if D.device.is_cuda:
-        D._prepare_gpu(n3, None)
-    D.factorize()
-    assert D.install() is None
+    _factor_into(D, A)
     P = D.inv.numpy().copy()
     np.testing.assert_allclose(P @ A, np.eye(n3), atol=1e-9)
     return D, P
@@ -169,11 +174,7 @@ def test_installs_of_other_sizes_within_the_capacity_keep_the_address():
     ptr, ld, key = D.inv.ptr, D.ld, D.graph_key()
     for n3 in (108, ld - ld % 3, 126):
         A = _spd(n3, rng)
-        D.work = wp.array(A, dtype=wp.float64, device=DEVICE)
-        if D.device.is_cuda:
-            D._prepare_gpu(n3, None)
-        D.factorize()
-        assert D.install() is None
+        _factor_into(D, A)
         np.testing.assert_allclose(D.inv.numpy() @ A, np.eye(n3), atol=1e-9)
         _check(D, D.inv.numpy().copy(), rng)
         assert (D.inv.ptr, D.ld, D.graph_key()) == (ptr, ld, key)
@@ -225,12 +226,7 @@ def test_a_regrow_beyond_the_capacity_reallocates():
     _check(D, P, rng)
     assert (D.inv.ptr, D.graph_key()) == (ptr, key)
     n3 = D.ld + 3  # an install past the capacity
-    A = _spd(n3, rng)
-    D.work = wp.array(A, dtype=wp.float64, device=DEVICE)
-    if D.device.is_cuda:
-        D._prepare_gpu(n3, None)
-    D.factorize()
-    assert D.install() is None
+    _factor_into(D, _spd(n3, rng))
     assert D.ld >= n3 and D.graph_key() != key
     _check(D, D.inv.numpy().copy(), rng)
     D.close()

@@ -180,8 +180,6 @@ class AsyncDevicePreconditioner:
             self._side = wp.Stream(self.device) if self.device.is_cuda else None
         self._vec = None  # apply_vector: (r staged from the host, z)
         self._rows = None  # delassus_rows: the constraint rows (nodes, coef), staged from the host
-        self._rows_m = 0  # ... and how many the last call sent (rows_vector applies those)
-        self._lam = None  # rows_vector: (lambda and the row count staged from the host, the result)
         self.correction: FoldedCorrection | None = None
         self.mods: list[Modification] = []
         self._busy = None  # the last factorization enqueued (its work buffer is in use until it ends)
@@ -533,28 +531,7 @@ class AsyncDevicePreconditioner:
         s_nodes, s_coef = self._rows
         s_nodes.view()[:m] = nodes
         s_coef.view()[:m] = coef
-        self._rows_m = m
         return self.backend.delassus(s_nodes.send(4 * m), s_coef.send(4 * m), self.dR, m)
-
-    def rows_vector(self, lam: np.ndarray, free: wp.array) -> wp.array:
-        """P^-1 H^T lambda on the free nodes for the rows of the last :meth:`delassus_rows` call,
-        lambda (m,) from the host: a (n,) vec3d device array that the next call overwrites. The
-        rows are already on the device, so only lambda goes up (H^T lambda is never formed; the
-        backend's ``apply_rows``, as the device LCP's correction)."""
-        m = self._rows_m
-        if len(lam) != m or self._rows is None:
-            raise ValueError(f"rows_vector: {len(lam)} multipliers for the {m} rows last gathered")
-        n = self.dR.shape[0]
-        if self._lam is None or self._lam[0].array.shape[0] < m:
-            self._lam = (Staged(max(m, 16), wp.float64, self.device), Staged(2, wp.int32, self.device),
-                         GrowArray(wp.vec3d, self.device))
-        s_lam, s_sizes, out = self._lam
-        s_lam.view()[:m] = lam
-        s_sizes.view()[0] = m
-        y = out.view(n)
-        self.backend.apply_rows(self._rows[0].array, self._rows[1].array, s_lam.send(m), s_sizes.send(), self.dR,
-                                1.0, free, y)
-        return y
 
     def solves_contact_on_device(self) -> bool:
         """Can the contact LCP be solved where the factor is (:mod:`..contact.device_lcp`): a

@@ -688,38 +688,3 @@ def test_on_a_gpu_the_assembly_is_launched_with_the_factorization():
     assert D.install() is None
     np.testing.assert_allclose(D.inv.numpy() @ A, np.eye(n3), atol=1e-9)
     D.close()
-
-
-def test_the_rows_correction_equals_the_application_to_h_transpose_lambda():
-    """The host LCP's correction from the rows the factor gathered W from (rows_vector: only
-    lambda goes up) is the preconditioner applied to H^T lambda, on the free nodes, with a
-    stale rotated factor; the contact's compliance uses it for a device factor."""
-    from soft_tissue_sim.contact.compliance import compliance
-    from soft_tissue_sim.contact.jacobian import ConstraintRows
-
-    ov = {"solver": _solver(backend="dense", refresh_every=1000, apply_precision="float64")}
-    with load_scene(_layered_beam(), device=DEVICE, overrides=ov) as sim:
-        for _ in range(6):
-            sim.step()
-        sim.integrator.build()
-        pre = sim.preconditioner
-        pre.begin_step(sim.integrator)
-        n = sim.mesh.n_nodes
-        rng = np.random.default_rng(8)
-        m = 40
-        nodes = rng.integers(0, n, size=(m, 4)).astype(np.int32)
-        nodes[::5, 1:] = -1  # node rows among triangle rows
-        coef = rng.standard_normal((m, 4, 3))
-        coef[nodes < 0] = 0.0
-        H = ConstraintRows(nodes, coef, n)
-        lam = np.abs(rng.standard_normal(m))
-        lam[::3] = 0.0
-        W, apply_y, kind = compliance(H, "preconditioner", pre, sim.integrator, sim.fem)
-        assert kind == "preconditioner"
-        free = sim.fem.free.numpy()
-        ref = pre.apply_vector(H.transpose_times(lam)).numpy() * free[:, None]
-        got = apply_y(lam).numpy()
-        assert np.abs(ref).max() > 0.0
-        np.testing.assert_allclose(got, ref, rtol=0.0, atol=1e-12 * np.abs(ref).max())
-        with pytest.raises(ValueError, match="multipliers"):
-            pre.rows_vector(lam[:-1], sim.fem.free)

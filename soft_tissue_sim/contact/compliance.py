@@ -47,9 +47,6 @@ def compliance(H: ConstraintRows, mode: str, preconditioner, integrator, fem):
             else:
                 W = inner.delassus(H.csr().T.tocsc()) if hasattr(inner, "delassus") else None
             if W is not None:  # forward solves alone (host) or gathered (device); dx by one application
-                if hasattr(inner, "rows_vector") and inner.solves_contact_on_device():
-                    # a device factor that gathered W from these rows: P^-1 H^T lam from them, there
-                    return W, (lambda lam: inner.rows_vector(lam, fem.free)), mode
                 if hasattr(inner, "apply_vector"):  # a device factor: the result stays there
                     return W, (lambda lam: inner.apply_vector(H.transpose_times(lam))), mode
                 return W, (lambda lam: inner.apply_columns(H.transpose_times(lam)[:, None])[:, 0]), mode

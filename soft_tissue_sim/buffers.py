@@ -31,8 +31,20 @@ MIN_CAPACITY = 16
 ALIGN = 64  # bytes: where each field of a PackedArrays starts
 
 
-def capacity_for(n: int) -> int:
-    return max(MIN_CAPACITY, int(math.ceil(n * HEADROOM)))
+def capacity_for(n: int, headroom: float = HEADROOM) -> int:
+    return max(MIN_CAPACITY, int(math.ceil(n * headroom)))
+
+
+_UNBOUNDED: dict = {}
+
+
+def unbounded_count(device) -> wp.array:
+    """A device count (int32, one element) no index reaches: for a kernel that reads its count
+    on the device (launched over a capacity) launched over exactly the elements it is to cover."""
+    d = wp.get_device(device)
+    if d.alias not in _UNBOUNDED:
+        _UNBOUNDED[d.alias] = wp.array([np.iinfo(np.int32).max], dtype=wp.int32, device=d)
+    return _UNBOUNDED[d.alias]
 
 
 def typed_view(buffer: wp.array, offset_bytes: int, dtype, shape) -> wp.array:
@@ -47,14 +59,16 @@ def typed_view(buffer: wp.array, offset_bytes: int, dtype, shape) -> wp.array:
 
 class GrowArray:
     """One device array whose length changes with the mesh: :meth:`view` (n) is its first n
-    elements; the allocation (with headroom) is replaced only when n outgrows it, and then
-    its contents are not carried over. ``fill``: a value every newly allocated element gets
-    (e.g. 1.0, or an index ramp given as a callable of the capacity)."""
+    elements; the allocation (``headroom`` over the n that made it) is replaced only when n
+    outgrows it, and then its contents are not carried over (the old one is let go first).
+    ``fill``: a value every newly allocated element gets (e.g. 1.0, or an index ramp given as a
+    callable of the capacity)."""
 
-    def __init__(self, dtype, device, fill=None):
+    def __init__(self, dtype, device, fill=None, headroom: float = HEADROOM):
         self.dtype = dtype
         self.device = wp.get_device(device)
         self.fill = fill
+        self.headroom = float(headroom)
         self.buffer: wp.array | None = None
         self.allocations = 0
         self._view: wp.array | None = None
@@ -67,7 +81,8 @@ class GrowArray:
         """The first ``n`` elements (the same object while n and the allocation hold)."""
         n = int(n)
         if self.buffer is None or n > self.buffer.shape[0]:
-            cap = capacity_for(n)
+            cap = capacity_for(n, self.headroom)
+            self.buffer = self._view = None  # where no other view holds it, freed before the next is made
             if callable(self.fill):
                 self.buffer = wp.array(self.fill(cap), dtype=self.dtype, device=self.device)
             elif self.fill is not None:
@@ -75,10 +90,13 @@ class GrowArray:
             else:
                 self.buffer = wp.empty(cap, dtype=self.dtype, device=self.device)
             self.allocations += 1
-            self._view = None
         if self._view is None or self._view.shape[0] != n:
             self._view = typed_view(self.buffer, 0, self.dtype, n)
         return self._view
+
+    def release(self) -> None:
+        """Let the allocation go (the next :meth:`view` makes a new one)."""
+        self.buffer = self._view = None
 
 
 def _numpy_layout(dtype) -> tuple:

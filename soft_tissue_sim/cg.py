@@ -68,7 +68,7 @@ def _xpby_kernel(z: wp.array(dtype=wp.vec3d), beta: wp.float64, p: wp.array(dtyp
 @wp.kernel
 def _block_apply_kernel(count: wp.array(dtype=wp.int32), Dinv: wp.array(dtype=wp.mat33d),
                         r: wp.array(dtype=wp.vec3d), z: wp.array(dtype=wp.vec3d)):
-    """z = Dinv r on the first count[0] blocks (launched over Dinv's capacity)."""
+    """z = Dinv r on the first count[0] blocks (launched over a capacity)."""
     i = wp.tid()
     if i < count[0]:
         z[i] = Dinv[i] * r[i]
@@ -111,16 +111,38 @@ def _scale_kernel(a: wp.array(dtype=wp.vec3d), s: wp.float64, out: wp.array(dtyp
     out[i] = s * a[i]
 
 
+@wp.kernel
+def set_count_kernel(count: wp.array(dtype=wp.int32), n: int):
+    """count[0] = n (a device count written in stream order)."""
+    count[0] = n
+
+
+@wp.kernel
+def copy_count_kernel(count: wp.array(dtype=wp.int32), src: wp.array(dtype=wp.vec3d), dst: wp.array(dtype=wp.vec3d)):
+    """dst = src over the first count[0] entries (launched over a capacity)."""
+    i = wp.tid()
+    if i < count[0]:
+        dst[i] = src[i]
+
+
 class IdentityPreconditioner:
-    """No preconditioning: plain CG (the paper's "CGM")."""
+    """No preconditioning: plain CG (the paper's "CGM"). ``apply`` copies the FEM's node count
+    of vectors (read on the device, launched over its capacity: see
+    :class:`~soft_tissue_sim.corotational_fem.CorotationalFEM`), so that a captured ``apply``
+    holds across topology changes."""
 
     name = "none"
 
+    def __init__(self):
+        self._count = None
+        self._dim = 0
+
     def begin_step(self, system) -> None:
-        pass
+        fem = system.fem
+        self._count, self._dim = fem.n_nodes_dev, fem.node_dim
 
     def apply(self, r: wp.array, z: wp.array) -> None:
-        wp.copy(z, r)
+        wp.launch(copy_count_kernel, self._dim, [self._count, r, z], device=r.device)
 
     def stats(self) -> dict:
         return {}
@@ -132,17 +154,18 @@ class IdentityPreconditioner:
         pass
 
     def device_capable(self) -> bool:
-        return True
+        return self._count is not None
 
     def graph_key(self) -> tuple:
-        return ()
+        return (self._count.ptr, self._dim)
 
 
 class BlockJacobiPreconditioner:
     """Inverse of the 3x3 diagonal blocks of A, rebuilt every step (cheap). The blocks are views
-    of kept allocations (:class:`soft_tissue_sim.buffers.GrowArray`) and ``apply`` reads the node
-    count from a device array written by ``begin_step``, launched over the allocation's
-    capacity: a captured ``apply`` holds for every node count within it (``graph_key``)."""
+    of kept allocations (:class:`soft_tissue_sim.buffers.GrowArray`) and ``apply`` reads the
+    FEM's node count on the device, launched over its capacity (as
+    :class:`IdentityPreconditioner`): a captured ``apply`` holds across topology changes
+    (``graph_key``)."""
 
     name = "jacobi"
 
@@ -150,21 +173,20 @@ class BlockJacobiPreconditioner:
         self._D = self._Dinv = None
         self._bufs = None
         self._count = None
+        self._dim = 0
 
     def begin_step(self, system) -> None:
         fem = system.fem
         n = fem.n_nodes
         if self._bufs is None or self._bufs[0].device != wp.get_device(fem.device):
             self._bufs = (GrowArray(wp.mat33d, fem.device), GrowArray(wp.mat33d, fem.device))
-            self._count = wp.zeros(1, dtype=wp.int32, device=fem.device)
         self._D, self._Dinv = (b.view(n) for b in self._bufs)
-        wp.launch(_set_count_kernel, 1, [self._count, int(n)], device=fem.device)
+        self._count, self._dim = fem.n_nodes_dev, fem.node_dim
         fem.diagonal_blocks(system.m_coef, system.k_coef, self._D)
         wp.launch(_invert_blocks_kernel, n, [self._D, fem.free, self._Dinv], device=fem.device)
 
     def apply(self, r: wp.array, z: wp.array) -> None:
-        inv = self._bufs[1]
-        wp.launch(_block_apply_kernel, inv.capacity, [self._count, inv.buffer, r, z], device=r.device)
+        wp.launch(_block_apply_kernel, self._dim, [self._count, self._Dinv, r, z], device=r.device)
 
     def stats(self) -> dict:
         return {}
@@ -179,7 +201,7 @@ class BlockJacobiPreconditioner:
         return self._Dinv is not None
 
     def graph_key(self) -> tuple:
-        return (self._Dinv.ptr, self._bufs[1].capacity, self._count.ptr)
+        return (self._Dinv.ptr, self._dim, self._count.ptr)
 
 
 class PCG:
@@ -359,11 +381,6 @@ def _sum_partials(partials: wp.array(dtype=wp.float64), t: int, nt: int):
 
 
 @wp.kernel
-def _set_count_kernel(count: wp.array(dtype=wp.int32), n: int):
-    count[0] = n
-
-
-@wp.kernel
 def _pcg_residual_kernel(count: wp.array(dtype=wp.int32), b: wp.array(dtype=wp.vec3d),
                          Ax: wp.array(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d), blocks: int):
     """r = b - Ax over the first count[0] entries (grid-stride over ``blocks`` blocks)."""
@@ -383,16 +400,6 @@ def _pcg_start_kernel(count: wp.array(dtype=wp.int32), b: wp.array(dtype=wp.vec3
     for i in range(t, n, blocks * wp.block_dim()):
         x[i] = wp.vec3d()
         r[i] = b[i]
-
-
-@wp.kernel
-def _pcg_copy_kernel(count: wp.array(dtype=wp.int32), src: wp.array(dtype=wp.vec3d), dst: wp.array(dtype=wp.vec3d),
-                     blocks: int):
-    """dst = src over the first count[0] entries (grid-stride over ``blocks`` blocks)."""
-    t = wp.tid()
-    n = count[0]
-    for i in range(t, n, blocks * wp.block_dim()):
-        dst[i] = src[i]
 
 
 @wp.kernel
@@ -586,7 +593,7 @@ class DevicePCG(PCG):
             self._partials_buf = GrowArray(wp.float64, d)
             self._rr_partials_buf = GrowArray(wp.float64, d)
             self._geometry = None
-        wp.launch(_set_count_kernel, 1, [self.count, int(n)], device=d)
+        wp.launch(set_count_kernel, 1, [self.count, int(n)], device=d)
         # dot products: a block per chunk, then one block adds the partial sums (no allocation,
         # deterministic; Warp's array_inner allocates scratch, which a conditional graph body forbids);
         # as many blocks for every count within the work vectors' common capacity
@@ -599,6 +606,7 @@ class DevicePCG(PCG):
             a.zero_()
         geometry = (cap, nb, self._block, self.r.ptr, self.z.ptr, self.p.ptr, self.Ap.ptr,
                     self._partials.ptr, self._rr_partials.ptr)
+        self._capacity = cap
         if geometry != self._geometry:
             self._geometry = geometry
             self.replay.clear()  # graphs of the old buffers are released where no factorization runs
@@ -619,14 +627,6 @@ class DevicePCG(PCG):
     def _residual(self, b):
         """r = b - A x with A x in ``Ap``."""
         self._blocks(_pcg_residual_kernel, [self.count, b, self.Ap, self.r, self._partials.shape[0]])
-
-    def _precondition(self, preconditioner):
-        """z = P^-1 r (the identity's copy by a kernel reading :attr:`count`: ``wp.copy`` would
-        capture the size)."""
-        if isinstance(preconditioner, IdentityPreconditioner):
-            self._blocks(_pcg_copy_kernel, [self.count, self.r, self.z, self._partials.shape[0]])
-        else:
-            preconditioner.apply(self.r, self.z)
 
     def _tail(self, matvec, x):
         """A p, p.Ap, alpha, x += alpha p, r -= alpha A p, r.r, stopping test."""
@@ -649,14 +649,14 @@ class DevicePCG(PCG):
         else:
             self._blocks(_pcg_start_kernel, [self.count, b, x, self.r, nb])
         wp.launch(_pcg_init_kernel, 1, [self._s, self._flag], device=dev)
-        self._precondition(preconditioner)
-        self._blocks(_pcg_copy_kernel, [self.count, self.z, self.p, nb])
+        preconditioner.apply(self.r, self.z)
+        wp.launch(copy_count_kernel, self._capacity, [self.count, self.z, self.p], device=dev)
         self._ddot(self.r, self.z)
         self._scalar(_pcg_store_kernel, [self._s, _RZN])
         self._tail(matvec, x)
 
         def body():
-            self._precondition(preconditioner)
+            preconditioner.apply(self.r, self.z)
             self._ddot(self.r, self.z)
             self._blocks(_pcg_beta_xpby_kernel, [self._partials, self._s, self.z, self.p, self.count, nb])
             self._tail(matvec, x)

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sps
 import warp as wp
 
-from .buffers import GrowArray, PackedArrays
+from .buffers import GrowArray, PackedArrays, unbounded_count
 from .host_assembly import AssemblyState
 from .material import MaterialTable
 from .mesh import TetMesh, all_four
@@ -521,7 +521,6 @@ class CorotationalFEM:
                 ("_all_tets", wp.int32, lambda cap: np.arange(cap, dtype=np.int32)), ("_rows", wp.int32, None),
                 ("_cols", wp.int32, None), ("_vals", wp.mat33d, None), ("_sub_R", wp.mat33d, None),
                 ("_sub_node_R", wp.mat33d, None))}
-            self._no_count = wp.array([np.iinfo(np.int32).max], dtype=wp.int32, device=d)  # subset launches
         packed, grow = self._packed, self._grow
         # the element rotations the new tets take over from their sources: in place where each
         # keeps its source's index (a node split), else gathered from a copy of the old ones
@@ -626,7 +625,7 @@ class CorotationalFEM:
             fields += ["volume", "nodes"]
         sub.send(fields)
         R = self._grow["_sub_R"].view(b)
-        wp.launch(element_rotations_kernel, k, [self._no_count, x, sub.array("tets"), sub.array("Dm_inv"), R],
+        wp.launch(element_rotations_kernel, k, [unbounded_count(d), x, sub.array("tets"), sub.array("Dm_inv"), R],
                   device=d)
         wp.launch(_scatter_rotations_kernel, k, [sub.array("ids"), R, self.rotations], device=d)
         return R
@@ -646,7 +645,7 @@ class CorotationalFEM:
         d, sub, g = self.device, self._sub, self._grow
         self._rot_acc.zero_()
         wp.launch(node_rotation_accumulate_kernel, len(ids),
-                  [self._no_count, sub.array("tets"), sub.array("volume"), R, self._rot_acc], device=d)
+                  [unbounded_count(d), sub.array("tets"), sub.array("volume"), R, self._rot_acc], device=d)
         R_nodes = g["_sub_node_R"].view(sub.counts["nodes"])
         wp.launch(_orthonormalize_subset_kernel, len(nodes), [sub.array("nodes"), self._rot_acc, R_nodes], device=d)
         out[nodes] = to_host(R_nodes)[0][:len(nodes)]

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .buffers import unbounded_count
 from .dense_inverse import rotate_in_kernel
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
@@ -184,7 +185,7 @@ class CuDSSFactor:
         """z = dR A^-1 dR^T r with cuDSS's solve, on the current stream (no allocation)."""
         slot = self._slots[self._active]
         n = r.shape[0]
-        wp.launch(rotate_in_kernel, n, [dR, r, slot.b], device=self.device)
+        wp.launch(rotate_in_kernel, n, [dR, r, slot.b, unbounded_count(self.device)], device=self.device)
         slot.solve(wp.get_stream(self.device))
         wp.launch(rotate_out_kernel, n, [dR, slot.x, z], device=self.device)
 

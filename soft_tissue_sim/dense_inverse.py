@@ -48,7 +48,7 @@ import numpy as np
 import warp as wp
 
 from .buffers import GrowArray, PackedArrays, capacity_for, typed_view
-from .cg import block_sum
+from .cg import block_sum, set_count_kernel
 from .transfer import PINNED, to_host
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
@@ -125,24 +125,11 @@ def pad_identity_kernel(P: wp.array2d(dtype=wp.float64), k: int):
 
 
 @wp.kernel
-def set_count_kernel(count: wp.array(dtype=wp.int32), n: int):
-    count[0] = n
-
-
-@wp.kernel
-def rotate_in_kernel(dR: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d), s: wp.array(dtype=wp.float64)):
-    """s = dR^T r, node by node, flattened (the right rotation of eq. 2)."""
-    i = wp.tid()
-    v = wp.transpose(dR[i]) * r[i]
-    s[3 * i] = v[0]
-    s[3 * i + 1] = v[1]
-    s[3 * i + 2] = v[2]
-
-
-@wp.kernel
-def rotate_in_count_kernel(dR: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d), s: wp.array(dtype=wp.float64),
-                           count: wp.array(dtype=wp.int32)):
-    """:func:`rotate_in_kernel` for the nodes i with 3 i < count[0] (launched over a capacity)."""
+def rotate_in_kernel(dR: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d), s: wp.array(dtype=wp.float64),
+                     count: wp.array(dtype=wp.int32)):
+    """s = dR^T r, node by node, flattened (the right rotation of eq. 2), for the nodes i with
+    3 i < count[0] (launched over a capacity; :func:`~soft_tissue_sim.buffers.unbounded_count`
+    where launched over the nodes)."""
     i = wp.tid()
     if 3 * i < count[0]:
         v = wp.transpose(dR[i]) * r[i]
@@ -281,27 +268,6 @@ def strided_square(buf: wp.array, n: int, ld: int) -> wp.array:
     return a
 
 
-class _Store:
-    """A flat device array replaced (contents lost) only when a larger one is asked for."""
-
-    def __init__(self, dtype, device):
-        self.dtype = dtype
-        self.device = device
-        self.buffer: wp.array | None = None
-        self.allocations = 0
-
-    def reserve(self, count: int) -> wp.array:
-        """The array, of at least ``count`` elements."""
-        if self.buffer is None or self.buffer.shape[0] < count:
-            self.buffer = None  # the old one goes first where no view holds it
-            self.buffer = wp.empty(int(count), dtype=self.dtype, device=self.device)
-            self.allocations += 1
-        return self.buffer
-
-    def release(self) -> None:
-        self.buffer = None
-
-
 def fold_into(xp, P, rows, N, blas=None, stream: int = 0) -> None:
     """P <- P - U Q U^T in place (``xp`` arrays; P may have a row stride), U = P[:, rows],
     Q = (I + N S)^-1 N with S = U[rows] (:func:`~soft_tissue_sim.sherman_morrison.woodbury_q`):
@@ -417,7 +383,7 @@ class DenseInverse:
         # (ld^2 each) the inverse in use, and a regrow's gather target; the single-precision copy;
         # kept across node-count changes while n3 <= ld (a cut allocates nothing)
         self._store = self._empty_stores()
-        self._inv32_buf = _Store(wp.float32, self.device)
+        self._inv32_buf = GrowArray(wp.float32, self.device, headroom=1.0)
         # (ld, ld) views of the stores: the matrix apply reads (its first count[0] rows and columns)
         self._full: wp.array | None = None
         self._full32: wp.array | None = None
@@ -606,7 +572,7 @@ class DenseInverse:
         return None
 
     def _empty_stores(self) -> tuple:
-        return _Store(wp.float64, self.device), _Store(wp.float64, self.device)
+        return GrowArray(wp.float64, self.device, headroom=1.0), GrowArray(wp.float64, self.device, headroom=1.0)
 
     def _reserve(self, n: int) -> bool:
         """Store 0 and the rotated vector for n DOFs: where n > ld, reallocated with a new leading
@@ -619,13 +585,13 @@ class DenseInverse:
         self._store[1].release()
         self._full = self._full32 = self.inv32 = None
         self._ld = ld
-        self._full = strided_square(self._store[0].reserve(ld * ld), ld, ld)
+        self._full = strided_square(self._store[0].view(ld * ld), ld, ld)
         self._s = wp.empty(ld, dtype=wp.float64, device=self.device)
         return True
 
     def _view(self, k: int, n: int) -> wp.array:
         """The (n, n) view of store ``k`` with row stride ld."""
-        return strided_square(self._store[k].reserve(self._ld * self._ld), n, self._ld)
+        return strided_square(self._store[k].view(self._ld * self._ld), n, self._ld)
 
     def _resize(self, n: int, stream=None) -> None:
         """The inverse in use := the (n, n) view of store 0; the size array := n, on ``stream``."""
@@ -654,7 +620,7 @@ class DenseInverse:
             return
         self._stale = False
         n, ld = self.inv.shape[0], self._ld
-        buf = self._inv32_buf.reserve(ld * ld)
+        buf = self._inv32_buf.view(ld * ld)
         if self._full32 is None or self._full32._ref is not buf:
             self._full32 = strided_square(buf, ld, ld)
             self.inv32 = None
@@ -678,7 +644,7 @@ class DenseInverse:
         over the capacity (ld / 3 nodes), so that a captured one serves every n3 <= ld. r, z and
         dR need n3 / 3 entries; their shapes are not read."""
         nodes = self._ld // 3
-        wp.launch(rotate_in_count_kernel, nodes, [dR, r, self._s, self._count], device=self.device)
+        wp.launch(rotate_in_kernel, nodes, [dR, r, self._s, self._count], device=self.device)
         block = BLOCK if self.device.is_cuda else 1
         wp.launch(dense_apply_kernel, nodes * block, [self._applied_full(), self._s, dR, z, self._count],
                   device=self.device, block_dim=block)
@@ -794,5 +760,5 @@ class DenseInverse:
         self._full = self._full32 = self._s = None
         self._ld = 0
         self._store = self._empty_stores()
-        self._inv32_buf = _Store(wp.float32, self.device)
+        self._inv32_buf = GrowArray(wp.float32, self.device, headroom=1.0)
         self._work_buf, self._rhs_buf = (GrowArray(b.dtype, self.device) for b in (self._work_buf, self._rhs_buf))

@@ -67,8 +67,9 @@ class ChainOperator:
         self.d = wp.array(self.d_host, dtype=wp.float64, device=self.device)
         self.count = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.n = 0
-        # the fem a BlockJacobiPreconditioner reads in begin_step
+        # the fem the identity and BlockJacobiPreconditioner read in begin_step
         self.free = wp.array(np.ones(ROOM), dtype=wp.float64, device=self.device)
+        self.n_nodes_dev, self.node_dim = self.count, ROOM
 
     def set_n(self, n):
         self.n = n
@@ -110,7 +111,7 @@ class DiagPreconditioner:
 
 
 class _System:
-    """What BlockJacobiPreconditioner.begin_step reads: fem (the operator), m_coef, k_coef."""
+    """What the preconditioners' begin_step reads: fem (the operator), m_coef, k_coef."""
 
     def __init__(self, fem):
         self.fem, self.m_coef, self.k_coef = fem, 0.0, 1.0
@@ -144,7 +145,7 @@ class Problem:
 
     def set_n(self, n, seed=None, guess=None):
         self.op.set_n(n)
-        if self.kind == "jacobi":
+        if self.kind != "diag":
             self.pre.begin_step(_System(self.op))
         b, x = self.b_buf[:n], self.x_buf[:n]
         b.assign(_rhs(n, n if seed is None else seed))

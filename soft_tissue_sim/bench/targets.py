@@ -193,9 +193,9 @@ def brain_resection_rows(device):
 
 def resection_split(rows, many: int = 32) -> str:
     """Where the resection's step time is: the wall time's median and p99 (steps) over the
-    steps with a modification, the steps right after one (graphs captured again for the new
-    sizes), the other steps with more than ``many`` contacts (the LCP on the host), and the
-    rest."""
+    steps with a modification, the steps right after one (a new surface, the launches sized by
+    the counts captured again), the other steps with more than ``many`` contacts (the LCP on
+    the host), and the rest."""
     wall = np.array([r["wall_ms"] for r in rows])
     mod = np.array([bool(r.get("modified")) for r in rows])
     after = np.zeros_like(mod)
@@ -282,10 +282,6 @@ def _compile_kernels(device) -> None:
         except ImportError:  # optional GPU libraries absent: those modules are not used either
             pass
     t0 = time.perf_counter()
-    if wp.get_device(device).is_cuda:  # the host's contact solver first, as a simulation on a GPU loads it
-        from ..contact.pgs import load_host_solver
-
-        load_host_solver()
     wp.force_load(device=device)
     print(f"  [kernels built in {time.perf_counter() - t0:.1f} s]", file=sys.stderr, flush=True)
 

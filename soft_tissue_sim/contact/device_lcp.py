@@ -380,8 +380,8 @@ def _block_solver(width: int) -> wp.Kernel:
         sweeps only). A set with friction and ``finish_friction`` as the host's with
         ``friction_active_set`` (where :func:`.pgs.finishes_friction`): ``first_sweeps`` sweeps,
         then up to :data:`.pgs.FRICTION_FINISHES` of :func:`.pgs.friction_finish` (on lane 0,
-        the others waiting), each followed by sweeps from the better lambda. Every lane runs the scalar work alike (their writes to the
-        device's memory are the same values)."""
+        the others waiting), each followed by sweeps from the better lambda. Every lane runs the
+        scalar work alike (their writes to the device's memory are the same values)."""
         _b, lane = wp.tid()
         bd = wp.block_dim()
         m = sizes[0]

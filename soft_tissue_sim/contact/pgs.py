@@ -25,18 +25,15 @@ passive set is the method's warm start, as in the PGS-subspace-minimization meth
 Kocvara and Zowe, and Morales, Nocedal and Smelyanskiy) and finishes with
 :func:`active_set`. With friction the Coulomb problem is not a quadratic program, and where
 nearly repeated contacts share a force (an instrument's tip: the node it presses and the faces
-around it) the sweeps converge slowly. :func:`friction_active_set` (``contact.
-friction_active_set``: by default the host's solves; the device's block has it too) finishes
-them: it
-solves the linear system of the contacts' current states (off, sticking, sliding) and follows
-the states the solution asks for, keeping the iterate of least residual, between rounds of
-sweeps.
+around it) the sweeps converge slowly. :func:`friction_finish` (``contact.friction_active_set``:
+by default the CPU's solves; the device's block has it too) finishes them: it solves the
+linear system of the contacts' current states (off, sticking, sliding) and follows the states
+the solution asks for, keeping the iterate of least residual, between rounds of sweeps.
 """
 
 from __future__ import annotations
 
 import sys
-
 from typing import Any
 
 import numpy as np
@@ -710,14 +707,6 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
     return lam, steps
 
 
-def load_host_solver() -> None:
-    """Build (or load from the kernel cache) this module's kernels for the CPU now. On a GPU the
-    host solves the contact sets beyond the device's rows: a simulation there loads them at its
-    start, so that the first such set does not wait for the CPU build mid-run (seconds on a cold
-    kernel cache)."""
-    wp.load_module(sys.modules[__name__], device="cpu")
-
-
 class PGS:
     """The contact LCP's solver: projected Gauss-Seidel sweeps (:func:`pgs_kernel`) and, for a
     frictionless LCP (every contact one row), :func:`active_set` after ``first_sweeps`` of
@@ -732,10 +721,11 @@ class PGS:
     better lambda, :data:`FRICTION_SWEEPS` of them between two finishes, at most
     :data:`FRICTION_FINISHES`, the last finish's sweeps taking what is left (one launch), for
     sets of up to :data:`FRICTION_FINISH_ROWS` rows (beyond, the sweeps alone).
-    ``active_set=False``: sweeps only,
-    always. The CPU buffers are kept between solves: they grow to the largest problem seen and
-    are filled in place, and the kernel's launch is recorded once per set of buffers, so that a
-    sweep phase allocates no Warp array and makes one launch.
+    ``active_set=False``: sweeps only, always. The CPU buffers are kept between solves: they
+    grow to the largest problem seen and are filled in place, and the kernel's launch is
+    recorded once per set of buffers, so that a sweep phase allocates no Warp array and makes
+    one launch. The kernel is built (or loaded from the cache) when the solver is made, not at
+    its first set: on a GPU that is the first set beyond the device's rows, mid-run.
     """
 
     def __init__(self, active_set: bool = True, first_sweeps: int = FIRST_SWEEPS, friction_active_set: bool = False):
@@ -744,6 +734,7 @@ class PGS:
         self.first_sweeps = int(first_sweeps)
         self.rows_cap = self.contacts_cap = 0
         self._cmd = None
+        wp.load_module(sys.modules[__name__], device="cpu")
 
     def _reserve(self, m: int, nc: int) -> None:
         """Buffers for at least m rows and nc contacts (and the recorded launch over them)."""

@@ -33,7 +33,7 @@ from .detection import SurfaceTopology, collect, launch_detection, launch_min_ga
 from .geometry import cross, tangent_basis
 from .jacobian import ConstraintRows
 from .options import friction_finish_on, parse_options
-from .pgs import PGS, load_host_solver
+from .pgs import PGS
 from .records import ContactResponse, Contacts
 from .warm import WarmStart, contact_names
 
@@ -99,10 +99,7 @@ class ContactSolver:
         # (record, lambda, node uids, node count) of the last step's contacts where they were solved
         # from device rows: their Contacts and warm start are made from it when asked for
         self._device_read = None
-        gpu = wp.get_device(self.device).is_cuda
-        self._pgs = PGS(o["active_set"], friction_active_set=friction_finish_on(o, gpu=gpu))
-        if gpu:
-            load_host_solver()
+        self._pgs = PGS(o["active_set"], friction_active_set=friction_finish_on(o, gpu=wp.get_device(self.device).is_cuda))
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
         self._device_rows: DeviceRows | None = None  # the rows built on the device (device_rows), idem
         self._last_rows = 0  # the last step's constraint rows (where the next step's rows are built)

@@ -188,3 +188,32 @@ def test_the_device_lcp_module_is_built_only_for_its_own_block_sizes(monkeypatch
         assert st.as_dict().get("contacts", 0) > 0 and not st.as_dict().get("lcp_device")
     sizes = {b for name, b in loads if name == device_lcp.__name__ and b is not None}
     assert sizes <= {device_lcp.LANES, device_lcp.WIDE_LANES}, sizes
+
+
+def test_no_kernel_module_is_built_after_the_first_step(monkeypatch):
+    """Every module the contact steps launch is loaded by the time the first step ends, even
+    where the first contacts come later and go through the host LCP's path (device_lcp_rows 0,
+    a dense factor): a build in the middle of a run stalls that step by the build's time."""
+    from warp._src import context
+
+    cfg = _scene(DEVICE)
+    cfg["solver"]["ldlt"]["backend"] = "dense"
+    cfg["contact"]["device_lcp_rows"] = 0
+    cfg["obstacles"] = []
+    with load_scene(cfg) as sim:
+        _press(sim, -0.05)  # far above: no contact in the first step
+        assert sim.step().as_dict().get("contacts", 0) == 0
+        loads = []
+        load = context.Module.load
+
+        def record(self, device, block_dim=None, *args, **kwargs):
+            if not self.execs.get((wp.get_device(device).context, block_dim or self.options["block_dim"])):
+                loads.append((self.name, block_dim))
+            return load(self, device, block_dim, *args, **kwargs)
+
+        monkeypatch.setattr(context.Module, "load", record)
+        for k in range(4):
+            _press(sim, 0.0005 * k)
+            st = sim.step()
+        assert st.as_dict().get("contacts", 0) > 0
+    assert not loads, loads

@@ -14,6 +14,7 @@ point on the object's surface.
 from __future__ import annotations
 
 import math
+import sys
 import time
 from typing import NamedTuple
 
@@ -105,6 +106,9 @@ class ContactSolver:
         self._last_rows = 0  # the last step's constraint rows (where the next step's rows are built)
         self._frictionless = self._friction(np.zeros(0, np.int64)).uniform and self.options["friction"] == 0.0
         self._dx = GrowArray(wp.vec3d, device)  # the device correction, overwritten each step
+        # this module's kernel serves the host LCP's path, first taken at a large set, mid-run:
+        # built (or loaded from the cache) now
+        wp.load_module(sys.modules[__name__], device=device)
         self.contacts = Contacts.empty(responded=True)
         self.compliance_fallbacks = 0  # steps whose preconditioner compliance was not positive definite
 

@@ -13,8 +13,9 @@ import pytest
 import warp as wp
 
 from soft_tissue_sim import load_scene
+from soft_tissue_sim.contact import device_lcp
 from soft_tissue_sim.contact.device_lcp import BIG, LANES, SMALL, WIDE_LANES, DeviceLCP
-from soft_tissue_sim.contact.pgs import FIRST_SWEEPS, PGS
+from soft_tissue_sim.contact.pgs import FIRST_SWEEPS, LARGE_FIRST_SWEEPS, LARGE_SET_ROWS, PGS, first_sweeps_of
 from soft_tissue_sim.dense_inverse import DenseInverse
 from soft_tissue_sim.material import ParameterError
 from test_contact import FLOOR_Z, scene
@@ -224,7 +225,7 @@ def test_the_device_kernels_active_set_finish_is_the_hosts(cap, fewest, trials):
         assert inf[2] == 1.0 and int(inf[0]) == its and (got >= 0.0).all()
         assert res <= tol and inf[1] <= tol
         np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
-        finished += its > FIRST_SWEEPS
+        finished += its > first_sweeps_of(m, FIRST_SWEEPS, 200)
     assert finished >= trials // 2  # most needed the finish
 
 
@@ -345,7 +346,8 @@ def test_the_blocks_lanes_give_the_one_lanes_lambda(cap):
     assert max(len(p[1]) for p in problems) > (WIDE_LANES if cap > SMALL else LANES) or cap <= LANES
     solve = lambda p: _device_pgs(*p[:6], cap, 1e-10, p[6], device="cpu")  # noqa: E731
     one = [solve(p) for p in problems]
-    assert sum(int(i[0]) > FIRST_SWEEPS for _, i, _ in one[-3:]) >= 2  # the finish ran
+    assert sum(int(i[0]) > first_sweeps_of(len(p[1]), FIRST_SWEEPS, 200)
+               for (_, i, _), p in zip(one[-3:], problems[-3:])) >= 2  # the finish ran
     before = wp.config.enable_cpu_blocks
     wp.config.enable_cpu_blocks = True
     try:
@@ -395,3 +397,62 @@ def test_the_correction_from_the_rows_columns_is_the_inverse_applied_to_h_transp
                                      1e-4, wp.array(free, dtype=wp.float64, device=d), out], device=d)
     np.testing.assert_allclose(out.numpy(), expected, rtol=1e-12, atol=1e-18)
     assert not out.numpy()[nodes[0, 1]].any()
+
+
+def test_each_set_is_solved_by_the_kernel_of_its_size():
+    """In buffers of more than SMALL rows both kernels are launched; each returns at once on the
+    other's sets (the outputs untouched), so a small set gets the narrow kernel's solve (the same
+    as in buffers of SMALL rows) and a large one the wide kernel's."""
+    rng = np.random.default_rng(31)
+    small, large = _stalling_lcp(rng, 20), _stalling_lcp(rng, 90)
+    kernels = device_lcp.pgs_kernels(BIG)
+    assert [k for k, _l, _r in kernels] == [device_lcp.device_pgs_kernel, device_lcp.device_pgs_wide_kernel]
+    assert device_lcp.pgs_kernels(SMALL) == kernels[:1]
+    for (W, d0, lam0), alone in ((small, 1), (large, 0)):  # the kernel that must leave this set alone
+        m = len(d0)
+        one = (np.arange(m, dtype=np.int32), np.ones(m, np.int32), np.zeros(m))
+        got, inf, _ = _device_pgs(W, d0, lam0, *one, BIG, 1e-10)
+        assert inf[2] == 1.0 and inf[1] <= 1e-10
+        if m <= SMALL:
+            ref, rinf, _ = _device_pgs(W, d0, lam0, *one, SMALL, 1e-10)
+            np.testing.assert_array_equal(got, ref)
+            np.testing.assert_array_equal(inf, rinf)
+        lcp = DeviceLCP(BIG, DEVICE)
+        lcp.stage_problem(W, d0, lam0, *one)
+        lcp.out.fill_(-7.0)
+        kernel, lanes, fewest = kernels[alone]
+        wp.launch_tiled(kernel, dim=[1], inputs=[lcp.W, lcp.d0, lcp.lam0, lcp.row_start, lcp.n_rows, lcp.mu,
+                                                 lcp.sizes, fewest, 200, 1e-10, 0, FIRST_SWEEPS, 0, lcp.L, lcp.work,
+                                                 lcp.iwork, lcp.fwork, lcp.fiwork, lcp.fA, lcp.fN, lcp.lam, lcp.delta,
+                                                 lcp.info], block_dim=lanes, device=DEVICE)
+        assert (lcp.out.numpy() == -7.0).all()  # returned without a write
+
+
+def test_a_large_frictionless_set_is_judged_by_its_solve():
+    """A frictionless set of more than LARGE_SET_ROWS rows is not factorized whole first: its
+    verdict is the solve's. One that ends within the tolerance is usable (here an indefinite W,
+    which the host's check refuses, whose LCP the sweeps solve: lambda >= 0, W lambda + d0 >= 0
+    and complementary); one that does not (too few iterations) is refused with lambda = 0, as a
+    W that fails the check is; a set of LARGE_SET_ROWS rows keeps the check. The active-set
+    finish starts after LARGE_FIRST_SWEEPS sweeps there."""
+    from soft_tissue_sim.contact.compliance import positive_definite
+
+    m = LARGE_SET_ROWS + 8
+    W = np.eye(m)
+    W[0, 1] = W[1, 0] = 2.0  # eigenvalues 3 and -1 in the first two rows, the diagonal positive
+    d0 = np.full(m, -1e-3)
+    one = (np.arange(m, dtype=np.int32), np.ones(m, np.int32), np.zeros(m))
+    assert not positive_definite(W)
+    lam, inf, delta = _device_pgs(W, d0, np.zeros(m), *one, BIG, 1e-10)
+    assert inf[2] == 1.0 and inf[1] <= 1e-10
+    assert (lam >= 0.0).all() and (W @ lam + d0 >= -1e-10).all() and abs(lam @ (W @ lam + d0)) <= 1e-12
+    k = LARGE_SET_ROWS  # not large: the whole W's factorization refuses it
+    lam, inf, _ = _device_pgs(W[:k, :k], d0[:k], np.zeros(k), *(a[:k] for a in one), BIG, 1e-10)
+    assert inf[2] == 0.0 and not lam.any()
+    W2, d2, l2 = _stalling_lcp(np.random.default_rng(32), m)
+    lam, inf, _ = _device_pgs(W2, d2, l2, *one, BIG, 1e-10, max_iterations=2, first=2)
+    assert inf[2] == 0.0 and inf[1] > 1e-10 and not lam.any()
+    _, inf, _ = _device_pgs(W2, d2, l2, *one, BIG, 1e-10)
+    ref = PGS(first_sweeps=LARGE_FIRST_SWEEPS).solve(W2, d2, *one, 200, 1e-10, False, l2)
+    assert int(inf[0]) == ref[1] > LARGE_FIRST_SWEEPS and inf[2] == 1.0
+    assert PGS().solve(W2, d2, *one, 200, 1e-10, False, l2)[1] == ref[1]  # the host's rule is the same

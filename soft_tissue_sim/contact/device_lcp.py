@@ -10,10 +10,13 @@ correction, the penetration detection and the guard (one graph a step):
 2. W = dt^2 H P^-1 H^T is gathered into a matrix of the buffers' capacity, the row count read
    on the device (:func:`~soft_tissue_sim.dense_inverse.delassus_matrix_kernel`), so that one
    captured graph serves every contact count;
-3. :func:`device_pgs_kernel` (up to :data:`SMALL` rows, a block of :data:`LANES` lanes) or
-   :func:`device_pgs_wide_kernel` (up to :data:`BIG`, :data:`WIDE_LANES` lanes) checks W as
+3. :func:`device_pgs_kernel` (up to :data:`SMALL` rows, a block of :data:`LANES` lanes) and,
+   in buffers of more rows, :func:`device_pgs_wide_kernel` (:data:`SMALL` + 1 to :data:`BIG`
+   rows, :data:`WIDE_LANES` lanes) are launched together, each returning at once on the
+   other's sets (the set's size is read on the device); the kernel checks W as
    :func:`.compliance.positive_definite` does (a Cholesky factorization of W + 1e-10 max(diag
-   W) I, a column at a time, the lanes sharing each column's rows) and runs the projected
+   W) I, a column at a time, the lanes sharing each column's rows; for a frictionless set of
+   more than :data:`.pgs.LARGE_SET_ROWS` rows the diagonal only: see below) and runs the projected
    Gauss-Seidel sweeps of :mod:`.pgs` from the warm start: every lane makes each contact's
    update (the same values from the same reads) and the lanes move delta = W lambda + d0,
    held in the block's shared memory, by the changed rows' columns of W together, each lane
@@ -34,6 +37,13 @@ lambda, the sweeps, the residual and the check's verdict are read with the guard
 correction. Where W is not positive definite the device solve makes lambda = 0 (no
 correction) and says so: the caller restores the free motion and solves the step's contacts
 on the host, with the block diagonal of A (as :meth:`.solver.ContactSolver._respond` does).
+A frictionless set of more than :data:`.pgs.LARGE_SET_ROWS` rows (the cut faces' self
+contacts: a hundred rows and more) is not factorized whole first (O(m^3 / lanes), longer than
+its solve): its verdict is its solve's, usable where the sweeps and the active-set finish
+(which factorizes the faces it visits, and stops where one is not positive definite) end
+within the tolerance; otherwise lambda = 0 and the host solves the step's contacts (with its
+check). Such a set starts the finish after :data:`.pgs.LARGE_FIRST_SWEEPS` sweeps, as on the
+host.
 Sweeps with friction that end above the tolerance stand, as they do on the host. The friction
 finish is one lane's work (its normal equations O(k^3) for k unknowns), for the sets
 :func:`.pgs.finishes_friction` names, as on the host. A sweep
@@ -52,8 +62,8 @@ from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
 from .options import friction_finish_on
 from .pgs import (_FBEST, _FCOUNT, _FOUT, FIRST_SWEEPS, FIWORK_ROWS, FRICTION_FINISHES, FRICTION_STEPS, FRICTION_SWEEPS,
-                  FWORK_ROWS, contact_update, face_substitute, finishes_friction, friction_finish, jacobi_change,
-                  row_delta)
+                  FWORK_ROWS, LARGE_SET_ROWS, contact_update, face_substitute, finishes_friction, first_sweeps_of,
+                  friction_finish, jacobi_change, row_delta)
 
 LANES = 32  # the block of device_pgs_kernel
 WIDE_LANES = 128  # the block of device_pgs_wide_kernel (W's check and the active set's products shared wider)
@@ -107,16 +117,19 @@ def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.flo
 
 @wp.func
 def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64),
-                            P: wp.array(dtype=wp.int32), m: int, lane: int, bd: int, gate: Any):
+                            P: wp.array(dtype=wp.int32), m: int, factorize: int, lane: int, bd: int, gate: Any):
     """1 if the leading m x m block of the symmetric W is usable by Gauss-Seidel (finite, positive
-    diagonal, a Cholesky factorization of W + 1e-10 max(diag W) I into L that succeeds), else 0:
-    :func:`..compliance.positive_definite` by the block (:func:`cholesky_columns`)."""
+    diagonal and, with ``factorize``, a Cholesky factorization of W + 1e-10 max(diag W) I into L
+    that succeeds), else 0: :func:`..compliance.positive_definite` by the block
+    (:func:`cholesky_columns`)."""
     dmax = F64(0.0)
     for i in range(m):
         d = W[i, i]
         if not (d > F64(0.0)) or not wp.isfinite(d):
             return 0
         dmax = wp.max(dmax, d)
+    if factorize == 0:
+        return 1
     return cholesky_columns(W, L, P, m, F64(1e-10) * dmax, 0, lane, bd, gate, 1)
 
 
@@ -353,6 +366,7 @@ def _block_solver(width: int) -> wp.Kernel:
         n_rows: wp.array(dtype=wp.int32),
         mu: wp.array(dtype=wp.float64),
         sizes: wp.array(dtype=wp.int32),
+        min_rows: int,
         max_iterations: int,
         tolerance: wp.float64,
         pyramid: int,
@@ -386,21 +400,28 @@ def _block_solver(width: int) -> wp.Kernel:
         bd = wp.block_dim()
         m = sizes[0]
         nc = sizes[1]
+        if m < min_rows or m > width:  # the set of the other kernel launched with this one
+            return
         dv = wp.tile_zeros(shape=width, dtype=wp.float64, storage="shared")
         gate = wp.tile_zeros(shape=LANES, dtype=wp.float64, storage="shared")
         info[0] = F64(0.0)
         info[1] = F64(0.0)
         info[2] = F64(0.0)
-        if block_positive_definite(W, L, iwork[_P], m, lane, bd, gate) == 0:
+        frictionless = int(nc == m)
+        # a large frictionless set: no factorization of the whole W first; the verdict is the
+        # solve's (within the tolerance or not), the active-set finish factorizing its faces
+        factorize = int(frictionless == 0 or m <= LARGE_SET_ROWS)
+        if block_positive_definite(W, L, iwork[_P], m, factorize, lane, bd, gate) == 0:
             for i in range(m):
                 lam[i] = F64(0.0)
             return
         for i in range(m):
             lam[i] = lam0[i]
-        frictionless = int(nc == m)
         finish = finishes_friction(m, nc, finish_friction)
         first = max_iterations
-        if frictionless != 0 or finish != 0:
+        if frictionless != 0:
+            first = first_sweeps_of(m, first_sweeps, max_iterations)
+        elif finish != 0:
             first = wp.min(first_sweeps, max_iterations)
         it, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, first, tolerance, pyramid, lane, bd, dv, gate)
         if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
@@ -442,13 +463,16 @@ def _block_solver(width: int) -> wp.Kernel:
                     more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, more_sweeps, tolerance,
                                                  pyramid, lane, bd, dv, gate)
                     it += more
+        usable = int(factorize != 0 or res <= tolerance)
         barrier(gate)
         for i in range(lane, m, bd):
             delta[i] = dv[i]
+            if usable == 0:  # unchecked and not solved within the tolerance: no correction
+                lam[i] = F64(0.0)
         if lane == 0:
             info[0] = F64(it)
             info[1] = res
-            info[2] = F64(1.0)
+            info[2] = F64(usable)
 
     return wp.Kernel(device_pgs, key=f"device_pgs_{width}")
 
@@ -457,9 +481,14 @@ device_pgs_kernel = _block_solver(SMALL)  # up to SMALL rows
 device_pgs_wide_kernel = _block_solver(BIG)  # up to BIG rows
 
 
-def pgs_kernel(rows: int) -> tuple[wp.Kernel, int]:
-    """The kernel of :func:`_block_solver` for buffers of ``rows`` rows, and its block's lanes."""
-    return (device_pgs_kernel, LANES) if rows <= SMALL else (device_pgs_wide_kernel, WIDE_LANES)
+def pgs_kernels(rows: int) -> list[tuple[wp.Kernel, int, int]]:
+    """The kernels of :func:`_block_solver` launched for buffers of ``rows`` rows, each with its
+    block's lanes and the fewest rows it solves: the narrow one, and beyond :data:`SMALL` rows
+    the wide one for the sets it does not take (each returns at once on the other's sets), so
+    that a set is solved by the kernel of its own size in one captured graph."""
+    if rows <= SMALL:
+        return [(device_pgs_kernel, LANES, 0)]
+    return [(device_pgs_kernel, LANES, 0), (device_pgs_wide_kernel, WIDE_LANES, SMALL + 1)]
 
 
 class DeviceLCP:
@@ -554,13 +583,13 @@ class DeviceLCP:
         """The LCP staged (:meth:`stage`) with the W in :attr:`W` (:func:`device_pgs_kernel`):
         lambda, delta and [sweeps, residual, W usable] into :attr:`lam`, :attr:`delta` and
         :attr:`info`. A launch only."""
-        kernel, lanes = pgs_kernel(self.rows)
-        wp.launch_tiled(kernel, dim=[1],
-                        inputs=[self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu, self.sizes,
-                                int(max_iterations), float(tolerance), int(bool(pyramid)), int(first_sweeps),
-                                int(bool(friction_finish)), self.L, self.work, self.iwork, self.fwork, self.fiwork,
-                                self.fA, self.fN, self.lam, self.delta, self.info], block_dim=lanes,
-                        device=self.device)
+        for kernel, lanes, min_rows in pgs_kernels(self.rows):
+            wp.launch_tiled(kernel, dim=[1],
+                            inputs=[self.W, self.d0, self.lam0, self.row_start, self.n_rows, self.mu, self.sizes,
+                                    int(min_rows), int(max_iterations), float(tolerance), int(bool(pyramid)),
+                                    int(first_sweeps), int(bool(friction_finish)), self.L, self.work, self.iwork,
+                                    self.fwork, self.fiwork, self.fA, self.fN, self.lam, self.delta, self.info],
+                            block_dim=lanes, device=self.device)
 
 
 def launch_args(options: dict, gpu: bool) -> tuple:

@@ -49,6 +49,19 @@ FRICTION_STEPS = 10  # with friction: the most steps of one active-set finish (P
 FRICTION_FINISHES = 2  # with friction: the most finishes a solve (PGS)
 FRICTION_SWEEPS = 20  # with friction: the sweeps between two finishes (PGS)
 FRICTION_FINISH_ROWS = 64  # with friction: the most rows finished (one thread's normal equations, O(rows^3))
+LARGE_SET_ROWS = 32  # a frictionless set of more rows starts its active-set finish after fewer sweeps:
+LARGE_FIRST_SWEEPS = 3  # a sweep costs a contact update per row, a face step from the warm start few
+
+
+@wp.func
+def first_sweeps_of(m: int, first_sweeps: int, max_iterations: int):
+    """The sweeps before the active-set finish of a frictionless LCP of m rows (``first_sweeps``
+    >= ``max_iterations``: sweeps only): ``first_sweeps``, at most :data:`LARGE_FIRST_SWEEPS`
+    beyond :data:`LARGE_SET_ROWS` rows; never more than ``max_iterations``."""
+    first = first_sweeps
+    if m > LARGE_SET_ROWS and first_sweeps < max_iterations:
+        first = wp.min(first_sweeps, LARGE_FIRST_SWEEPS)
+    return wp.min(first, max_iterations)
 
 
 @wp.func
@@ -712,7 +725,9 @@ class PGS:
     frictionless LCP (every contact one row), :func:`active_set` after ``first_sweeps`` of
     them.
 
-    A frictionless solve sweeps until the tolerance or ``first_sweeps``; if not converged, the
+    A frictionless solve sweeps until the tolerance or ``first_sweeps`` (at most
+    :data:`LARGE_FIRST_SWEEPS` for a set of more than :data:`LARGE_SET_ROWS` rows:
+    :func:`first_sweeps_of`); if not converged, the
     active-set method continues from the sweeps' lambda with the rest of ``max_iterations`` as
     its steps; if that does not finish within tolerance (see :func:`active_set`), the sweeps
     go on from the better of the two for what is left. A solve with friction rows sweeps up to
@@ -787,7 +802,7 @@ class PGS:
         finish = self.active_set and nc == m  # the contacts' rows partition the m rows: no friction rows
         if self.active_set and self.friction_active_set and nc < m:  # the kernel finishes it (or sweeps alone)
             return self._sweeps(lam0, m, nc, max_iterations, tolerance, pyramid, finish=True)
-        first = min(self.first_sweeps, max_iterations) if finish else max_iterations
+        first = first_sweeps_of(m, self.first_sweeps, int(max_iterations)) if finish else max_iterations
         lam, its, res = self._sweeps(lam0, m, nc, first, tolerance, pyramid)
         if res <= tolerance or not finish or its >= max_iterations:
             return lam, its, res

@@ -134,9 +134,9 @@ def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype
 
 
 # rows of the active-set method's work arrays (DeviceLCP.work: float64, DeviceLCP.iwork: int32)
-_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA = 0, 1, 2, 3, 4, 5, 6, 7, 8
+_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA, _SCALARS = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
 _PASSIVE, _P, _LOW, _FLAGS = 0, 1, 2, 3
-WORK_ROWS, IWORK_ROWS = 9, 4
+WORK_ROWS, IWORK_ROWS = 10, 4
 
 
 @wp.func
@@ -151,40 +151,28 @@ def block_rows_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.floa
 
 
 @wp.func
-def face_step(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), L: wp.array2d(dtype=wp.float64),
-              m: int, p: int, joined: int, work: wp.array2d(dtype=wp.float64), iwork: wp.array2d(dtype=wp.int32)):
-    """The scalar part of a face step of :func:`device_active_set` after W_PP's factorization
-    (one lane): s from the face solve with one step of refinement, then the ratio test over the
-    rows of P that s leaves <= 0. Returns 0: s is positive on P (lambda is to become s); 1:
-    lambda moved towards s, the rows reaching 0 first left P; 2: the row that just joined
-    leaves again without a step (stop)."""
+def face_ratio(L: wp.array2d(dtype=wp.float64), m: int, p: int, joined: int, work: wp.array2d(dtype=wp.float64),
+               iwork: wp.array2d(dtype=wp.int32)):
+    """The scalar part of a face step of :func:`device_active_set` (one lane), after the face
+    solve's x and its residual r (the lanes'): the refinement x2 (L L^T x2 = r), s = x + x2 on P,
+    then the ratio test over the rows of P that s leaves <= 0 (marked in ``low``, which the
+    lanes cleared), its step alpha into ``work[_SCALARS, 0]``. Returns 0: s is positive on P
+    (lambda is to become s); 1: lambda is to move towards s by alpha, the rows reaching 0
+    first leaving P (the lanes' :func:`face_move`); 2: the row that just joined leaves again
+    without a step (stop)."""
     zero = F64(0.0)
     lam = work[_LAM]
     s = work[_S]
-    b = work[_B]
     x = work[_X]
     x2 = work[_X2]
-    y = work[_Y]
-    r = work[_R]
     rat = work[_RAT]
-    passive = iwork[_PASSIVE]
     P = iwork[_P]
     low = iwork[_LOW]
-    for a in range(p):
-        b[a] = -d0[P[a]]
-    face_substitute(L, b, p, y, x)
-    for a in range(p):
-        t = b[a]
-        for c in range(p):
-            t -= W[P[a], P[c]] * x[c]
-        r[a] = t
-    face_substitute(L, r, p, y, x2)
+    face_substitute(L, work[_R], p, work[_Y], x2)
     for a in range(p):
         s[P[a]] = x[a] + x2[a]
     nlow = int(0)
     alpha = zero
-    for i in range(m):
-        low[i] = 0
     for a in range(p):
         i = P[a]
         if s[i] <= zero:
@@ -196,16 +184,12 @@ def face_step(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64), L
                 alpha = rat[i]
             low[i] = 1
             nlow += 1
+    work[_SCALARS, 0] = alpha
     if nlow == 0:
         return 0
     if alpha <= zero and joined >= 0:
         if low[joined] != 0 and rat[joined] <= alpha:
             return 2
-    for i in range(m):
-        lam[i] = lam[i] + alpha * (s[i] - lam[i])
-        if low[i] != 0 and rat[i] <= alpha:
-            lam[i] = zero
-            passive[i] = 0
     return 1
 
 
@@ -217,10 +201,11 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
     """:func:`.pgs.active_set` by the block (Lawson and Hanson's method from ``lam0``, the face
     problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
     refinement against W_PP): the same steps in the same order. The factorization and the
-    products W lambda are shared by the lanes (:func:`cholesky_columns`,
-    :func:`block_rows_delta`); the rest is lane 0's, whose verdicts the others read from
-    ``iwork[_FLAGS]`` after the block's barrier. Every lane calls it and gets the face solves
-    made; lambda goes to ``work[_LAM]``."""
+    products W lambda, the faces' residuals and the moves of lambda are shared by the lanes
+    (:func:`cholesky_columns`, :func:`block_rows_delta`, a row each); the triangular solves, the
+    ratio test and the choice of the row to join are lane 0's (:func:`face_ratio`), whose
+    verdicts the others read from ``iwork[_FLAGS]`` after the block's barrier. Every lane calls
+    it and gets the face solves made; lambda goes to ``work[_LAM]``."""
     zero = F64(0.0)
     lam = work[_LAM]
     s = work[_S]
@@ -232,20 +217,26 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
     for i in range(m):
         dmax = wp.max(dmax, W[i, i])
     shift = F64(1e-12) * dmax
-    if lane == 0:
-        for i in range(m):
-            lam[i] = wp.max(lam0[i], zero)
-            passive[i] = 0
-            if lam[i] > zero:
-                passive[i] = 1
+    for i in range(lane, m, bd):
+        lam[i] = wp.max(lam0[i], zero)
+        passive[i] = 0
+        if lam[i] > zero:
+            passive[i] = 1
     steps = int(0)
     joined = int(-1)
+    b = work[_B]
+    x = work[_X]
+    r = work[_R]
+    rat = work[_RAT]
+    low = iwork[_LOW]
     while steps < max_steps:
-        barrier(gate)  # lane 0's lambda and passive set written
+        barrier(gate)  # lambda and the passive set written
+        for i in range(lane, m, bd):
+            s[i] = zero
+            low[i] = 0
         if lane == 0:
             p = int(0)
             for i in range(m):
-                s[i] = zero
                 if passive[i] != 0:
                     P[p] = i
                     p += 1
@@ -256,18 +247,37 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
             steps += 1
             if cholesky_columns(W, L, P, p, shift, 1, lane, bd, gate, 1) == 0:
                 return steps
+            # the face solve (lane 0), its residual against W_PP (the lanes, a row each), the
+            # refinement and the ratio test (lane 0), the move of lambda (the lanes, a row each)
             if lane == 0:
-                flags[1] = face_step(W, d0, L, m, p, joined, work, iwork)
+                for a in range(p):
+                    b[a] = -d0[P[a]]
+                face_substitute(L, b, p, work[_Y], x)
+            barrier(gate)
+            for a in range(lane, p, bd):
+                t = b[a]
+                for c in range(p):
+                    t -= W[P[a], P[c]] * x[c]
+                r[a] = t
+            barrier(gate)
+            if lane == 0:
+                flags[1] = face_ratio(L, m, p, joined, work, iwork)
             barrier(gate)
             verdict = flags[1]
             if verdict == 2:
                 return steps
             if verdict == 1:
+                alpha = work[_SCALARS, 0]
+                for i in range(lane, m, bd):
+                    lam[i] = lam[i] + alpha * (s[i] - lam[i])
+                    if low[i] != 0 and rat[i] <= alpha:
+                        lam[i] = zero
+                        passive[i] = 0
+                barrier(gate)  # every row moved (the loop may end here)
                 joined = -1
                 continue
-        if lane == 0:
-            for i in range(m):
-                lam[i] = s[i]
+        for i in range(lane, m, bd):
+            lam[i] = s[i]
         barrier(gate)
         block_rows_delta(W, d0, lam, m, dv, lane, bd, gate)
         if lane == 0:

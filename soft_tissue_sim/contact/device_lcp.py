@@ -343,27 +343,18 @@ def _block_solver(width: int) -> wp.Kernel:
                 r = row_start[c]
                 k = n_rows[c]
                 ln, l1, l2, ch = contact_update(W, dv, lam, r, k, mu[c], pyramid)
-                dn = ln - lam[r]
-                d1 = zero
-                d2 = zero
-                if k == 3:
-                    d1 = l1 - lam[r + 1]
-                    d2 = l2 - lam[r + 2]
-                # every lane finds the same changes (the same reads); a contact that changes
-                # nothing is left without a barrier (most of a large set's, inactive)
-                if dn != zero or d1 != zero or d2 != zero:
-                    barrier(gate)  # every lane has read delta and lambda before any writes them
-                    # each row's lambda written before its column's move (a block-wide
-                    # operation: no lane reads it before every lane has written it)
-                    if dn != zero:
-                        lam[r] = ln
-                        wp.tile_axpy(dn, wp.tile_load(W[r], shape=width), dv)
-                    if d1 != zero:
-                        lam[r + 1] = l1
-                        wp.tile_axpy(d1, wp.tile_load(W[r + 1], shape=width), dv)
-                    if d2 != zero:
-                        lam[r + 2] = l2
-                        wp.tile_axpy(d2, wp.tile_load(W[r + 2], shape=width), dv)
+                barrier(gate)  # every lane has read delta and lambda before any writes them
+                for q in range(k):
+                    j = r + q
+                    value = ln
+                    if q == 1:
+                        value = l1
+                    elif q == 2:
+                        value = l2
+                    d = value - lam[j]
+                    if d != zero:
+                        wp.tile_axpy(d, wp.tile_load(W[j], shape=width), dv)
+                        lam[j] = value
                 change = wp.max(change, ch)
             it = sweep + 1
             res = F64(-1.0)

@@ -158,7 +158,7 @@ def face_ratio(L: wp.array2d(dtype=wp.float64), m: int, p: int, joined: int, wor
     then the ratio test over the rows of P that s leaves <= 0 (marked in ``low``, which the
     lanes cleared), its step alpha into ``work[_SCALARS, 0]``. Returns 0: s is positive on P
     (lambda is to become s); 1: lambda is to move towards s by alpha, the rows reaching 0
-    first leaving P (the lanes' :func:`face_move`); 2: the row that just joined leaves again
+    first leaving P (moved by the lanes, a row each); 2: the row that just joined leaves again
     without a step (stop)."""
     zero = F64(0.0)
     lam = work[_LAM]

@@ -614,7 +614,8 @@ class CorotationalFEM:
         # the fields hold their first k (nodes: len(nodes)) entries; their counts are rounded up
         # (_bucket) and the launches cover those entries alone
         b = _bucket(k)
-        sub.reserve({"ids": b, "tets": b, "Dm_inv": b, "volume": b, "nodes": sub.counts["nodes"] if nodes is None else _bucket(len(nodes))})
+        sub.reserve({"ids": b, "tets": b, "Dm_inv": b, "volume": b,
+                     "nodes": sub.counts["nodes"] if nodes is None else _bucket(len(nodes))})
         sub.host("ids")[:k] = ids
         np.take(self._rest_tets[1], ids, axis=0, out=sub.host("tets")[:k])
         np.take(self._element_host["Dm_inv"], ids, axis=0, out=sub.host("Dm_inv")[:k])
@@ -662,14 +663,8 @@ class CorotationalFEM:
 
     def system_product(self, p, y, z, alpha, beta, m_coef, k_coef) -> None:
         """z = alpha * A p + beta * y with A = m_coef M + k_coef K, filtered on fixed nodes."""
-        self._zero(self._Kp)
-        wp.launch(
-            stiffness_product_kernel,
-            self.tet_dim,
-            [self.n_tets_dev, p, self.free, self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
-             float(k_coef), float(m_coef) if self.consistent_mass else 0.0, self._Kp],
-            device=self.device,
-        )
+        self.zero_nodes(self._Kp)
+        self._stiffness(p, self.free, k_coef, m_coef if self.consistent_mass else 0.0, self._Kp)
         wp.launch(
             combine_kernel,
             self.node_dim,
@@ -680,15 +675,17 @@ class CorotationalFEM:
 
     def stiffness_product(self, p: wp.array, out: wp.array) -> None:
         """out = K p (unfiltered corotated stiffness, no mass): used for b and damping."""
-        self._zero(out)
-        wp.launch(
-            stiffness_product_kernel,
-            self.tet_dim,
-            [self.n_tets_dev, p, self._ones(), self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations, 1.0, 0.0, out],
-            device=self.device,
-        )
+        self.zero_nodes(out)
+        self._stiffness(p, self._ones(), 1.0, 0.0, out)
 
-    def _zero(self, out: wp.array) -> None:
+    def _stiffness(self, p: wp.array, free: wp.array, k_coef: float, m_coef: float, out: wp.array) -> None:
+        """out += k_coef K (free p) + m_coef M_consistent (free p): :func:`stiffness_product_kernel`
+        over the tets' capacity."""
+        wp.launch(stiffness_product_kernel, self.tet_dim,
+                  [self.n_tets_dev, p, free, self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho,
+                   self.rotations, float(k_coef), float(m_coef), out], device=self.device)
+
+    def zero_nodes(self, out: wp.array) -> None:
         """out[i] = 0 for the current nodes (a launch reading the count: capturable across sizes)."""
         wp.launch(zero_vectors_kernel, self.node_dim, [self.n_nodes_dev, out], device=self.device)
 
@@ -697,15 +694,9 @@ class CorotationalFEM:
 
     def mass_product(self, p: wp.array, out: wp.array) -> None:
         """out = M p (lumped or consistent, unfiltered)."""
-        self._zero(out)
+        self.zero_nodes(out)
         if self.consistent_mass:
-            wp.launch(
-                stiffness_product_kernel,
-                self.tet_dim,
-                [self.n_tets_dev, p, self._ones(), self.tets, self.Dm_inv, self.volume, self.mu, self.lam, self.rho, self.rotations,
-                 0.0, 1.0, out],
-                device=self.device,
-            )
+            self._stiffness(p, self._ones(), 0.0, 1.0, out)
         else:
             wp.launch(
                 combine_kernel,

@@ -574,20 +574,19 @@ class DenseInverse:
     def _empty_stores(self) -> tuple:
         return GrowArray(wp.float64, self.device, headroom=1.0), GrowArray(wp.float64, self.device, headroom=1.0)
 
-    def _reserve(self, n: int) -> bool:
+    def _reserve(self, n: int) -> None:
         """Store 0 and the rotated vector for n DOFs: where n > ld, reallocated with a new leading
         dimension (:func:`leading_dimension`; contents lost, the inverse in use still readable
         through :attr:`inv` until it is replaced; the second store and the single-precision copy
-        follow at their next use). Returns whether it reallocated."""
+        follow at their next use)."""
         if n <= self._ld:
-            return False
+            return
         ld = leading_dimension(n)
         self._store[1].release()
         self._full = self._full32 = self.inv32 = None
         self._ld = ld
         self._full = strided_square(self._store[0].view(ld * ld), ld, ld)
         self._s = wp.empty(ld, dtype=wp.float64, device=self.device)
-        return True
 
     def _view(self, k: int, n: int) -> wp.array:
         """The (n, n) view of store ``k`` with row stride ld."""

@@ -403,10 +403,10 @@ class BackwardEuler:
         if self.damping.mass > 0.0:
             fem.mass_product(self.v, self._Mv)
         else:
-            fem._zero(self._Mv)
+            fem.zero_nodes(self._Mv)
         wp.launch(_rhs_kernel, fem.node_dim,
-                  [fem.n_nodes_dev, self.f, self._zero, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass, self.k_coef, self.b],
-                  device=self.device)
+                  [fem.n_nodes_dev, self.f, self._zero, self._Mv, self._Kv, fem.free, dt, dt * self.damping.mass,
+                   self.k_coef, self.b], device=self.device)
         if self.node_rotations_in_build:
             fem.update_node_rotations()
 

@@ -13,16 +13,11 @@ import warp as wp
 
 from soft_tissue_sim import graphs
 from soft_tissue_sim.buffers import capacity_for
-from soft_tissue_sim.cg import BlockJacobiPreconditioner, DevicePCG, IdentityPreconditioner
+from soft_tissue_sim.cg import BlockJacobiPreconditioner, DevicePCG, IdentityPreconditioner, set_count_kernel
 
 DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 ROOM = 256  # the test operator's and vectors' capacity (fixed: their addresses hold)
 COUPLING = 1.0
-
-
-@wp.kernel
-def _count_kernel(count: wp.array(dtype=wp.int32), n: int):
-    count[0] = n
 
 
 @wp.kernel
@@ -73,7 +68,7 @@ class ChainOperator:
 
     def set_n(self, n):
         self.n = n
-        wp.launch(_count_kernel, 1, [self.count, int(n)], device=self.device)
+        wp.launch(set_count_kernel, 1, [self.count, int(n)], device=self.device)
 
     n_nodes = property(lambda self: self.n)
 

@@ -91,7 +91,8 @@ def parse_options(cfg) -> dict:
         if not isinstance(o[key], bool):
             raise ParameterError(f"contact {key} must be true or false, got {o[key]!r}")
     if not isinstance(o["friction_active_set"], bool) and o["friction_active_set"] != "auto":
-        raise ParameterError(f"contact friction_active_set must be true, false or auto, got {o['friction_active_set']!r}")
+        raise ParameterError("contact friction_active_set must be true, false or auto, got "
+                             f"{o['friction_active_set']!r}")
     if o["friction_cone"] not in ("disk", "pyramid"):
         raise ParameterError(f"contact friction_cone must be 'disk' or 'pyramid', got {o['friction_cone']!r}")
     if o["compliance"] not in COMPLIANCES:

@@ -100,7 +100,8 @@ class ContactSolver:
         # (record, lambda, node uids, node count) of the last step's contacts where they were solved
         # from device rows: their Contacts and warm start are made from it when asked for
         self._device_read = None
-        self._pgs = PGS(o["active_set"], friction_active_set=friction_finish_on(o, gpu=wp.get_device(self.device).is_cuda))
+        self._pgs = PGS(o["active_set"],
+                        friction_active_set=friction_finish_on(o, gpu=wp.get_device(self.device).is_cuda))
         self._device_lcp: DeviceLCP | None = None  # the device solve's buffers, made at its first use
         self._device_rows: DeviceRows | None = None  # the rows built on the device (device_rows), idem
         self._last_rows = 0  # the last step's constraint rows (where the next step's rows are built)

@@ -62,7 +62,7 @@ from ..buffers import GrowArray, PackedArrays, typed_view
 from .geometry import F64
 from .options import friction_finish_on
 from .pgs import (_FBEST, _FCOUNT, _FOUT, FIRST_SWEEPS, FIWORK_ROWS, FRICTION_FINISHES, FRICTION_STEPS, FRICTION_SWEEPS,
-                  FWORK_ROWS, LARGE_SET_ROWS, contact_update, face_substitute, finishes_friction, first_sweeps_of,
+                  FWORK_ROWS, LARGE_SET_ROWS, contact_update, finishes_friction, first_sweeps_of,
                   friction_finish, jacobi_change, row_delta)
 
 LANES = 32  # the block of device_pgs_kernel
@@ -85,58 +85,123 @@ def barrier(gate: Any):
 
 @wp.func
 def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
-                     p: int, shift: wp.float64, gathered: int, lane: int, bd: int, gate: Any, sync: int):
+                     p: int, shift: wp.float64, gathered: int, lane: int, bd: int, gate: Any):
     """The Cholesky factor of W's rows and columns P[0..p) (0..p unless ``gathered``) plus shift I
-    into L's leading p x p block, a column at a time: every lane its pivot, each lane its own
-    rows below it (``lane`` of ``bd``; one lane: 0 of 1), the block waiting at ``gate`` after
-    each column where ``sync`` (every lane calls it). 1, or 0 where it is not positive
-    definite. The same sums in the same order whatever the lanes."""
-    for j in range(p):
-        rj = j
+    into L's leading p x p block (lower triangle), by the block's lanes, each its own rows
+    (i = lane + k bd; one lane: 0 of 1): the rows' lower triangles copied in, then a column j
+    at a time (right-looking) the rows below it scaled by the pivot sqrt(L_jj), the block
+    waiting, and each row's entries right of j updated by the scaled column, the block waiting
+    again. Every entry gets the same subtractions in the same order as a left-looking
+    factorization (column k's products in order of k), whatever the lanes; no lane waits on a
+    chain of sums longer than its own row. 1, or 0 where it is not positive definite (every
+    lane reads the same pivot and returns alike). Every lane calls it."""
+    for i in range(lane, p, bd):
+        ri = i
         if gathered != 0:
-            rj = P[j]
-        s = W[rj, rj] + shift
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
+            ri = P[i]
+        for k in range(i + 1):
+            rk = k
+            if gathered != 0:
+                rk = P[k]
+            L[i, k] = W[ri, rk]
+        L[i, i] = L[i, i] + shift
+    barrier(gate)
+    for j in range(p):
+        s = L[j, j]
         if not (s > F64(0.0)) or not wp.isfinite(s):
             return 0
         ljj = wp.sqrt(s)
-        L[j, j] = ljj
-        for i in range(j + 1 + lane, p, bd):
-            ri = i
-            if gathered != 0:
-                ri = P[i]
-            t = W[ri, rj]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / ljj
-        if sync != 0:
-            barrier(gate)  # column j written before the next pivot reads it
+        for i in range(lane, p, bd):
+            if i > j:
+                L[i, j] = L[i, j] / ljj
+        barrier(gate)  # the column scaled before any row's update reads it
+        for i in range(lane, p, bd):
+            if i > j:
+                lij = L[i, j]
+                for k in range(j + 1, i + 1):
+                    L[i, k] = L[i, k] - lij * L[k, j]
+            elif i == j:
+                L[j, j] = ljj
+        barrier(gate)  # the rows updated before the next pivot is read
     return 1
 
 
 @wp.func
-def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64),
-                            P: wp.array(dtype=wp.int32), m: int, factorize: int, lane: int, bd: int, gate: Any):
-    """1 if the leading m x m block of the symmetric W is usable by Gauss-Seidel (finite, positive
-    diagonal and, with ``factorize``, a Cholesky factorization of W + 1e-10 max(diag W) I into L
-    that succeeds), else 0: :func:`..compliance.positive_definite` by the block
-    (:func:`cholesky_columns`)."""
+def block_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
+                     y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
+    """x with L L^T x = b (L's leading p x p block, lower; y: work) by the block's lanes, each its
+    own rows (i = lane + k bd): forward L y = b a column at a time (y_j from the row's sum so far,
+    then every later row less L_ij y_j; the sums in x), backward L^T x = y a row at a time from
+    the last (x_q, then every earlier row less L_qi x_q; the sums in y), the block waiting after
+    each. The same operations in the same order whatever the lanes. Every lane calls it; b is
+    left as it is."""
+    for i in range(lane, p, bd):
+        x[i] = b[i]
+    barrier(gate)
+    for j in range(p):
+        yj = x[j] / L[j, j]
+        for i in range(lane, p, bd):
+            if i > j:
+                x[i] = x[i] - L[i, j] * yj
+            elif i == j:
+                y[j] = yj
+        barrier(gate)
+    for q in range(p):
+        j = p - 1 - q
+        xj = y[j] / L[j, j]
+        for i in range(lane, p, bd):
+            if i < j:
+                y[i] = y[i] - L[j, i] * xj
+            elif i == j:
+                x[j] = xj
+        barrier(gate)
+
+
+@wp.func
+def block_diagonal(W: wp.array2d(dtype=wp.float64), m: int, part: Any, lane: int, bd: int, gate: Any):
+    """The largest diagonal entry of W's leading m x m block, or -1 where one is not positive
+    and finite: each lane its own rows, their verdicts in the shared tile ``part`` (one element
+    a lane), added up by every lane alike. Every lane calls it."""
     dmax = F64(0.0)
-    for i in range(m):
+    for i in range(lane, m, bd):
         d = W[i, i]
         if not (d > F64(0.0)) or not wp.isfinite(d):
-            return 0
-        dmax = wp.max(dmax, d)
+            dmax = F64(-1.0)
+        elif dmax >= F64(0.0):
+            dmax = wp.max(dmax, d)
+    barrier(gate)  # an earlier call's reads of part are over
+    part[lane] = dmax
+    barrier(gate)
+    out = F64(0.0)
+    for k in range(bd):
+        v = part[k]
+        if v < F64(0.0) or out < F64(0.0):
+            out = F64(-1.0)
+        else:
+            out = wp.max(out, v)
+    return out
+
+
+@wp.func
+def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64),
+                            P: wp.array(dtype=wp.int32), m: int, factorize: int, dmax: wp.float64, lane: int,
+                            bd: int, gate: Any):
+    """1 if the leading m x m block of the symmetric W is usable by Gauss-Seidel (finite, positive
+    diagonal: ``dmax``, :func:`block_diagonal`'s verdict, and, with ``factorize``, a Cholesky
+    factorization of W + 1e-10 max(diag W) I into L that succeeds), else 0:
+    :func:`..compliance.positive_definite` by the block (:func:`cholesky_columns`)."""
+    if dmax < F64(0.0):
+        return 0
     if factorize == 0:
         return 1
-    return cholesky_columns(W, L, P, m, F64(1e-10) * dmax, 0, lane, bd, gate, 1)
+    return cholesky_columns(W, L, P, m, F64(1e-10) * dmax, 0, lane, bd, gate)
 
 
 # rows of the active-set method's work arrays (DeviceLCP.work: float64, DeviceLCP.iwork: int32)
-_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA, _SCALARS = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
+# (and _DSW: delta of the frictionless sweeps)
+_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA, _SCALARS, _DSW = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
 _PASSIVE, _P, _LOW, _FLAGS = 0, 1, 2, 3
-WORK_ROWS, IWORK_ROWS = 10, 4
+WORK_ROWS, IWORK_ROWS = 11, 4
 
 
 @wp.func
@@ -151,10 +216,9 @@ def block_rows_delta(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.floa
 
 
 @wp.func
-def face_ratio(L: wp.array2d(dtype=wp.float64), m: int, p: int, joined: int, work: wp.array2d(dtype=wp.float64),
-               iwork: wp.array2d(dtype=wp.int32)):
+def face_ratio(m: int, p: int, joined: int, work: wp.array2d(dtype=wp.float64), iwork: wp.array2d(dtype=wp.int32)):
     """The scalar part of a face step of :func:`device_active_set` (one lane), after the face
-    solve's x and its residual r (the lanes'): the refinement x2 (L L^T x2 = r), s = x + x2 on P,
+    solve's x, its residual r and the refinement x2 (L L^T x2 = r; the lanes'): s = x + x2 on P,
     then the ratio test over the rows of P that s leaves <= 0 (marked in ``low``, which the
     lanes cleared), its step alpha into ``work[_SCALARS, 0]``. Returns 0: s is positive on P
     (lambda is to become s); 1: lambda is to move towards s by alpha, the rows reaching 0
@@ -168,7 +232,6 @@ def face_ratio(L: wp.array2d(dtype=wp.float64), m: int, p: int, joined: int, wor
     rat = work[_RAT]
     P = iwork[_P]
     low = iwork[_LOW]
-    face_substitute(L, work[_R], p, work[_Y], x2)
     for a in range(p):
         s[P[a]] = x[a] + x2[a]
     nlow = int(0)
@@ -196,16 +259,17 @@ def face_ratio(L: wp.array2d(dtype=wp.float64), m: int, p: int, joined: int, wor
 @wp.func
 def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                       L: wp.array2d(dtype=wp.float64), lam0: wp.array(dtype=wp.float64), m: int,
-                      tolerance: wp.float64, max_steps: int, work: wp.array2d(dtype=wp.float64),
+                      dmax: wp.float64, tolerance: wp.float64, max_steps: int, work: wp.array2d(dtype=wp.float64),
                       iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any):
     """:func:`.pgs.active_set` by the block (Lawson and Hanson's method from ``lam0``, the face
     problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
-    refinement against W_PP): the same steps in the same order. The factorization and the
-    products W lambda, the faces' residuals and the moves of lambda are shared by the lanes
-    (:func:`cholesky_columns`, :func:`block_rows_delta`, a row each); the triangular solves, the
-    ratio test and the choice of the row to join are lane 0's (:func:`face_ratio`), whose
-    verdicts the others read from ``iwork[_FLAGS]`` after the block's barrier. Every lane calls
-    it and gets the face solves made; lambda goes to ``work[_LAM]``."""
+    refinement against W_PP; ``dmax`` the largest diagonal entry of W): the same steps in the
+    same order. The factorization, the triangular solves, the products W lambda, the faces'
+    residuals and the moves of lambda are shared by the lanes (:func:`cholesky_columns`,
+    :func:`block_substitute`, :func:`block_rows_delta`, a row each); the ratio test and the
+    choice of the row to join are lane 0's (:func:`face_ratio`), whose verdicts the others read
+    from ``iwork[_FLAGS]`` after the block's barrier. Every lane calls it and gets the face
+    solves made; lambda goes to ``work[_LAM]``."""
     zero = F64(0.0)
     lam = work[_LAM]
     s = work[_S]
@@ -213,9 +277,6 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
     passive = iwork[_PASSIVE]
     P = iwork[_P]
     flags = iwork[_FLAGS]
-    dmax = zero
-    for i in range(m):
-        dmax = wp.max(dmax, W[i, i])
     shift = F64(1e-12) * dmax
     for i in range(lane, m, bd):
         lam[i] = wp.max(lam0[i], zero)
@@ -245,23 +306,22 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
         p = flags[0]
         if p > 0:
             steps += 1
-            if cholesky_columns(W, L, P, p, shift, 1, lane, bd, gate, 1) == 0:
+            if cholesky_columns(W, L, P, p, shift, 1, lane, bd, gate) == 0:
                 return steps
-            # the face solve (lane 0), its residual against W_PP (the lanes, a row each), the
-            # refinement and the ratio test (lane 0), the move of lambda (the lanes, a row each)
-            if lane == 0:
-                for a in range(p):
-                    b[a] = -d0[P[a]]
-                face_substitute(L, b, p, work[_Y], x)
-            barrier(gate)
+            # the face solve, its residual against W_PP and the refinement (the lanes, a row
+            # each), the ratio test (lane 0), the move of lambda (the lanes, a row each)
+            for a in range(lane, p, bd):
+                b[a] = -d0[P[a]]
+            block_substitute(L, b, p, work[_Y], x, lane, bd, gate)
             for a in range(lane, p, bd):
                 t = b[a]
                 for c in range(p):
                     t -= W[P[a], P[c]] * x[c]
                 r[a] = t
             barrier(gate)
+            block_substitute(L, r, p, work[_Y], work[_X2], lane, bd, gate)
             if lane == 0:
-                flags[1] = face_ratio(L, m, p, joined, work, iwork)
+                flags[1] = face_ratio(m, p, joined, work, iwork)
             barrier(gate)
             verdict = flags[1]
             if verdict == 2:
@@ -323,16 +383,114 @@ def _block_solver(width: int) -> wp.Kernel:
             dv[i] = d
 
     @wp.func
+    def block_frictionless_change(dv: Any, lam: wp.array(dtype=wp.float64), diag: Any, m: int, part: Any, lane: int,
+                                  bd: int, gate: Any):
+        """:func:`.pgs.jacobi_change` of a frictionless set (a row a contact) by the block: each
+        lane its own rows (``diag``: W's diagonal, a shared tile), the lanes' largest in ``part``,
+        taken by every lane alike (a largest is the same in any order)."""
+        res = F64(0.0)
+        for i in range(lane, m, bd):
+            li = lam[i]
+            ln = wp.max(F64(0.0), li - dv[i] / diag[i])
+            res = wp.max(res, diag[i] * wp.abs(ln - li))
+        barrier(gate)  # an earlier use of part is over
+        part[lane] = res
+        barrier(gate)
+        out = F64(0.0)
+        for k in range(bd):
+            out = wp.max(out, part[k])
+        return out
+
+    @wp.func
+    def block_frictionless_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
+                                  lam: wp.array(dtype=wp.float64), m: int, max_iterations: int,
+                                  tolerance: wp.float64, lane: int, bd: int, dv: Any, dg: wp.array(dtype=wp.float64),
+                                  diag: Any, part: Any, gate: Any):
+        """:func:`block_pgs_sweeps` for a frictionless set (row i the contact i): the same updates
+        in the same order, delta in the device array ``dg`` (each lane its own elements, i = lane
+        + k bd, written without the block's barrier a shared tile's element costs), W's diagonal
+        read from the shared tile ``diag``, and each row of W that moves delta read by the lanes
+        into registers (their elements lane and lane + bd) while the row before it is made, so
+        that no row waits for the device's memory; a row that does not change costs no barrier;
+        the residual by the lanes (:func:`block_frictionless_change`). delta ends in ``dv`` too."""
+        zero = F64(0.0)
+        barrier(gate)
+        for i in range(lane, m, bd):
+            dg[i] = row_delta(W, d0, lam, i, m)
+        barrier(gate)
+        it = int(0)
+        res = F64(-1.0)
+        i1 = lane + bd
+        for sweep in range(max_iterations):
+            change = zero
+            nxt0 = zero
+            nxt1 = zero
+            if lane < m:
+                nxt0 = W[0, lane]
+            if i1 < m:
+                nxt1 = W[0, i1]
+            for r in range(m):
+                w0 = nxt0
+                w1 = nxt1
+                if r + 1 < m:  # the next row's elements, in flight while this one is made
+                    if lane < m:
+                        nxt0 = W[r + 1, lane]
+                    if i1 < m:
+                        nxt1 = W[r + 1, i1]
+                lr = lam[r]
+                wr = diag[r]
+                ln = wp.max(zero, lr - dg[r] / wr)
+                change = wp.max(change, wr * wp.abs(ln - lr))
+                d = ln - lr
+                if d != zero:  # (the same d in every lane: the block waits, or none does)
+                    barrier(gate)  # every lane has read delta and lambda before any writes them
+                    if lane < m:
+                        dg[lane] = dg[lane] + d * w0
+                    if i1 < m:
+                        dg[i1] = dg[i1] + d * w1
+                    for i in range(lane + 2 * bd, m, bd):
+                        dg[i] = dg[i] + d * W[r, i]
+                    lam[r] = ln
+                    barrier(gate)  # delta moved before the next row reads it
+            it = sweep + 1
+            res = F64(-1.0)
+            if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
+                barrier(gate)  # every lane's last reads (rows without a change wait for none) are over
+                for i in range(lane, m, bd):
+                    dg[i] = row_delta(W, d0, lam, i, m)
+                barrier(gate)
+                res = block_frictionless_change(dg, lam, diag, m, part, lane, bd, gate)
+                if res <= tolerance:
+                    break
+        if res < zero:  # the sweeps ran out: the residual of where they stopped
+            barrier(gate)
+            for i in range(lane, m, bd):
+                dg[i] = row_delta(W, d0, lam, i, m)
+            barrier(gate)
+            res = block_frictionless_change(dg, lam, diag, m, part, lane, bd, gate)
+        for base in range(0, width, bd):  # every lane assigns in every round (see block_delta)
+            i = base + lane
+            v = F64(0.0)
+            if i < m:
+                v = dg[i]
+            dv[i] = v
+        return it, res
+
+    @wp.func
     def block_pgs_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                          row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
                          mu: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64), m: int, nc: int,
                          max_iterations: int, tolerance: wp.float64, pyramid: int, lane: int, bd: int, dv: Any,
-                         gate: Any):
+                         dg: wp.array(dtype=wp.float64), diag: Any, part: Any, gate: Any):
         """:func:`.pgs.pgs_sweeps` (contacts of one or three rows) by a block, from lambda in ``lam``
         (updated in place): every lane makes each contact's update (the same values from the same
         reads, written alike), and a changed row's column of W goes into delta (the shared tile
         ``dv``) by all of them, each lane its own elements; the same operations in the same order.
-        Returns (sweeps, residual); delta stays in ``dv``."""
+        Returns (sweeps, residual); delta stays in ``dv``. A frictionless set (nc == m): by
+        :func:`block_frictionless_sweeps`."""
+        if nc == m:
+            return block_frictionless_sweeps(W, d0, lam, m, max_iterations, tolerance, lane, bd, dv, dg, diag, part,
+                                             gate)
         zero = F64(0.0)
         block_delta(W, d0, lam, m, lane, bd, dv, gate)
         it = int(0)
@@ -414,6 +572,7 @@ def _block_solver(width: int) -> wp.Kernel:
             return
         dv = wp.tile_zeros(shape=width, dtype=wp.float64, storage="shared")
         gate = wp.tile_zeros(shape=LANES, dtype=wp.float64, storage="shared")
+        part = wp.tile_zeros(shape=WIDE_LANES, dtype=wp.float64, storage="shared")
         info[0] = F64(0.0)
         info[1] = F64(0.0)
         info[2] = F64(0.0)
@@ -421,7 +580,16 @@ def _block_solver(width: int) -> wp.Kernel:
         # a large frictionless set: no factorization of the whole W first; the verdict is the
         # solve's (within the tolerance or not), the active-set finish factorizing its faces
         factorize = int(frictionless == 0 or m <= LARGE_SET_ROWS)
-        if block_positive_definite(W, L, iwork[_P], m, factorize, lane, bd, gate) == 0:
+        dmax = block_diagonal(W, m, part, lane, bd, gate)
+        diag = wp.tile_zeros(shape=width, dtype=wp.float64, storage="shared")
+        if nc == m and dmax > F64(0.0):  # W's diagonal at hand for the frictionless sweeps
+            for base in range(0, width, bd):  # every lane assigns in every round (see block_delta)
+                i = base + lane
+                v = F64(1.0)
+                if i < m:
+                    v = W[i, i]
+                diag[i] = v
+        if block_positive_definite(W, L, iwork[_P], m, factorize, dmax, lane, bd, gate) == 0:
             for i in range(m):
                 lam[i] = F64(0.0)
             return
@@ -433,9 +601,11 @@ def _block_solver(width: int) -> wp.Kernel:
             first = first_sweeps_of(m, first_sweeps, max_iterations)
         elif finish != 0:
             first = wp.min(first_sweeps, max_iterations)
-        it, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, first, tolerance, pyramid, lane, bd, dv, gate)
+        it, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, first, tolerance, pyramid, lane, bd, dv,
+                                   work[_DSW], diag, part, gate)
         if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
-            it += device_active_set(W, d0, L, lam, m, tolerance, max_iterations - it, work, iwork, lane, bd, gate)
+            it += device_active_set(W, d0, L, lam, m, dmax, tolerance, max_iterations - it, work, iwork, lane, bd,
+                                    gate)
             la = work[_LAM]  # (lane 0's last writes precede a barrier)
             block_rows_delta(W, d0, la, m, work[_DELTA], lane, bd, gate)
             ra = jacobi_change(W, work[_DELTA], la, row_start, n_rows, mu, 0, nc)
@@ -446,7 +616,7 @@ def _block_solver(width: int) -> wp.Kernel:
                 block_delta(W, d0, lam, m, lane, bd, dv, gate)
             if res > tolerance and it < max_iterations:
                 more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, max_iterations - it, tolerance, 0,
-                                             lane, bd, dv, gate)
+                                             lane, bd, dv, work[_DSW], diag, part, gate)
                 it += more
         if finish != 0:
             for k in range(FRICTION_FINISHES):
@@ -471,7 +641,7 @@ def _block_solver(width: int) -> wp.Kernel:
                     if k + 1 < FRICTION_FINISHES:
                         more_sweeps = wp.min(FRICTION_SWEEPS, more_sweeps)
                     more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, more_sweeps, tolerance,
-                                                 pyramid, lane, bd, dv, gate)
+                                                 pyramid, lane, bd, dv, work[_DSW], diag, part, gate)
                     it += more
         usable = int(factorize != 0 or res <= tolerance)
         barrier(gate)

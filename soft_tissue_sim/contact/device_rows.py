@@ -8,10 +8,10 @@ between (one read a step).
 ``contact.device_lcp_rows`` rows, no mesh obstacle) the same rows are made here, launched
 right after the detection, the tangent rows of friction with them:
 
-1. :func:`active_slots_kernel` lists the active output slots (an atomic counter; the list is
-   sorted by slot in step 2, so the rows come in the host's order, slot order);
-2. :func:`device_rows_kernel` (one thread, at most ``limit`` rows) reads each slot's
-   contact as :func:`.detection.collect` does (node, object, triangle of the surface, the
+1. :func:`active_slots_kernel` lists the active output slots (an atomic counter, in no order;
+   step 2 ranks them by slot, so the rows come in the host's order, slot order);
+2. :func:`device_rows_kernel` (one block, each lane its slots, at most ``limit`` rows) reads
+   each slot's contact as :func:`.detection.collect` does (node, object, triangle of the surface, the
    barycentric weights), moves a self-collision contact's point and gap to the free motion
    (the triangle's point follows its nodes), drops the contacts whose nodes are all fixed,
    and writes the LCP's inputs into :class:`.device_lcp.DeviceLCP`'s device arrays (with a
@@ -49,6 +49,7 @@ RECORD = 20
 HEADER = 7  # active slots, contacts kept, overflow, self contacts, face contacts, pressed, rows
 MOTION = 5  # per object: the rows of M, c (its material point at p moved by M p + c in the step), (mu, 0, 0)
 _KIND_NODE, _KIND_FACE, _KIND_SELF = 0, 1, 2  # as detection.SlotMap.kind
+ROWS_LANES = 256  # the block of device_rows_kernel (the module's plain launches' block: one build)
 
 
 @wp.kernel
@@ -60,6 +61,57 @@ def active_slots_kernel(active: wp.array(dtype=wp.int32), cap: int, count: wp.ar
         i = wp.atomic_add(count, 0, 1)
         if i < cap:
             slots[i] = s
+
+
+@wp.func
+def slot_contact(s: int, slot_node: wp.array(dtype=wp.int32), slot_obj: wp.array(dtype=wp.int32),
+                 slot_kind: wp.array(dtype=wp.int32), slot_tri_row: wp.array(dtype=wp.int32),
+                 tris: wp.array(dtype=wp.vec3i), gap: wp.array(dtype=wp.float64), normal: wp.array(dtype=wp.vec3d),
+                 point: wp.array(dtype=wp.vec3d), tri: wp.array(dtype=wp.int32), bary: wp.array(dtype=wp.vec3d),
+                 x: wp.array(dtype=wp.vec3d), free: wp.array(dtype=wp.float64), motion: wp.array(dtype=wp.vec3d),
+                 scene_mu: wp.float64):
+    """The contact of active slot ``s`` as :func:`.detection.collect` reads it: (node, triangle
+    nodes, barycentric weights, normal, point, gap, the tissue point's weights on (node,
+    triangle nodes) in its relative displacement (zero where a node is absent) and the same
+    zeroed on fixed nodes (the Jacobian's), object, Coulomb coefficient, rows: 0 where every
+    node is fixed (dropped), 1, or 3 with a positive coefficient). A self contact's point and gap
+    follow the free motion ``x`` (the other surface is a tissue triangle)."""
+    kind = slot_kind[s]
+    node = slot_node[s]
+    row = slot_tri_row[s]
+    if kind == _KIND_SELF:
+        row = tri[s]
+    t = tris[row]
+    w = bary[s]
+    if kind == _KIND_NODE:
+        w = wp.vec3d(F64(0.0), F64(0.0), F64(0.0))
+    n = normal[s]
+    p = point[s]
+    g = gap[s]
+    sign = F64(1.0)
+    if kind == _KIND_SELF:
+        sign = F64(-1.0)
+        p = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]]
+        g = wp.dot(n, x[node] - p)
+    ws4 = wp.vec4d(F64(0.0), F64(0.0), F64(0.0), F64(0.0))
+    w4 = wp.vec4d(F64(0.0), F64(0.0), F64(0.0), F64(0.0))
+    if node >= 0:
+        ws4[0] = F64(1.0)
+        w4[0] = free[node]
+    for k in range(3):
+        if t[k] >= 0:
+            ws4[k + 1] = sign * w[k]
+            w4[k + 1] = ws4[k + 1] * free[t[k]]
+    obj = slot_obj[s]
+    mu_c = scene_mu
+    k_rows = int(0)
+    if wp.dot(w4, w4) > F64(0.0):
+        if obj >= 0:
+            mu_c = motion[MOTION * obj + 4][0]
+        k_rows = 1
+        if mu_c > F64(0.0):
+            k_rows = 3
+    return node, t, w, n, p, g, ws4, w4, obj, mu_c, k_rows
 
 
 @wp.kernel
@@ -85,6 +137,8 @@ def device_rows_kernel(
     warm_force: wp.array(dtype=wp.vec3d),
     warm_stamp: wp.array(dtype=wp.int32),
     epoch: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+    kr: wp.array(dtype=wp.int32),
     sizes: wp.array(dtype=wp.int32),
     row_start: wp.array(dtype=wp.int32),
     n_rows: wp.array(dtype=wp.int32),
@@ -96,91 +150,80 @@ def device_rows_kernel(
     record: wp.array2d(dtype=wp.float64),
     header: wp.array(dtype=wp.float64),
 ):
-    """The LCP's rows from the active slots (see the module docstring): a contact's normal row
-    and, where its coefficient (``motion``'s per object, ``scene_mu`` for a self contact) is
-    positive, its two tangent rows, whose delta^0 is the tissue point's motion in the step
-    (``x`` against ``x_start``) against the other surface's (an object's M p + c), as
-    :meth:`.solver.ContactSolver._respond` makes them. One thread. header[:3] = [active slots,
-    contacts kept, overflow (1: more than ``limit`` rows)], header[6] = the rows (on overflow,
-    at least the rows that did not fit)."""
+    """The LCP's rows from the active slots (see the module docstring), by one block
+    (``wp.launch_tiled``), each lane its own slots: a contact's normal row and, where its
+    coefficient (``motion``'s per object, ``scene_mu`` for a self contact) is positive, its two
+    tangent rows, whose delta^0 is the tissue point's motion in the step (``x`` against
+    ``x_start``) against the other surface's (an object's M p + c), as
+    :meth:`.solver.ContactSolver._respond` makes them, in ascending slot order: each slot's rank
+    among the active ones and its rows (:func:`slot_contact`) into ``order`` and ``kr``, the
+    block waits, then each contact's first row and index from the ranks below it. header[:3] =
+    [active slots, contacts kept, overflow (1: more than ``limit`` rows)], header[6] = the rows
+    (on overflow, at least the rows that did not fit)."""
+    _b, lane = wp.tid()
+    bd = wp.block_dim()
+    gate = wp.tile_zeros(shape=32, dtype=wp.float64, storage="shared")
     found = count[0]
-    sizes[0] = 0
-    sizes[1] = 0
-    header[0] = F64(float(found))
-    header[1] = F64(0.0)
-    header[2] = F64(0.0)
-    header[6] = F64(float(found))
+    if lane == 0:
+        sizes[0] = 0
+        sizes[1] = 0
+        header[0] = F64(float(found))
+        header[1] = F64(0.0)
+        header[2] = F64(0.0)
+        header[6] = F64(float(found))
     if found > limit:
-        header[2] = F64(1.0)
+        if lane == 0:
+            header[2] = F64(1.0)
         return
-    # the slots in ascending order (insertion sort of at most `limit` entries)
-    for i in range(1, found):
-        v = slots[i]
-        j = i
-        while j > 0:
-            u = slots[j - 1]
-            if u <= v:
-                break
-            slots[j] = u
-            j -= 1
-        slots[j] = v
-    e = epoch[0]
-    m = int(0)
-    rows = int(0)
-    for i in range(found):
+    for i in range(lane, found, bd):
         s = slots[i]
-        kind = slot_kind[s]
-        node = slot_node[s]
-        row = slot_tri_row[s]
-        if kind == _KIND_SELF:
-            row = tri[s]
-        t = tris[row]
-        w = bary[s]
-        if kind == _KIND_NODE:
-            w = wp.vec3d(F64(0.0), F64(0.0), F64(0.0))
-        n = normal[s]
-        p = point[s]
-        g = gap[s]
-        sign = F64(1.0)
-        if kind == _KIND_SELF:  # the other surface is a tissue triangle: it moves with the free motion
-            sign = F64(-1.0)
-            p = w[0] * x[t[0]] + w[1] * x[t[1]] + w[2] * x[t[2]]
-            g = wp.dot(n, x[node] - p)
-        # the tissue point's weights on (node, triangle nodes) in its relative displacement (ws4,
-        # zero where a node is absent) and, for the Jacobian, zeroed on fixed nodes (w4)
-        ws4 = wp.vec4d(F64(0.0), F64(0.0), F64(0.0), F64(0.0))
-        w4 = wp.vec4d(F64(0.0), F64(0.0), F64(0.0), F64(0.0))
-        if node >= 0:
-            ws4[0] = F64(1.0)
-            w4[0] = free[node]
-        for k in range(3):
-            if t[k] >= 0:
-                ws4[k + 1] = sign * w[k]
-                w4[k + 1] = ws4[k + 1] * free[t[k]]
-        if wp.dot(w4, w4) > F64(0.0):
-            obj = slot_obj[s]
-            mu_c = scene_mu
-            if obj >= 0:
-                mu_c = motion[MOTION * obj + 4][0]
-            k_rows = 1
-            if mu_c > F64(0.0):
-                k_rows = 3
-            if rows + k_rows > limit:
-                header[2] = F64(1.0)
-                header[6] = F64(float(rows + k_rows))
-                return
+        rank = int(0)
+        for j in range(found):
+            if slots[j] < s:
+                rank += 1
+        node, t, w, n, p, g, ws4, w4, obj, mu_c, k_rows = slot_contact(
+            s, slot_node, slot_obj, slot_kind, slot_tri_row, tris, gap, normal, point, tri, bary, x, free, motion,
+            scene_mu)
+        order[rank] = s
+        kr[rank] = k_rows
+    wp.tile_axpy(F64(0.0), gate, gate)  # every slot's rank and rows written before any is read
+    total = int(0)
+    kept = int(0)
+    for q in range(found):
+        total += kr[q]
+        if kr[q] > 0:
+            kept += 1
+    if total > limit:
+        if lane == 0:
+            header[2] = F64(1.0)
+            header[6] = F64(float(total))
+        return
+    e = epoch[0]
+    for q in range(lane, found, bd):
+        k_rows = kr[q]
+        if k_rows > 0:
+            rows = int(0)
+            m = int(0)
+            for u in range(q):
+                rows += kr[u]
+                if kr[u] > 0:
+                    m += 1
+            s = order[q]
+            node, t, w, n, p, g, ws4, w4, obj, mu_c, k_rows = slot_contact(
+                s, slot_node, slot_obj, slot_kind, slot_tri_row, tris, gap, normal, point, tri, bary, x, free, motion,
+                scene_mu)
             t1, t2 = tangent_frame(n)
-            for q in range(k_rows):
+            for r in range(k_rows):
                 d = n
-                if q == 1:
+                if r == 1:
                     d = t1
-                elif q == 2:
+                elif r == 2:
                     d = t2
-                nodes[rows + q, 0] = node
+                nodes[rows + r, 0] = node
                 for k in range(3):
-                    nodes[rows + q, k + 1] = t[k]
+                    nodes[rows + r, k + 1] = t[k]
                 for k in range(4):
-                    coef[rows + q, k] = w4[k] * d
+                    coef[rows + r, k] = w4[k] * d
             d0[rows] = g
             row_start[m] = rows
             n_rows[m] = k_rows
@@ -219,12 +262,11 @@ def device_rows_kernel(
                 record[m, 10 + k] = F64(float(t[k]))
                 record[m, 13 + k] = w[k]
             record[m, 9] = g
-            m += 1
-            rows += k_rows
-    sizes[0] = rows
-    sizes[1] = m
-    header[1] = F64(float(m))
-    header[6] = F64(float(rows))
+    if lane == 0:
+        sizes[0] = total
+        sizes[1] = kept
+        header[1] = F64(float(kept))
+        header[6] = F64(float(total))
 
 
 @wp.kernel
@@ -313,6 +355,8 @@ class DeviceRows:
         self.count = wp.zeros(1, dtype=wp.int32, device=d)
         self.epoch = wp.zeros(1, dtype=wp.int32, device=d)
         self.list = wp.zeros(max(self.rows, 1), dtype=wp.int32, device=d)
+        self._order = wp.zeros(max(self.rows, 1), dtype=wp.int32, device=d)  # the rows kernel's, by rank
+        self._kr = wp.zeros(max(self.rows, 1), dtype=wp.int32, device=d)
         self.record = wp.zeros((max(self.rows, 1), RECORD), dtype=wp.float64, device=d)
         self.header = wp.zeros(HEADER, dtype=wp.float64, device=d)
         self.wrench = wp.zeros((max(int(n_objects), 1), 6), dtype=wp.float64, device=d)
@@ -383,12 +427,13 @@ class DeviceRows:
         self.count.zero_()
         wp.launch(active_slots_kernel, out.active.shape[0], [out.active, self.list.shape[0], self.count, self.list],
                   device=d)
-        wp.launch(device_rows_kernel, 1,
-                  [self.count, self.list, int(limit), self.slot_node, self.slot_obj, self.slot_kind, self.slot_tri_row,
-                   self.tris, out.gap, out.normal, out.point, out.tri, out.bary, x, topo.x_start, free,
-                   self._motion.array, self.friction, self.warm_force, self.warm_stamp, self.epoch, lcp.sizes,
-                   lcp.row_start, lcp.n_rows, lcp.nodes, lcp.coef, lcp.d0, lcp.lam0, lcp.mu, self.record,
-                   self.header], device=d)
+        wp.launch_tiled(device_rows_kernel, dim=[1],
+                        inputs=[self.count, self.list, int(limit), self.slot_node, self.slot_obj, self.slot_kind,
+                                self.slot_tri_row, self.tris, out.gap, out.normal, out.point, out.tri, out.bary, x,
+                                topo.x_start, free, self._motion.array, self.friction, self.warm_force,
+                                self.warm_stamp, self.epoch, self._order, self._kr, lcp.sizes, lcp.row_start,
+                                lcp.n_rows, lcp.nodes, lcp.coef, lcp.d0, lcp.lam0, lcp.mu, self.record, self.header],
+                        block_dim=ROWS_LANES, device=d)
 
     def forces(self, lcp, origins: wp.array) -> None:
         """Step 4, after ``lcp``'s launch: the forces, the objects' wrenches about ``origins``

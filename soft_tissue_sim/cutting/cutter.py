@@ -17,7 +17,7 @@ from ..mesh import (TetMesh, all_four, centroids, edge_table_after_change, exten
                     interior_faces_after_split, tet_quality)
 from ..sherman_morrison import Modification
 from ..stats import CUT_PARTS, CutStats
-from .geometry import _path_planes, faces_cut_by_triangles, sweep_triangles, tets_near_box
+from .geometry import _path_planes, faces_cut_by_triangles, load_kernels, sweep_triangles, tets_near_box
 from .records import CutPlan, CutResult, Tissue, TopologyChange
 from .subdivision import CutState, faces_on_cut, subdivide_for_cut
 from .topology import split_along_faces
@@ -124,6 +124,8 @@ class Cutter:
             raise ParameterError(f"cutting lead must be a distance >= 0 [m], got {lead!r}")
         self.lead = None if lead is None else float(lead)
         self.script = self._parse_script(cfg.get("script"))
+        if self.scheme == "split":  # the faces a sweep cuts are found by a kernel on the CPU (first cut mid-run)
+            load_kernels()
         self.active = False
         self.correction = None
         inner = getattr(preconditioner, "inner", None)

@@ -1,6 +1,10 @@
-"""Blade geometry against the tets, host-side numpy on the tets near the blade (an AABB
-filter, then exact tests): which tets a blade triangle crosses, which interior faces a cut
-separates (``split``), where mesh edges cross the blade (``subdivide``).
+"""Blade geometry against the tets, on the host, on the tets near the blade (an AABB filter,
+then exact tests): which tets a blade triangle crosses, which interior faces a cut separates
+(``split``), where mesh edges cross the blade (``subdivide``). The exact tests are NumPy, and,
+for the faces a blade's sweep cuts (the split scheme's test of every step while a blade cuts),
+one launch of :func:`faces_cut_kernel` on Warp's CPU device over the tets near the blade: the
+same arithmetic in the same order, each sum and product its own statement (no fused
+multiply-add), so the same faces as the NumPy tests to the bit.
 
 Invariants: ``tol`` [m] widens every test the same way (a touching blade counts); degenerate
 blade triangles are dropped, never divided by; a tet's tests are row-wise arithmetic on its
@@ -9,10 +13,15 @@ own nodes, so which other tets are tested with it (the culling) changes no resul
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
+import warp as wp
 
 from ..mesh import cross
 from ..mesh import interior_faces as _interior_faces
+
+wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
 TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
@@ -202,6 +211,223 @@ def edge_crossings(P, edges, tris, tol):
     return t_out, which
 
 
+@wp.func
+def _dot3(u: wp.vec3d, v: wp.vec3d):
+    """:func:`_dot`: u0 v0 + u1 v1 + u2 v2 in that order, each operation its own statement."""
+    a = u[0] * v[0]
+    b = u[1] * v[1]
+    c = u[2] * v[2]
+    ab = a + b
+    return ab + c
+
+
+@wp.func
+def _cross3(u: wp.vec3d, v: wp.vec3d):
+    """:func:`..mesh.cross`: u_{j+1} v_{j+2} - u_{j+2} v_{j+1}."""
+    x0 = u[1] * v[2]
+    x1 = u[2] * v[1]
+    y0 = u[2] * v[0]
+    y1 = u[0] * v[2]
+    z0 = u[0] * v[1]
+    z1 = u[1] * v[0]
+    return wp.vec3d(x0 - x1, y0 - y1, z0 - z1)
+
+
+@wp.func
+def _in_triangle(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, tol: wp.float64):
+    """:func:`_in_triangles` for one point."""
+    v0 = b - a
+    v1 = c - a
+    v2 = p - a
+    d00 = _dot3(v0, v0)
+    d01 = _dot3(v0, v1)
+    d11 = _dot3(v1, v1)
+    d20 = _dot3(v2, v0)
+    d21 = _dot3(v2, v1)
+    q0 = d00 * d11
+    q1 = d01 * d01
+    den = q0 - q1
+    e0 = d11 * d20
+    e1 = d01 * d21
+    v = (e0 - e1) / den
+    f0 = d00 * d21
+    f1 = d01 * d20
+    w = (f0 - f1) / den
+    rel = tol / wp.sqrt(wp.max(d00, d11))
+    one = wp.float64(1.0) + rel
+    return v >= -rel and w >= -rel and v + w <= one
+
+
+@wp.func
+def _vertex(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, i: int):
+    r = X0
+    if i == 1:
+        r = X1
+    elif i == 2:
+        r = X2
+    elif i == 3:
+        r = X3
+    return r
+
+
+@wp.func
+def _section_meets(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, a: wp.vec3d, b: wp.vec3d,
+                   c: wp.vec3d, n: wp.vec3d, tol: wp.float64):
+    """:func:`_sections_meet_triangles` for one tet and one triangle (unit normal n)."""
+    d = wp.vec4d(_dot3(X0 - a, n), _dot3(X1 - a, n), _dot3(X2 - a, n), _dot3(X3 - a, n))
+    for e in range(6):  # the edges' crossings with the plane (TET_EDGES' order)
+        i = 0
+        j = 1
+        if e == 1:
+            j = 2
+        elif e == 2:
+            j = 3
+        elif e == 3:
+            i = 1
+            j = 2
+        elif e == 4:
+            i = 1
+            j = 3
+        elif e == 5:
+            i = 2
+            j = 3
+        di = d[i]
+        dj = d[j]
+        if di * dj < wp.float64(0.0):
+            t = di / (di - dj)
+            Xi = _vertex(X0, X1, X2, X3, i)
+            p = Xi + t * (_vertex(X0, X1, X2, X3, j) - Xi)
+            p = p - _dot3(p - a, n) * n
+            if _in_triangle(p, a, b, c, tol):
+                return True
+    for i in range(4):  # the vertices on the plane
+        if wp.abs(d[i]) <= tol:
+            p = _vertex(X0, X1, X2, X3, i)
+            p = p - _dot3(p - a, n) * n
+            if _in_triangle(p, a, b, c, tol):
+                return True
+    # the triangle's edges through the tet (_segments_meet_tets): each face's inward normal
+    for s in range(3):
+        p0 = a
+        p1 = b
+        if s == 1:
+            p0 = b
+            p1 = c
+        elif s == 2:
+            p0 = c
+            p1 = a
+        tmin = wp.float64(0.0)
+        tmax = wp.float64(1.0)
+        lo = wp.float64(0.0)
+        hi = wp.float64(1.0)
+        away = False
+        for f in range(4):
+            i0 = 0  # the face's vertices: the tet's others, in order (_OTHERS)
+            i1 = 1
+            i2 = 2
+            if f == 0:
+                i0 = 1
+            if f <= 1:
+                i1 = 2
+            if f <= 2:
+                i2 = 3
+            o0 = _vertex(X0, X1, X2, X3, i0)
+            o1 = _vertex(X0, X1, X2, X3, i1)
+            o2 = _vertex(X0, X1, X2, X3, i2)
+            fn = _cross3(o1 - o0, o2 - o0)
+            sg = _dot3(fn, _vertex(X0, X1, X2, X3, f) - o0)
+            sign = wp.float64(0.0)
+            if sg > wp.float64(0.0):
+                sign = wp.float64(1.0)
+            elif sg < wp.float64(0.0):
+                sign = wp.float64(-1.0)
+            fn = fn * sign
+            widen = tol * wp.sqrt(_dot3(fn, fn))
+            h0 = _dot3(fn, p0 - o0) + widen
+            dh = _dot3(fn, p1 - p0)
+            if dh > wp.float64(0.0):
+                lo = wp.max(lo, -h0 / dh)
+            elif dh < wp.float64(0.0):
+                hi = wp.min(hi, -h0 / dh)
+            elif h0 < wp.float64(0.0):
+                away = True
+        tmin = wp.max(lo, wp.float64(0.0))
+        tmax = wp.min(hi, wp.float64(1.0))
+        if not away and tmin <= tmax:
+            return True
+    return False
+
+
+@wp.func
+def _side(P: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int64), t: wp.int64, a: wp.vec3d, n: wp.vec3d):
+    """Whether tet t's centroid (its nodes summed in order, over 4) is on the positive side of
+    the plane through a with normal n (or on it)."""
+    s = P[int(tets[t, 0])] + P[int(tets[t, 1])]
+    s = s + P[int(tets[t, 2])]
+    s = s + P[int(tets[t, 3])]
+    return _dot3(s / wp.float64(4.0) - a, n) >= wp.float64(0.0)
+
+
+@wp.kernel
+def faces_cut_kernel(P: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int64), near: wp.array(dtype=wp.int64),
+                     tris: wp.array2d(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3d), tol: wp.float64,
+                     tet_face: wp.array2d(dtype=wp.int64), pairs: wp.array2d(dtype=wp.int64),
+                     cut: wp.array(dtype=wp.int32)):
+    """For the tet near[i] and the blade triangle k: where its box, the triangle's widened by
+    ``tol``, meet (:func:`_near_triangles`), its vertices lie on both sides of the triangle's
+    plane (+tol), one of its interior faces lies between tets on opposite sides of that plane
+    (their centroids) and its section by the plane overlaps the triangle
+    (:func:`_section_meets`), those faces are cut (cut[face] = 1)."""
+    i, k = wp.tid()
+    t = near[i]
+    X0 = P[int(tets[t, 0])]
+    X1 = P[int(tets[t, 1])]
+    X2 = P[int(tets[t, 2])]
+    X3 = P[int(tets[t, 3])]
+    a = tris[k, 0]
+    b = tris[k, 1]
+    c = tris[k, 2]
+    n = nrm[k]
+    for ax in range(3):
+        lo = wp.min(wp.min(a[ax], b[ax]), c[ax]) - tol
+        hi = wp.max(wp.max(a[ax], b[ax]), c[ax]) + tol
+        if X0[ax] < lo and X1[ax] < lo and X2[ax] < lo and X3[ax] < lo:
+            return
+        if X0[ax] > hi and X1[ax] > hi and X2[ax] > hi and X3[ax] > hi:
+            return
+    d0 = _dot3(X0 - a, n)
+    d1 = _dot3(X1 - a, n)
+    d2 = _dot3(X2 - a, n)
+    d3 = _dot3(X3 - a, n)
+    if not (wp.min(wp.min(d0, d1), wp.min(d2, d3)) <= tol and wp.max(wp.max(d0, d1), wp.max(d2, d3)) >= -tol):
+        return
+    parts = wp.vec4i(0, 0, 0, 0)
+    some = int(0)
+    for q in range(4):
+        f = tet_face[t, q]
+        if f >= wp.int64(0):
+            if _side(P, tets, pairs[f, 0], a, n) != _side(P, tets, pairs[f, 1], a, n):
+                parts[q] = 1
+                some = 1
+    if some == 0:
+        return
+    if _section_meets(X0, X1, X2, X3, a, b, c, n, tol):
+        for q in range(4):
+            if parts[q] != 0:
+                cut[int(tet_face[t, q])] = 1
+
+
+def _vec3(a: np.ndarray, shape) -> wp.array:
+    """A float64 (..., 3) array as a Warp vec3d array on the CPU (no copy where contiguous)."""
+    return wp.array(np.ascontiguousarray(a, np.float64), dtype=wp.vec3d, shape=shape, device="cpu", copy=False)
+
+
+def load_kernels() -> None:
+    """This module's kernel built (or loaded from the cache) for the CPU, where it runs: before a
+    simulation's first step, not in the middle of one."""
+    wp.load_module(sys.modules[__name__], device="cpu")
+
+
 def faces_cut_by_triangles(P, tets, tris, tol, faces=None, normals=None):
     """The interior faces a blade separates (``split``): for each blade triangle, the faces
     between tets on opposite sides of its plane (the sign of their centroid's distance) of which
@@ -217,18 +443,12 @@ def faces_cut_by_triangles(P, tets, tris, tol, faces=None, normals=None):
     tris, nrm = _path_planes(tris) if normals is None else (tris, normals)
     if not len(tris):
         return pairs, fnodes, cut
-    cand, owner, X = _candidates(P, tets, tris, nrm, tol)
-    if not len(cand):
+    near = _near_blade(P, tets, tris.reshape(-1, 3), tol)  # the box of the whole path first
+    if not len(near):
         return pairs, fnodes, cut
-    F = tet_face[cand]  # (k, 4): the candidates' faces (-1: on the boundary), each with its triangle
-    inner = F >= 0
-    f, k = F[inner], np.broadcast_to(owner[:, None], F.shape)[inner]
-    k2 = np.repeat(k, 2)
-    side = _dot(P[tets[pairs[f].ravel()]].mean(axis=1) - tris[k2, 0], nrm[k2]).reshape(-1, 2) >= 0.0
-    parts = np.zeros(F.shape, bool)  # the candidate's face lies between tets on opposite sides
-    parts[inner] = side[:, 0] != side[:, 1]
-    test = np.flatnonzero(parts.any(axis=1))  # only a candidate with such a face can cut one
-    if len(test):
-        hit = test[_sections_meet_triangles(X[test], tris[owner[test]], nrm[owner[test]], tol)]
-        cut[F[hit][parts[hit]]] = True
-    return pairs, fnodes, cut
+    mask = np.zeros(len(pairs), np.int32)
+    i64 = lambda a: wp.array(np.ascontiguousarray(a, np.int64), dtype=wp.int64, device="cpu", copy=False)  # noqa: E731
+    wp.launch(faces_cut_kernel, (len(near), len(tris)),
+              [_vec3(P, len(P)), i64(tets), i64(near), _vec3(tris, tris.shape[:2]), _vec3(nrm, len(nrm)), float(tol),
+               i64(tet_face), i64(pairs), wp.array(mask, dtype=wp.int32, device="cpu", copy=False)], device="cpu")
+    return pairs, fnodes, mask.astype(bool)

@@ -85,16 +85,17 @@ def barrier(gate: Any):
 
 @wp.func
 def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
-                     p: int, shift: wp.float64, gathered: int, lane: int, bd: int, gate: Any):
+                     p: int, shift: wp.float64, gathered: int, lane: int, bd: int, gate: Any, col: Any, width: int):
     """The Cholesky factor of W's rows and columns P[0..p) (0..p unless ``gathered``) plus shift I
-    into L's leading p x p block (lower triangle), by the block's lanes, each its own rows
-    (i = lane + k bd; one lane: 0 of 1): the rows' lower triangles copied in, then a column j
-    at a time (right-looking) the rows below it scaled by the pivot sqrt(L_jj), the block
-    waiting, and each row's entries right of j updated by the scaled column, the block waiting
-    again. Every entry gets the same subtractions in the same order as a left-looking
-    factorization (column k's products in order of k), whatever the lanes; no lane waits on a
-    chain of sums longer than its own row. 1, or 0 where it is not positive definite (every
-    lane reads the same pivot and returns alike). Every lane calls it."""
+    into L's leading p x p block (lower triangle), by the block's lanes (``lane`` of ``bd``; one
+    lane: 0 of 1): the rows' lower triangles copied in (each lane its own rows), then a column j
+    at a time (right-looking) the column below the pivot sqrt(L_jj) scaled into the shared tile
+    ``col`` (``width`` elements, every lane assigning in every round), and the entries right of
+    j updated by it, the trailing block's entries dealt out to the lanes, the block waiting
+    after each column. Every entry gets the same subtractions in the same order as a
+    left-looking factorization (column k's products in order of k), whatever the lanes. 1, or 0
+    where it is not positive definite (every lane reads the same pivot and returns alike).
+    Every lane calls it."""
     for i in range(lane, p, bd):
         ri = i
         if gathered != 0:
@@ -111,50 +112,70 @@ def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.flo
         if not (s > F64(0.0)) or not wp.isfinite(s):
             return 0
         ljj = wp.sqrt(s)
+        for base in range(0, width, bd):  # the scaled column, shared (each assignment waits for the block)
+            i = base + lane
+            v = F64(0.0)
+            if i > j and i < p:
+                v = L[i, j] / ljj
+            col[i] = v
+        nn = p - j - 1
+        for e in range(lane, nn * nn, bd):  # the trailing block's lower triangle, an entry a lane at a time
+            i = j + 1 + e // nn
+            k = j + 1 + e % nn
+            if k <= i:
+                L[i, k] = L[i, k] - col[i] * col[k]
         for i in range(lane, p, bd):
             if i > j:
-                L[i, j] = L[i, j] / ljj
-        barrier(gate)  # the column scaled before any row's update reads it
-        for i in range(lane, p, bd):
-            if i > j:
-                lij = L[i, j]
-                for k in range(j + 1, i + 1):
-                    L[i, k] = L[i, k] - lij * L[k, j]
+                L[i, j] = col[i]
             elif i == j:
                 L[j, j] = ljj
-        barrier(gate)  # the rows updated before the next pivot is read
+        barrier(gate)  # the block updated before the next pivot is read
     return 1
 
 
 @wp.func
 def block_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
-                     y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
-    """x with L L^T x = b (L's leading p x p block, lower; y: work) by the block's lanes, each its
-    own rows (i = lane + k bd): forward L y = b a column at a time (y_j from the row's sum so far,
-    then every later row less L_ij y_j; the sums in x), backward L^T x = y a row at a time from
-    the last (x_q, then every earlier row less L_qi x_q; the sums in y), the block waiting after
-    each. The same operations in the same order whatever the lanes. Every lane calls it; b is
-    left as it is."""
-    for i in range(lane, p, bd):
-        x[i] = b[i]
-    barrier(gate)
+                     y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), lane: int, bd: int, vec: Any,
+                     width: int):
+    """x with L L^T x = b (L's leading p x p block, lower; y: work) by the block's lanes, the
+    running sums in the shared tile ``vec`` (``width`` elements; each lane its own, assigning in
+    every round, which makes the block wait): forward L y = b a column at a time (y_j from the
+    row's sum so far, then every later row less L_ij y_j), backward L^T x = y a row at a time
+    from the last (x_q, then every earlier row less L_qi x_q). The same operations in the same
+    order whatever the lanes. Every lane calls it; b is left as it is."""
+    for base in range(0, width, bd):
+        i = base + lane
+        v = F64(0.0)
+        if i < p:
+            v = b[i]
+        vec[i] = v
     for j in range(p):
-        yj = x[j] / L[j, j]
-        for i in range(lane, p, bd):
-            if i > j:
-                x[i] = x[i] - L[i, j] * yj
-            elif i == j:
-                y[j] = yj
-        barrier(gate)
+        yj = vec[j] / L[j, j]
+        if lane == j % bd:
+            y[j] = yj
+        for base in range(0, width, bd):
+            i = base + lane
+            v = vec[i]
+            if i > j and i < p:
+                v = v - L[i, j] * yj
+            vec[i] = v
+    for base in range(0, width, bd):  # y, as the lanes wrote it (the last assignment made them wait)
+        i = base + lane
+        v = F64(0.0)
+        if i < p:
+            v = y[i]
+        vec[i] = v
     for q in range(p):
         j = p - 1 - q
-        xj = y[j] / L[j, j]
-        for i in range(lane, p, bd):
+        xj = vec[j] / L[j, j]
+        if lane == j % bd:
+            x[j] = xj
+        for base in range(0, width, bd):
+            i = base + lane
+            v = vec[i]
             if i < j:
-                y[i] = y[i] - L[j, i] * xj
-            elif i == j:
-                x[j] = xj
-        barrier(gate)
+                v = v - L[j, i] * xj
+            vec[i] = v
 
 
 @wp.func
@@ -185,7 +206,7 @@ def block_diagonal(W: wp.array2d(dtype=wp.float64), m: int, part: Any, lane: int
 @wp.func
 def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64),
                             P: wp.array(dtype=wp.int32), m: int, factorize: int, dmax: wp.float64, lane: int,
-                            bd: int, gate: Any):
+                            bd: int, gate: Any, col: Any, width: int):
     """1 if the leading m x m block of the symmetric W is usable by Gauss-Seidel (finite, positive
     diagonal: ``dmax``, :func:`block_diagonal`'s verdict, and, with ``factorize``, a Cholesky
     factorization of W + 1e-10 max(diag W) I into L that succeeds), else 0:
@@ -194,14 +215,13 @@ def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype
         return 0
     if factorize == 0:
         return 1
-    return cholesky_columns(W, L, P, m, F64(1e-10) * dmax, 0, lane, bd, gate)
+    return cholesky_columns(W, L, P, m, F64(1e-10) * dmax, 0, lane, bd, gate, col, width)
 
 
 # rows of the active-set method's work arrays (DeviceLCP.work: float64, DeviceLCP.iwork: int32)
-# (and _DSW: delta of the frictionless sweeps)
-_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA, _SCALARS, _DSW = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
+_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA, _SCALARS = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
 _PASSIVE, _P, _LOW, _FLAGS = 0, 1, 2, 3
-WORK_ROWS, IWORK_ROWS = 11, 4
+WORK_ROWS, IWORK_ROWS = 10, 4
 
 
 @wp.func
@@ -260,7 +280,7 @@ def face_ratio(m: int, p: int, joined: int, work: wp.array2d(dtype=wp.float64), 
 def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                       L: wp.array2d(dtype=wp.float64), lam0: wp.array(dtype=wp.float64), m: int,
                       dmax: wp.float64, tolerance: wp.float64, max_steps: int, work: wp.array2d(dtype=wp.float64),
-                      iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any):
+                      iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any, col: Any, width: int):
     """:func:`.pgs.active_set` by the block (Lawson and Hanson's method from ``lam0``, the face
     problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
     refinement against W_PP; ``dmax`` the largest diagonal entry of W): the same steps in the
@@ -306,20 +326,20 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
         p = flags[0]
         if p > 0:
             steps += 1
-            if cholesky_columns(W, L, P, p, shift, 1, lane, bd, gate) == 0:
+            if cholesky_columns(W, L, P, p, shift, 1, lane, bd, gate, col, width) == 0:
                 return steps
             # the face solve, its residual against W_PP and the refinement (the lanes, a row
             # each), the ratio test (lane 0), the move of lambda (the lanes, a row each)
             for a in range(lane, p, bd):
                 b[a] = -d0[P[a]]
-            block_substitute(L, b, p, work[_Y], x, lane, bd, gate)
+            block_substitute(L, b, p, work[_Y], x, lane, bd, col, width)
             for a in range(lane, p, bd):
                 t = b[a]
                 for c in range(p):
                     t -= W[P[a], P[c]] * x[c]
                 r[a] = t
             barrier(gate)
-            block_substitute(L, r, p, work[_Y], work[_X2], lane, bd, gate)
+            block_substitute(L, r, p, work[_Y], work[_X2], lane, bd, col, width)
             if lane == 0:
                 flags[1] = face_ratio(m, p, joined, work, iwork)
             barrier(gate)
@@ -404,20 +424,16 @@ def _block_solver(width: int) -> wp.Kernel:
     @wp.func
     def block_frictionless_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                                   lam: wp.array(dtype=wp.float64), m: int, max_iterations: int,
-                                  tolerance: wp.float64, lane: int, bd: int, dv: Any, dg: wp.array(dtype=wp.float64),
-                                  diag: Any, part: Any, gate: Any):
+                                  tolerance: wp.float64, lane: int, bd: int, dv: Any, diag: Any, part: Any,
+                                  gate: Any):
         """:func:`block_pgs_sweeps` for a frictionless set (row i the contact i): the same updates
-        in the same order, delta in the device array ``dg`` (each lane its own elements, i = lane
-        + k bd, written without the block's barrier a shared tile's element costs), W's diagonal
-        read from the shared tile ``diag``, and each row of W that moves delta read by the lanes
-        into registers (their elements lane and lane + bd) while the row before it is made, so
-        that no row waits for the device's memory; a row that does not change costs no barrier;
-        the residual by the lanes (:func:`block_frictionless_change`). delta ends in ``dv`` too."""
+        in the same order, delta in the shared tile ``dv``, W's diagonal read from the shared tile
+        ``diag``, and each row of W that moves delta read by the lanes into registers (their
+        elements lane and lane + bd) while the row before it is made, so that no row waits for
+        the device's memory; a row that does not change makes no lane wait; the residual by the
+        lanes (:func:`block_frictionless_change`)."""
         zero = F64(0.0)
-        barrier(gate)
-        for i in range(lane, m, bd):
-            dg[i] = row_delta(W, d0, lam, i, m)
-        barrier(gate)
+        block_delta(W, d0, lam, m, lane, bd, dv, gate)
         it = int(0)
         res = F64(-1.0)
         i1 = lane + bd
@@ -439,41 +455,33 @@ def _block_solver(width: int) -> wp.Kernel:
                         nxt1 = W[r + 1, i1]
                 lr = lam[r]
                 wr = diag[r]
-                ln = wp.max(zero, lr - dg[r] / wr)
+                ln = wp.max(zero, lr - dv[r] / wr)
                 change = wp.max(change, wr * wp.abs(ln - lr))
                 d = ln - lr
                 if d != zero:  # (the same d in every lane: the block waits, or none does)
                     barrier(gate)  # every lane has read delta and lambda before any writes them
-                    if lane < m:
-                        dg[lane] = dg[lane] + d * w0
-                    if i1 < m:
-                        dg[i1] = dg[i1] + d * w1
-                    for i in range(lane + 2 * bd, m, bd):
-                        dg[i] = dg[i] + d * W[r, i]
+                    for base in range(0, width, bd):  # each assignment waits for the block
+                        i = base + lane
+                        v = dv[i]
+                        if i < m:
+                            w = w0
+                            if base == bd:
+                                w = w1
+                            elif base > bd:
+                                w = W[r, i]
+                            v = v + d * w
+                        dv[i] = v
                     lam[r] = ln
-                    barrier(gate)  # delta moved before the next row reads it
             it = sweep + 1
             res = F64(-1.0)
             if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-                barrier(gate)  # every lane's last reads (rows without a change wait for none) are over
-                for i in range(lane, m, bd):
-                    dg[i] = row_delta(W, d0, lam, i, m)
-                barrier(gate)
-                res = block_frictionless_change(dg, lam, diag, m, part, lane, bd, gate)
+                block_delta(W, d0, lam, m, lane, bd, dv, gate)  # (its barrier: rows without a change wait for none)
+                res = block_frictionless_change(dv, lam, diag, m, part, lane, bd, gate)
                 if res <= tolerance:
                     break
         if res < zero:  # the sweeps ran out: the residual of where they stopped
-            barrier(gate)
-            for i in range(lane, m, bd):
-                dg[i] = row_delta(W, d0, lam, i, m)
-            barrier(gate)
-            res = block_frictionless_change(dg, lam, diag, m, part, lane, bd, gate)
-        for base in range(0, width, bd):  # every lane assigns in every round (see block_delta)
-            i = base + lane
-            v = F64(0.0)
-            if i < m:
-                v = dg[i]
-            dv[i] = v
+            block_delta(W, d0, lam, m, lane, bd, dv, gate)
+            res = block_frictionless_change(dv, lam, diag, m, part, lane, bd, gate)
         return it, res
 
     @wp.func
@@ -481,7 +489,7 @@ def _block_solver(width: int) -> wp.Kernel:
                          row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
                          mu: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64), m: int, nc: int,
                          max_iterations: int, tolerance: wp.float64, pyramid: int, lane: int, bd: int, dv: Any,
-                         dg: wp.array(dtype=wp.float64), diag: Any, part: Any, gate: Any):
+                         diag: Any, part: Any, gate: Any):
         """:func:`.pgs.pgs_sweeps` (contacts of one or three rows) by a block, from lambda in ``lam``
         (updated in place): every lane makes each contact's update (the same values from the same
         reads, written alike), and a changed row's column of W goes into delta (the shared tile
@@ -489,8 +497,7 @@ def _block_solver(width: int) -> wp.Kernel:
         Returns (sweeps, residual); delta stays in ``dv``. A frictionless set (nc == m): by
         :func:`block_frictionless_sweeps`."""
         if nc == m:
-            return block_frictionless_sweeps(W, d0, lam, m, max_iterations, tolerance, lane, bd, dv, dg, diag, part,
-                                             gate)
+            return block_frictionless_sweeps(W, d0, lam, m, max_iterations, tolerance, lane, bd, dv, diag, part, gate)
         zero = F64(0.0)
         block_delta(W, d0, lam, m, lane, bd, dv, gate)
         it = int(0)
@@ -573,6 +580,8 @@ def _block_solver(width: int) -> wp.Kernel:
         dv = wp.tile_zeros(shape=width, dtype=wp.float64, storage="shared")
         gate = wp.tile_zeros(shape=LANES, dtype=wp.float64, storage="shared")
         part = wp.tile_zeros(shape=WIDE_LANES, dtype=wp.float64, storage="shared")
+        col = wp.tile_zeros(shape=width, dtype=wp.float64, storage="shared")  # the factorizations' and solves'
+
         info[0] = F64(0.0)
         info[1] = F64(0.0)
         info[2] = F64(0.0)
@@ -589,11 +598,11 @@ def _block_solver(width: int) -> wp.Kernel:
                 if i < m:
                     v = W[i, i]
                 diag[i] = v
-        if block_positive_definite(W, L, iwork[_P], m, factorize, dmax, lane, bd, gate) == 0:
+        if block_positive_definite(W, L, iwork[_P], m, factorize, dmax, lane, bd, gate, col, width) == 0:
             for i in range(m):
                 lam[i] = F64(0.0)
             return
-        for i in range(m):
+        for i in range(lane, m, bd):  # (read after the barrier that starts the sweeps)
             lam[i] = lam0[i]
         finish = finishes_friction(m, nc, finish_friction)
         first = max_iterations
@@ -602,21 +611,21 @@ def _block_solver(width: int) -> wp.Kernel:
         elif finish != 0:
             first = wp.min(first_sweeps, max_iterations)
         it, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, first, tolerance, pyramid, lane, bd, dv,
-                                   work[_DSW], diag, part, gate)
+                                   diag, part, gate)
         if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
             it += device_active_set(W, d0, L, lam, m, dmax, tolerance, max_iterations - it, work, iwork, lane, bd,
-                                    gate)
+                                    gate, col, width)
             la = work[_LAM]  # (lane 0's last writes precede a barrier)
             block_rows_delta(W, d0, la, m, work[_DELTA], lane, bd, gate)
-            ra = jacobi_change(W, work[_DELTA], la, row_start, n_rows, mu, 0, nc)
+            ra = block_frictionless_change(work[_DELTA], la, diag, m, part, lane, bd, gate)
             if ra < res:
                 res = ra
-                for i in range(m):
+                for i in range(lane, m, bd):
                     lam[i] = la[i]
-                block_delta(W, d0, lam, m, lane, bd, dv, gate)
+                block_delta(W, d0, lam, m, lane, bd, dv, gate)  # (its barrier: lambda written)
             if res > tolerance and it < max_iterations:
                 more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, max_iterations - it, tolerance, 0,
-                                             lane, bd, dv, work[_DSW], diag, part, gate)
+                                             lane, bd, dv, diag, part, gate)
                 it += more
         if finish != 0:
             for k in range(FRICTION_FINISHES):
@@ -641,7 +650,7 @@ def _block_solver(width: int) -> wp.Kernel:
                     if k + 1 < FRICTION_FINISHES:
                         more_sweeps = wp.min(FRICTION_SWEEPS, more_sweeps)
                     more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, more_sweeps, tolerance,
-                                                 pyramid, lane, bd, dv, work[_DSW], diag, part, gate)
+                                                 pyramid, lane, bd, dv, diag, part, gate)
                     it += more
         usable = int(factorize != 0 or res <= tolerance)
         barrier(gate)

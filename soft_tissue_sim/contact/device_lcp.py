@@ -135,47 +135,33 @@ def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.flo
 
 @wp.func
 def block_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
-                     y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), lane: int, bd: int, vec: Any,
-                     width: int):
-    """x with L L^T x = b (L's leading p x p block, lower; y: work) by the block's lanes, the
-    running sums in the shared tile ``vec`` (``width`` elements; each lane its own, assigning in
-    every round, which makes the block wait): forward L y = b a column at a time (y_j from the
-    row's sum so far, then every later row less L_ij y_j), backward L^T x = y a row at a time
-    from the last (x_q, then every earlier row less L_qi x_q). The same operations in the same
-    order whatever the lanes. Every lane calls it; b is left as it is."""
-    for base in range(0, width, bd):
-        i = base + lane
-        v = F64(0.0)
-        if i < p:
-            v = b[i]
-        vec[i] = v
+                     y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
+    """x with L L^T x = b (L's leading p x p block, lower; y: work) by the block's lanes, each its
+    own rows (i = lane + k bd): forward L y = b a column at a time (y_j from the row's sum so far,
+    then every later row less L_ij y_j; the sums in x), backward L^T x = y a row at a time from
+    the last (x_q, then every earlier row less L_qi x_q; the sums in y), the block waiting after
+    each. The same operations in the same order whatever the lanes. Every lane calls it; b is
+    left as it is."""
+    for i in range(lane, p, bd):
+        x[i] = b[i]
+    barrier(gate)
     for j in range(p):
-        yj = vec[j] / L[j, j]
-        if lane == j % bd:
-            y[j] = yj
-        for base in range(0, width, bd):
-            i = base + lane
-            v = vec[i]
-            if i > j and i < p:
-                v = v - L[i, j] * yj
-            vec[i] = v
-    for base in range(0, width, bd):  # y, as the lanes wrote it (the last assignment made them wait)
-        i = base + lane
-        v = F64(0.0)
-        if i < p:
-            v = y[i]
-        vec[i] = v
+        yj = x[j] / L[j, j]
+        for i in range(lane, p, bd):
+            if i > j:
+                x[i] = x[i] - L[i, j] * yj
+            elif i == j:
+                y[j] = yj
+        barrier(gate)
     for q in range(p):
         j = p - 1 - q
-        xj = vec[j] / L[j, j]
-        if lane == j % bd:
-            x[j] = xj
-        for base in range(0, width, bd):
-            i = base + lane
-            v = vec[i]
+        xj = y[j] / L[j, j]
+        for i in range(lane, p, bd):
             if i < j:
-                v = v - L[j, i] * xj
-            vec[i] = v
+                y[i] = y[i] - L[j, i] * xj
+            elif i == j:
+                x[j] = xj
+        barrier(gate)
 
 
 @wp.func
@@ -219,9 +205,10 @@ def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype
 
 
 # rows of the active-set method's work arrays (DeviceLCP.work: float64, DeviceLCP.iwork: int32)
-_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA, _SCALARS = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
+# (and _DSW: delta of the frictionless sweeps)
+_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA, _SCALARS, _DSW = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
 _PASSIVE, _P, _LOW, _FLAGS = 0, 1, 2, 3
-WORK_ROWS, IWORK_ROWS = 10, 4
+WORK_ROWS, IWORK_ROWS = 11, 4
 
 
 @wp.func
@@ -332,14 +319,14 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
             # each), the ratio test (lane 0), the move of lambda (the lanes, a row each)
             for a in range(lane, p, bd):
                 b[a] = -d0[P[a]]
-            block_substitute(L, b, p, work[_Y], x, lane, bd, col, width)
+            block_substitute(L, b, p, work[_Y], x, lane, bd, gate)
             for a in range(lane, p, bd):
                 t = b[a]
                 for c in range(p):
                     t -= W[P[a], P[c]] * x[c]
                 r[a] = t
             barrier(gate)
-            block_substitute(L, r, p, work[_Y], work[_X2], lane, bd, col, width)
+            block_substitute(L, r, p, work[_Y], work[_X2], lane, bd, gate)
             if lane == 0:
                 flags[1] = face_ratio(m, p, joined, work, iwork)
             barrier(gate)
@@ -424,16 +411,20 @@ def _block_solver(width: int) -> wp.Kernel:
     @wp.func
     def block_frictionless_sweeps(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                                   lam: wp.array(dtype=wp.float64), m: int, max_iterations: int,
-                                  tolerance: wp.float64, lane: int, bd: int, dv: Any, diag: Any, part: Any,
-                                  gate: Any):
+                                  tolerance: wp.float64, lane: int, bd: int, dv: Any, dg: wp.array(dtype=wp.float64),
+                                  diag: Any, part: Any, gate: Any):
         """:func:`block_pgs_sweeps` for a frictionless set (row i the contact i): the same updates
-        in the same order, delta in the shared tile ``dv``, W's diagonal read from the shared tile
-        ``diag``, and each row of W that moves delta read by the lanes into registers (their
-        elements lane and lane + bd) while the row before it is made, so that no row waits for
-        the device's memory; a row that does not change makes no lane wait; the residual by the
-        lanes (:func:`block_frictionless_change`)."""
+        in the same order, delta in the device array ``dg`` (each lane its own elements, i = lane
+        + k bd, written without the block's barrier a shared tile's element costs), W's diagonal
+        read from the shared tile ``diag``, and each row of W that moves delta read by the lanes
+        into registers (their elements lane and lane + bd) while the row before it is made, so
+        that no row waits for the device's memory; a row that does not change costs no barrier;
+        the residual by the lanes (:func:`block_frictionless_change`). delta ends in ``dv`` too."""
         zero = F64(0.0)
-        block_delta(W, d0, lam, m, lane, bd, dv, gate)
+        barrier(gate)
+        for i in range(lane, m, bd):
+            dg[i] = row_delta(W, d0, lam, i, m)
+        barrier(gate)
         it = int(0)
         res = F64(-1.0)
         i1 = lane + bd
@@ -455,33 +446,41 @@ def _block_solver(width: int) -> wp.Kernel:
                         nxt1 = W[r + 1, i1]
                 lr = lam[r]
                 wr = diag[r]
-                ln = wp.max(zero, lr - dv[r] / wr)
+                ln = wp.max(zero, lr - dg[r] / wr)
                 change = wp.max(change, wr * wp.abs(ln - lr))
                 d = ln - lr
                 if d != zero:  # (the same d in every lane: the block waits, or none does)
                     barrier(gate)  # every lane has read delta and lambda before any writes them
-                    for base in range(0, width, bd):  # each assignment waits for the block
-                        i = base + lane
-                        v = dv[i]
-                        if i < m:
-                            w = w0
-                            if base == bd:
-                                w = w1
-                            elif base > bd:
-                                w = W[r, i]
-                            v = v + d * w
-                        dv[i] = v
+                    if lane < m:
+                        dg[lane] = dg[lane] + d * w0
+                    if i1 < m:
+                        dg[i1] = dg[i1] + d * w1
+                    for i in range(lane + 2 * bd, m, bd):
+                        dg[i] = dg[i] + d * W[r, i]
                     lam[r] = ln
+                    barrier(gate)  # delta moved before the next row reads it
             it = sweep + 1
             res = F64(-1.0)
             if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-                block_delta(W, d0, lam, m, lane, bd, dv, gate)  # (its barrier: rows without a change wait for none)
-                res = block_frictionless_change(dv, lam, diag, m, part, lane, bd, gate)
+                barrier(gate)  # every lane's last reads (rows without a change wait for none) are over
+                for i in range(lane, m, bd):
+                    dg[i] = row_delta(W, d0, lam, i, m)
+                barrier(gate)
+                res = block_frictionless_change(dg, lam, diag, m, part, lane, bd, gate)
                 if res <= tolerance:
                     break
         if res < zero:  # the sweeps ran out: the residual of where they stopped
-            block_delta(W, d0, lam, m, lane, bd, dv, gate)
-            res = block_frictionless_change(dv, lam, diag, m, part, lane, bd, gate)
+            barrier(gate)
+            for i in range(lane, m, bd):
+                dg[i] = row_delta(W, d0, lam, i, m)
+            barrier(gate)
+            res = block_frictionless_change(dg, lam, diag, m, part, lane, bd, gate)
+        for base in range(0, width, bd):  # every lane assigns in every round (see block_delta)
+            i = base + lane
+            v = F64(0.0)
+            if i < m:
+                v = dg[i]
+            dv[i] = v
         return it, res
 
     @wp.func
@@ -489,7 +488,7 @@ def _block_solver(width: int) -> wp.Kernel:
                          row_start: wp.array(dtype=wp.int32), n_rows: wp.array(dtype=wp.int32),
                          mu: wp.array(dtype=wp.float64), lam: wp.array(dtype=wp.float64), m: int, nc: int,
                          max_iterations: int, tolerance: wp.float64, pyramid: int, lane: int, bd: int, dv: Any,
-                         diag: Any, part: Any, gate: Any):
+                         dg: wp.array(dtype=wp.float64), diag: Any, part: Any, gate: Any):
         """:func:`.pgs.pgs_sweeps` (contacts of one or three rows) by a block, from lambda in ``lam``
         (updated in place): every lane makes each contact's update (the same values from the same
         reads, written alike), and a changed row's column of W goes into delta (the shared tile
@@ -497,7 +496,8 @@ def _block_solver(width: int) -> wp.Kernel:
         Returns (sweeps, residual); delta stays in ``dv``. A frictionless set (nc == m): by
         :func:`block_frictionless_sweeps`."""
         if nc == m:
-            return block_frictionless_sweeps(W, d0, lam, m, max_iterations, tolerance, lane, bd, dv, diag, part, gate)
+            return block_frictionless_sweeps(W, d0, lam, m, max_iterations, tolerance, lane, bd, dv, dg, diag, part,
+                                             gate)
         zero = F64(0.0)
         block_delta(W, d0, lam, m, lane, bd, dv, gate)
         it = int(0)
@@ -580,8 +580,7 @@ def _block_solver(width: int) -> wp.Kernel:
         dv = wp.tile_zeros(shape=width, dtype=wp.float64, storage="shared")
         gate = wp.tile_zeros(shape=LANES, dtype=wp.float64, storage="shared")
         part = wp.tile_zeros(shape=WIDE_LANES, dtype=wp.float64, storage="shared")
-        col = wp.tile_zeros(shape=width, dtype=wp.float64, storage="shared")  # the factorizations' and solves'
-
+        col = wp.tile_zeros(shape=width, dtype=wp.float64, storage="shared")  # a factorization's column
         info[0] = F64(0.0)
         info[1] = F64(0.0)
         info[2] = F64(0.0)
@@ -611,7 +610,7 @@ def _block_solver(width: int) -> wp.Kernel:
         elif finish != 0:
             first = wp.min(first_sweeps, max_iterations)
         it, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, first, tolerance, pyramid, lane, bd, dv,
-                                   diag, part, gate)
+                                   work[_DSW], diag, part, gate)
         if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
             it += device_active_set(W, d0, L, lam, m, dmax, tolerance, max_iterations - it, work, iwork, lane, bd,
                                     gate, col, width)
@@ -625,7 +624,7 @@ def _block_solver(width: int) -> wp.Kernel:
                 block_delta(W, d0, lam, m, lane, bd, dv, gate)  # (its barrier: lambda written)
             if res > tolerance and it < max_iterations:
                 more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, max_iterations - it, tolerance, 0,
-                                             lane, bd, dv, diag, part, gate)
+                                             lane, bd, dv, work[_DSW], diag, part, gate)
                 it += more
         if finish != 0:
             for k in range(FRICTION_FINISHES):
@@ -650,7 +649,7 @@ def _block_solver(width: int) -> wp.Kernel:
                     if k + 1 < FRICTION_FINISHES:
                         more_sweeps = wp.min(FRICTION_SWEEPS, more_sweeps)
                     more, res = block_pgs_sweeps(W, d0, row_start, n_rows, mu, lam, m, nc, more_sweeps, tolerance,
-                                                 pyramid, lane, bd, dv, diag, part, gate)
+                                                 pyramid, lane, bd, dv, work[_DSW], diag, part, gate)
                     it += more
         usable = int(factorize != 0 or res <= tolerance)
         barrier(gate)

@@ -267,15 +267,18 @@ def face_ratio(m: int, p: int, joined: int, work: wp.array2d(dtype=wp.float64), 
 def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                       L: wp.array2d(dtype=wp.float64), lam0: wp.array(dtype=wp.float64), m: int,
                       dmax: wp.float64, tolerance: wp.float64, max_steps: int, work: wp.array2d(dtype=wp.float64),
-                      iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any, col: Any, width: int):
+                      iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any, col: Any, width: int,
+                      part: Any):
     """:func:`.pgs.active_set` by the block (Lawson and Hanson's method from ``lam0``, the face
     problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
     refinement against W_PP; ``dmax`` the largest diagonal entry of W): the same steps in the
     same order. The factorization, the triangular solves, the products W lambda, the faces'
-    residuals and the moves of lambda are shared by the lanes (:func:`cholesky_columns`,
-    :func:`block_substitute`, :func:`block_rows_delta`, a row each); the ratio test and the
-    choice of the row to join are lane 0's (:func:`face_ratio`), whose verdicts the others read
-    from ``iwork[_FLAGS]`` after the block's barrier. Every lane calls it and gets the face
+    residuals, the moves of lambda, the passive list and the search for the row to join are
+    shared by the lanes (:func:`cholesky_columns`, :func:`block_substitute`,
+    :func:`block_rows_delta`, a row each; ``col`` and ``part`` shared tiles of ``width`` and of
+    the lanes' count); the ratio test and the join's choice among the lanes' candidates are lane
+    0's (:func:`face_ratio`), whose verdicts the others read from ``iwork[_FLAGS]`` after the
+    block's barrier. Every lane calls it and gets the face
     solves made; lambda goes to ``work[_LAM]``."""
     zero = F64(0.0)
     lam = work[_LAM]
@@ -299,15 +302,18 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
     low = iwork[_LOW]
     while steps < max_steps:
         barrier(gate)  # lambda and the passive set written
-        for i in range(lane, m, bd):
+        for i in range(lane, m, bd):  # each passive row's place in P: the passive rows before it
             s[i] = zero
             low[i] = 0
+            if passive[i] != 0:
+                c = int(0)
+                for k in range(i):
+                    c += passive[k]
+                P[c] = i
         if lane == 0:
             p = int(0)
             for i in range(m):
-                if passive[i] != 0:
-                    P[p] = i
-                    p += 1
+                p += passive[i]
             flags[0] = p
         barrier(gate)
         p = flags[0]
@@ -347,15 +353,26 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
             lam[i] = s[i]
         barrier(gate)
         block_rows_delta(W, d0, lam, m, dv, lane, bd, gate)
+        # the row to join: the most negative delta outside P (the first such row), each lane's
+        # among its rows, then the lanes' (the largest; of equal ones the first row)
+        j = int(-1)
+        best = F64(0.0)
+        for i in range(lane, m, bd):
+            if passive[i] == 0:
+                w = -dv[i]
+                if j < 0 or w > best:
+                    j = i
+                    best = w
+        part[lane] = best  # (each assignment waits for the block)
+        col[lane] = F64(float(j))
         if lane == 0:
-            j = int(-1)
-            best = F64(0.0)
-            for i in range(m):
-                if passive[i] == 0:
-                    w = -dv[i]
-                    if j < 0 or w > best:
-                        j = i
-                        best = w
+            for k in range(bd):
+                jk = int(col[k])
+                if jk >= 0:
+                    wk = part[k]
+                    if j < 0 or wk > best or (wk == best and jk < j):
+                        j = jk
+                        best = wk
             if j >= 0 and best > tolerance:
                 passive[j] = 1
             else:
@@ -613,7 +630,7 @@ def _block_solver(width: int) -> wp.Kernel:
                                    work[_DSW], diag, part, gate)
         if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
             it += device_active_set(W, d0, L, lam, m, dmax, tolerance, max_iterations - it, work, iwork, lane, bd,
-                                    gate, col, width)
+                                    gate, col, width, part)
             la = work[_LAM]  # (lane 0's last writes precede a barrier)
             block_rows_delta(W, d0, la, m, work[_DELTA], lane, bd, gate)
             ra = block_frictionless_change(work[_DELTA], la, diag, m, part, lane, bd, gate)

@@ -1017,3 +1017,33 @@ def test_the_planners_row_and_extent_shortcuts_equal_numpys():
             np.testing.assert_array_equal(all_four(np.equal(x, y)), np.all(x == y, axis=1))
         p = rng.standard_normal((50, 3)) * rng.uniform(0.1, 10.0, 3)
         assert extent(p) == float(np.ptp(p, axis=0).max())
+
+
+def test_the_blade_kernel_is_loaded_when_the_cutter_is_made(monkeypatch):
+    """A blade's sweep is planned by a kernel on Warp's CPU device (the split scheme's faces):
+    its module is loaded when the cutter is made, so that the first plan in the middle of a run
+    builds nothing (a build stalls that step by its time). The module is unloaded first, so the
+    cutter's construction, not an earlier test, must have loaded it."""
+    from warp._src import context
+
+    from soft_tissue_sim.cutting import geometry
+
+    module = context.get_module(geometry.__name__)
+    module.unload()
+    tissue, cutter = _beam_at_rest("split")
+    builds = []
+    load = context.Module.load
+
+    def record(self, device, block_dim=None, *args, **kwargs):
+        if not self.execs.get((wp.get_device(device).context, block_dim or self.options["block_dim"])):
+            builds.append(self.name)
+        return load(self, device, block_dim, *args, **kwargs)
+
+    monkeypatch.setattr(context.Module, "load", record)
+    lo, hi = tissue.x.min(axis=0), tissue.x.max(axis=0)
+    mid = 0.5 * (lo + hi)
+    tris = sweep_triangles([hi[0] + 0.001, mid[1], lo[2] - 0.001], [hi[0] + 0.001, mid[1], hi[2] + 0.001],
+                           [mid[0], mid[1], lo[2] - 0.001], [mid[0], mid[1], hi[2] + 0.001])
+    plan = cutter.cut_triangles(tissue, tris)
+    assert plan.result.faces_cut > 0  # the kernel ran and found the blade's faces
+    assert not builds, builds

@@ -100,6 +100,30 @@ def test_rows_built_on_the_device_give_the_host_rows_steps(tmp_path, graph, rows
     assert replays >= (30 if graph else 0)
 
 
+def test_the_rows_kernels_lanes_give_the_host_rows(tmp_path, monkeypatch):
+    """The rows kernel is one block whose lanes rank their slots among the active ones and wait
+    before each contact's place is summed from the ranks below it: with Warp's CPU blocks on
+    (real lanes, switching at the block's barriers) its rows still give the host rows' steps,
+    self and face contacts with friction (a missing wait, or a wrong rank, puts rows in other
+    places). On the CPU whatever the test device (a GPU's block is compared above)."""
+    import warp as wp
+
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    cfg = lambda rows: {**_u_scene(tmp_path, rows, rows=160, graph=False, **FRICTION), "device": "cpu"}  # noqa: E731
+    host, _ = _press(cfg(False), steps=20)
+    dev, _ = _press(cfg(True), steps=20)
+    selfs = 0
+    for (sh, xh, wh, *ch), (sd, xd, wd, *cd) in zip(host, dev):
+        assert sd["rows_device"] is True
+        for key in ("contacts", "self_contacts", "face_contacts", "active_contacts", "gs_iterations"):
+            assert sd.get(key) == sh.get(key), key
+        for a, b in zip(cd[:2], ch[:2]):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(xd, xh, rtol=0, atol=EXACT)
+        selfs = max(selfs, sd.get("self_contacts", 0))
+    assert selfs > 0 and max(s.get("contacts", 0) for s, *_ in dev) > 8
+
+
 def test_the_warm_start_by_slot_is_the_host_warm_start(tmp_path, monkeypatch):
     """Without the kept forces (the epoch advanced before every solve) the device's sweeps
     differ from the host's warm-started ones: the warm start is what made them equal."""

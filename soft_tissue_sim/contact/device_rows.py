@@ -114,6 +114,18 @@ def slot_contact(s: int, slot_node: wp.array(dtype=wp.int32), slot_obj: wp.array
     return node, t, w, n, p, g, ws4, w4, obj, mu_c, k_rows
 
 
+@wp.func
+def rows_below(kr: wp.array(dtype=wp.int32), q: int):
+    """(rows, contacts kept) of the first q ranks (``kr``: each rank's rows, 0 for a dropped one)."""
+    rows = int(0)
+    kept = int(0)
+    for u in range(q):
+        rows += kr[u]
+        if kr[u] > 0:
+            kept += 1
+    return rows, kept
+
+
 @wp.kernel
 def device_rows_kernel(
     count: wp.array(dtype=wp.int32),
@@ -187,12 +199,7 @@ def device_rows_kernel(
         order[rank] = s
         kr[rank] = k_rows
     wp.tile_axpy(F64(0.0), gate, gate)  # every slot's rank and rows written before any is read
-    total = int(0)
-    kept = int(0)
-    for q in range(found):
-        total += kr[q]
-        if kr[q] > 0:
-            kept += 1
+    total, kept = rows_below(kr, found)
     if total > limit:
         if lane == 0:
             header[2] = F64(1.0)
@@ -202,12 +209,7 @@ def device_rows_kernel(
     for q in range(lane, found, bd):
         k_rows = kr[q]
         if k_rows > 0:
-            rows = int(0)
-            m = int(0)
-            for u in range(q):
-                rows += kr[u]
-                if kr[u] > 0:
-                    m += 1
+            rows, m = rows_below(kr, q)  # the contact's first row and its index
             s = order[q]
             node, t, w, n, p, g, ws4, w4, obj, mu_c, k_rows = slot_contact(
                 s, slot_node, slot_obj, slot_kind, slot_tri_row, tris, gap, normal, point, tri, bary, x, free, motion,

@@ -8,6 +8,8 @@ import scipy.sparse.linalg as spla
 
 from soft_tissue_sim import load_scene
 from soft_tissue_sim.cutting import sweep_triangles, tets_cut_by_triangle
+from soft_tissue_sim.cutting.geometry import TET_EDGES, _dot
+from soft_tissue_sim.mesh import cross
 from soft_tissue_sim.mesh import tet_quality, validate_mesh
 
 
@@ -674,11 +676,67 @@ def test_a_blade_swept_across_the_beam_parts_it(scheme, step):
         assert sizes.min() > 0.4 * sizes.sum(), sizes  # the cut at x = 0.054 of 0.12: about half each
 
 
+# The reference of the exact blade test, in NumPy (the package's is a Warp kernel:
+# soft_tissue_sim.cutting.geometry._section_meets): the same arithmetic, whole arrays at a time.
+def _in_triangles(p, a, b, c, tol):
+    """Whether points p (..., 3), already on the planes of the triangles (a, b, c) (broadcast
+    against p), lie in them (+tol)."""
+    v0, v1, v2 = b - a, c - a, p - a
+    d00, d01, d11 = _dot(v0, v0), _dot(v0, v1), _dot(v1, v1)
+    d20, d21 = _dot(v2, v0), _dot(v2, v1)
+    den = d00 * d11 - d01 * d01
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    rel = tol / np.sqrt(np.maximum(d00, d11))
+    return (v >= -rel) & (w >= -rel) & (v + w <= 1.0 + rel)
+
+
+_OTHERS = np.array([[j for j in range(4) if j != i] for i in range(4)])  # face i: the vertices but i
+
+
+def _segments_meet_tets(segments, X, tol):
+    """Mask (k,): does one of the segments (p0[i], p1[i]) (pairs of (k, 3) arrays) meet the tet
+    X[i] (k, 4, 3)? (Clipping by the 4 faces, each moved out by ``tol``; all segments at once.)"""
+    o = X[:, _OTHERS]  # (k, 4, 3, 3): face i's vertices
+    nrm = cross(o[:, :, 1] - o[:, :, 0], o[:, :, 2] - o[:, :, 0])
+    nrm *= np.sign(_dot(nrm, X - o[:, :, 0]))[..., None]  # inwards
+    widen = tol * np.sqrt(_dot(nrm, nrm))
+    p0 = np.stack([p for p, _ in segments], axis=1)  # (k, s, 3)
+    p1 = np.stack([p for _, p in segments], axis=1)
+    nrm = nrm[:, None]  # (k, 1, 4, 3) against the segments' (k, s, 1, 3)
+    h0 = _dot(nrm, p0[:, :, None] - o[:, None, :, 0]) + widen[:, None]  # (k, s, 4): >= 0 inside (with tolerance)
+    dh = _dot(nrm, (p1 - p0)[:, :, None])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -h0 / dh
+    tmin = np.maximum(np.where(dh > 0.0, t, 0.0).max(axis=2), 0.0)
+    tmax = np.minimum(np.where(dh < 0.0, t, 1.0).min(axis=2), 1.0)
+    return np.any(~np.any((dh == 0.0) & (h0 < 0.0), axis=2) & (tmin <= tmax), axis=1)
+
+
+def _sections_meet_triangles(X, tri, n, tol):
+    """Mask (k,): does the section of the tet X[i] (k, 4, 3) by the plane of the triangle
+    tri[i] (k, 3, 3; unit normal n[i]) overlap that triangle (+tol)? Yes when a crossing of a
+    tet edge with the plane, or a tet vertex on it, lies inside the triangle, or when an edge
+    of the triangle passes through the tet (a blade thinner than the element, or inside it)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    d = _dot(X - a[:, None], n[:, None])  # (k, 4) signed distances of the vertices
+    di, dj = d[:, TET_EDGES[:, 0]], d[:, TET_EDGES[:, 1]]  # (k, 6)
+    cross = di * dj < 0.0
+    t = np.where(cross, di / np.where(cross, di - dj, 1.0), 0.0)
+    Xi = X[:, TET_EDGES[:, 0]]
+    p = Xi + t[..., None] * (X[:, TET_EDGES[:, 1]] - Xi)  # the edges' crossings, then the vertices
+    p = np.concatenate([p, X], axis=1)
+    p = p - _dot(p - a[:, None], n[:, None])[..., None] * n[:, None]  # on the plane
+    inside = _in_triangles(p, a[:, None], b[:, None], c[:, None], tol)
+    hit = np.any(np.concatenate([cross, np.abs(d) <= tol], axis=1) & inside, axis=1)
+    return hit | _segments_meet_tets(((a, b), (b, c), (c, a)), X, tol)
+
+
 def _reference_faces_cut(P, tets, tris, tol):
     """The split scheme's cut faces by brute force: every interior face found by sorting all
     faces, every tet of each triangle's bounding box (+tol) given the exact section test alone,
     every tet's side, every face looked at (no culling, no cache)."""
-    from soft_tissue_sim.cutting.geometry import _dot, _path_planes, _sections_meet_triangles
+    from soft_tissue_sim.cutting.geometry import _path_planes
     from soft_tissue_sim.mesh import _FACES
 
     faces = tets[:, _FACES].reshape(-1, 3)

@@ -1,10 +1,11 @@
 """Blade geometry against the tets, on the host, on the tets near the blade (an AABB filter,
 then exact tests): which tets a blade triangle crosses, which interior faces a cut separates
-(``split``), where mesh edges cross the blade (``subdivide``). The exact tests are NumPy, and,
-for the faces a blade's sweep cuts (the split scheme's test of every step while a blade cuts),
-one launch of :func:`faces_cut_kernel` on Warp's CPU device over the tets near the blade: the
-same arithmetic in the same order, each sum and product its own statement (no fused
-multiply-add), so the same faces as the NumPy tests to the bit.
+(``split``), where mesh edges cross the blade (``subdivide``). The boxes are culled with
+NumPy; the exact test of a tet against a blade triangle (:func:`_section_meets`) is a Warp
+function run on Warp's CPU device, one launch per question: :func:`faces_cut_kernel` for the
+faces a blade's sweep cuts (the split scheme's test of every step while a blade cuts),
+:func:`tets_cut_kernel` for the tets a triangle cuts. Each sum and product is its own
+statement (no fused multiply-add), so a result is the same on every host.
 
 Invariants: ``tol`` [m] widens every test the same way (a touching blade counts); degenerate
 blade triangles are dropped, never divided by; a tet's tests are row-wise arithmetic on its
@@ -28,7 +29,7 @@ TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
 def _points_in_triangle(p, a, b, c, tol):
     """(k,) whether points p (k,3), already on the plane of (a,b,c), lie in the triangle (+tol).
-    (The ``subdivide`` scheme's test; ``split`` batches triangles with :func:`_in_triangles`.)"""
+    (The ``subdivide`` scheme's test; ``split``'s is :func:`_in_triangle`, one point at a time.)"""
     v0, v1, v2 = b - a, c - a, p - a
     d00, d01, d11 = v0 @ v0, v0 @ v1, v1 @ v1
     d20, d21 = v2 @ v0, v2 @ v1
@@ -59,60 +60,6 @@ def tets_near_box(points, tets, lo, hi):
 def _near_blade(points, tets, tri, tol):
     """Indices of the tets whose bounding box meets the triangle's, widened by ``tol``."""
     return tets_near_box(points, tets, tri.min(axis=0) - tol, tri.max(axis=0) + tol)
-
-
-def _in_triangles(p, a, b, c, tol):
-    """Whether points p (..., 3), already on the planes of the triangles (a, b, c) (broadcast
-    against p), lie in them (+tol)."""
-    v0, v1, v2 = b - a, c - a, p - a
-    d00, d01, d11 = _dot(v0, v0), _dot(v0, v1), _dot(v1, v1)
-    d20, d21 = _dot(v2, v0), _dot(v2, v1)
-    den = d00 * d11 - d01 * d01
-    v = (d11 * d20 - d01 * d21) / den
-    w = (d00 * d21 - d01 * d20) / den
-    rel = tol / np.sqrt(np.maximum(d00, d11))
-    return (v >= -rel) & (w >= -rel) & (v + w <= 1.0 + rel)
-
-
-_OTHERS = np.array([[j for j in range(4) if j != i] for i in range(4)])  # face i: the vertices but i
-
-
-def _segments_meet_tets(segments, X, tol):
-    """Mask (k,): does one of the segments (p0[i], p1[i]) (pairs of (k, 3) arrays) meet the tet
-    X[i] (k, 4, 3)? (Clipping by the 4 faces, each moved out by ``tol``; all segments at once.)"""
-    o = X[:, _OTHERS]  # (k, 4, 3, 3): face i's vertices
-    nrm = cross(o[:, :, 1] - o[:, :, 0], o[:, :, 2] - o[:, :, 0])
-    nrm *= np.sign(_dot(nrm, X - o[:, :, 0]))[..., None]  # inwards
-    widen = tol * np.sqrt(_dot(nrm, nrm))
-    p0 = np.stack([p for p, _ in segments], axis=1)  # (k, s, 3)
-    p1 = np.stack([p for _, p in segments], axis=1)
-    nrm = nrm[:, None]  # (k, 1, 4, 3) against the segments' (k, s, 1, 3)
-    h0 = _dot(nrm, p0[:, :, None] - o[:, None, :, 0]) + widen[:, None]  # (k, s, 4): >= 0 inside (with tolerance)
-    dh = _dot(nrm, (p1 - p0)[:, :, None])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = -h0 / dh
-    tmin = np.maximum(np.where(dh > 0.0, t, 0.0).max(axis=2), 0.0)
-    tmax = np.minimum(np.where(dh < 0.0, t, 1.0).min(axis=2), 1.0)
-    return np.any(~np.any((dh == 0.0) & (h0 < 0.0), axis=2) & (tmin <= tmax), axis=1)
-
-
-def _sections_meet_triangles(X, tri, n, tol):
-    """Mask (k,): does the section of the tet X[i] (k, 4, 3) by the plane of the triangle
-    tri[i] (k, 3, 3; unit normal n[i]) overlap that triangle (+tol)? Yes when a crossing of a
-    tet edge with the plane, or a tet vertex on it, lies inside the triangle, or when an edge
-    of the triangle passes through the tet (a blade thinner than the element, or inside it)."""
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    d = _dot(X - a[:, None], n[:, None])  # (k, 4) signed distances of the vertices
-    di, dj = d[:, TET_EDGES[:, 0]], d[:, TET_EDGES[:, 1]]  # (k, 6)
-    cross = di * dj < 0.0
-    t = np.where(cross, di / np.where(cross, di - dj, 1.0), 0.0)
-    Xi = X[:, TET_EDGES[:, 0]]
-    p = Xi + t[..., None] * (X[:, TET_EDGES[:, 1]] - Xi)  # the edges' crossings, then the vertices
-    p = np.concatenate([p, X], axis=1)
-    p = p - _dot(p - a[:, None], n[:, None])[..., None] * n[:, None]  # on the plane
-    inside = _in_triangles(p, a[:, None], b[:, None], c[:, None], tol)
-    hit = np.any(np.concatenate([cross, np.abs(d) <= tol], axis=1) & inside, axis=1)
-    return hit | _segments_meet_tets(((a, b), (b, c), (c, a)), X, tol)
 
 
 def _near_triangles(X, tris, tol):
@@ -146,12 +93,16 @@ def _candidates(points, tets, tris, nrm, tol):
 def _tets_cut(points, tets, tris, nrm, tol):
     """The tets that the (non-degenerate) blade triangles with unit normals ``nrm`` cut: the
     :func:`_candidates` whose section by a triangle's plane overlaps it
-    (:func:`_sections_meet_triangles`). Returns (tet indices, triangle indices) of the pairs,
-    ordered by triangle, then tet; the exact tests of all triangles run as one batch."""
-    cand, owner, X = _candidates(points, tets, tris, nrm, tol)
+    (:func:`tets_cut_kernel`). Returns (tet indices, triangle indices) of the pairs, ordered by
+    triangle, then tet; the exact tests of all triangles run as one launch."""
+    cand, owner, _X = _candidates(points, tets, tris, nrm, tol)
     if not len(cand):
         return cand, owner
-    hit = _sections_meet_triangles(X, tris[owner], nrm[owner], tol)
+    hit = np.zeros(len(cand), np.int32)
+    wp.launch(tets_cut_kernel, len(cand),
+              [_vec3(points, len(points)), _i64(tets), _i64(cand), _i64(owner), _vec3(tris, tris.shape[:2]),
+               _vec3(nrm, len(nrm)), float(tol), _on_cpu(hit, wp.int32)], device="cpu")
+    hit = hit.astype(bool)
     return cand[hit], owner[hit]
 
 
@@ -235,7 +186,9 @@ def _cross3(u: wp.vec3d, v: wp.vec3d):
 
 @wp.func
 def _in_triangle(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, tol: wp.float64):
-    """:func:`_in_triangles` for one point."""
+    """Whether the point p, already on the plane of the triangle (a, b, c), lies in it (+tol):
+    its barycentric coordinates v, w >= -rel and v + w <= 1 + rel, rel = tol over the longer of
+    the two edges from a."""
     v0 = b - a
     v1 = c - a
     v2 = p - a
@@ -273,7 +226,11 @@ def _vertex(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, i: int):
 @wp.func
 def _section_meets(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, a: wp.vec3d, b: wp.vec3d,
                    c: wp.vec3d, n: wp.vec3d, tol: wp.float64):
-    """:func:`_sections_meet_triangles` for one tet and one triangle (unit normal n)."""
+    """Does the section of the tet (X0..X3) by the plane of the triangle (a, b, c; unit normal
+    n) overlap that triangle (+tol)? Yes when a crossing of a tet edge with the plane (in
+    :data:`TET_EDGES`' order), or a tet vertex on it, lies inside the triangle, or when an edge
+    of the triangle passes through the tet (a blade thinner than the element, or inside it):
+    the edge clipped by the tet's faces, each moved out by ``tol``."""
     d = wp.vec4d(_dot3(X0 - a, n), _dot3(X1 - a, n), _dot3(X2 - a, n), _dot3(X3 - a, n))
     for e in range(6):  # the edges' crossings with the plane (TET_EDGES' order)
         i = 0
@@ -306,7 +263,7 @@ def _section_meets(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, a: wp
             p = p - _dot3(p - a, n) * n
             if _in_triangle(p, a, b, c, tol):
                 return True
-    # the triangle's edges through the tet (_segments_meet_tets): each face's inward normal
+    # the triangle's edges through the tet: each face's inward normal
     for s in range(3):
         p0 = a
         p1 = b
@@ -322,7 +279,7 @@ def _section_meets(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, a: wp
         hi = wp.float64(1.0)
         away = False
         for f in range(4):
-            i0 = 0  # the face's vertices: the tet's others, in order (_OTHERS)
+            i0 = 0  # the face's vertices: the tet's others, in order
             i1 = 1
             i2 = 2
             if f == 0:
@@ -417,6 +374,31 @@ def faces_cut_kernel(P: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int6
                 cut[int(tet_face[t, q])] = 1
 
 
+@wp.kernel
+def tets_cut_kernel(P: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int64), cand: wp.array(dtype=wp.int64),
+                    owner: wp.array(dtype=wp.int64), tris: wp.array2d(dtype=wp.vec3d), nrm: wp.array(dtype=wp.vec3d),
+                    tol: wp.float64, hit: wp.array(dtype=wp.int32)):
+    """hit[i] = 1 where the section of the tet cand[i] by the plane of the triangle owner[i]
+    overlaps that triangle (:func:`_section_meets`)."""
+    i = wp.tid()
+    t = cand[i]
+    k = owner[i]
+    if _section_meets(P[int(tets[t, 0])], P[int(tets[t, 1])], P[int(tets[t, 2])], P[int(tets[t, 3])], tris[k, 0],
+                      tris[k, 1], tris[k, 2], nrm[k], tol):
+        hit[i] = 1
+
+
+def _on_cpu(a: np.ndarray, dtype) -> wp.array:
+    """An int32 or int64 NumPy array as a Warp array on the CPU, sharing its memory (a copy only
+    where it is not contiguous or of another type)."""
+    return wp.array(np.ascontiguousarray(a, np.int64 if dtype == wp.int64 else np.int32), dtype=dtype, device="cpu",
+                    copy=False)
+
+
+def _i64(a: np.ndarray) -> wp.array:
+    return _on_cpu(a, wp.int64)
+
+
 def _vec3(a: np.ndarray, shape) -> wp.array:
     """A float64 (..., 3) array as a Warp vec3d array on the CPU (no copy where contiguous)."""
     return wp.array(np.ascontiguousarray(a, np.float64), dtype=wp.vec3d, shape=shape, device="cpu", copy=False)
@@ -432,7 +414,9 @@ def faces_cut_by_triangles(P, tets, tris, tol, faces=None, normals=None):
     """The interior faces a blade separates (``split``): for each blade triangle, the faces
     between tets on opposite sides of its plane (the sign of their centroid's distance) of which
     at least one is intersected (its section overlaps the triangle: :func:`tets_cut_by_triangle`).
-    The exact test runs only on the candidate tets (:func:`_candidates`) with such a face.
+    The tets in the box of the whole path are handed to :func:`faces_cut_kernel`, which tests
+    each against each triangle's box and plane, and runs the exact test only where the tet has
+    such a face.
     ``faces``: :func:`..mesh.interior_faces` of ``tets`` where known (``TetMesh.interior_faces``);
     ``normals``: the unit normals of ``tris`` where known (:func:`_path_planes`: ``tris`` are then
     its non-degenerate triangles). Only the tets near a triangle are looked at, those of all
@@ -447,8 +431,7 @@ def faces_cut_by_triangles(P, tets, tris, tol, faces=None, normals=None):
     if not len(near):
         return pairs, fnodes, cut
     mask = np.zeros(len(pairs), np.int32)
-    i64 = lambda a: wp.array(np.ascontiguousarray(a, np.int64), dtype=wp.int64, device="cpu", copy=False)  # noqa: E731
     wp.launch(faces_cut_kernel, (len(near), len(tris)),
-              [_vec3(P, len(P)), i64(tets), i64(near), _vec3(tris, tris.shape[:2]), _vec3(nrm, len(nrm)), float(tol),
-               i64(tet_face), i64(pairs), wp.array(mask, dtype=wp.int32, device="cpu", copy=False)], device="cpu")
+              [_vec3(P, len(P)), _i64(tets), _i64(near), _vec3(tris, tris.shape[:2]), _vec3(nrm, len(nrm)), float(tol),
+               _i64(tet_face), _i64(pairs), _on_cpu(mask, wp.int32)], device="cpu")
     return pairs, fnodes, mask.astype(bool)

@@ -177,8 +177,7 @@ def block_diagonal(W: wp.array2d(dtype=wp.float64), m: int, part: Any, lane: int
         elif dmax >= F64(0.0):
             dmax = wp.max(dmax, d)
     barrier(gate)  # an earlier call's reads of part are over
-    part[lane] = dmax
-    barrier(gate)
+    part[lane] = dmax  # (an element's assignment makes the block wait)
     out = F64(0.0)
     for k in range(bd):
         v = part[k]
@@ -418,8 +417,7 @@ def _block_solver(width: int) -> wp.Kernel:
             ln = wp.max(F64(0.0), li - dv[i] / diag[i])
             res = wp.max(res, diag[i] * wp.abs(ln - li))
         barrier(gate)  # an earlier use of part is over
-        part[lane] = res
-        barrier(gate)
+        part[lane] = res  # (an element's assignment makes the block wait)
         out = F64(0.0)
         for k in range(bd):
             out = wp.max(out, part[k])
@@ -438,10 +436,8 @@ def _block_solver(width: int) -> wp.Kernel:
         that no row waits for the device's memory; a row that does not change costs no barrier;
         the residual by the lanes (:func:`block_frictionless_change`). delta ends in ``dv`` too."""
         zero = F64(0.0)
-        barrier(gate)
-        for i in range(lane, m, bd):
-            dg[i] = row_delta(W, d0, lam, i, m)
-        barrier(gate)
+        barrier(gate)  # lambda written (each lane its own rows)
+        block_rows_delta(W, d0, lam, m, dg, lane, bd, gate)
         it = int(0)
         res = F64(-1.0)
         i1 = lane + bd
@@ -480,17 +476,13 @@ def _block_solver(width: int) -> wp.Kernel:
             res = F64(-1.0)
             if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
                 barrier(gate)  # every lane's last reads (rows without a change wait for none) are over
-                for i in range(lane, m, bd):
-                    dg[i] = row_delta(W, d0, lam, i, m)
-                barrier(gate)
+                block_rows_delta(W, d0, lam, m, dg, lane, bd, gate)
                 res = block_frictionless_change(dg, lam, diag, m, part, lane, bd, gate)
                 if res <= tolerance:
                     break
         if res < zero:  # the sweeps ran out: the residual of where they stopped
             barrier(gate)
-            for i in range(lane, m, bd):
-                dg[i] = row_delta(W, d0, lam, i, m)
-            barrier(gate)
+            block_rows_delta(W, d0, lam, m, dg, lane, bd, gate)
             res = block_frictionless_change(dg, lam, diag, m, part, lane, bd, gate)
         for base in range(0, width, bd):  # every lane assigns in every round (see block_delta)
             i = base + lane
@@ -607,7 +599,7 @@ def _block_solver(width: int) -> wp.Kernel:
         factorize = int(frictionless == 0 or m <= LARGE_SET_ROWS)
         dmax = block_diagonal(W, m, part, lane, bd, gate)
         diag = wp.tile_zeros(shape=width, dtype=wp.float64, storage="shared")
-        if nc == m and dmax > F64(0.0):  # W's diagonal at hand for the frictionless sweeps
+        if frictionless != 0 and dmax > F64(0.0):  # W's diagonal at hand for the frictionless sweeps
             for base in range(0, width, bd):  # every lane assigns in every round (see block_delta)
                 i = base + lane
                 v = F64(1.0)

@@ -43,7 +43,7 @@ from . import graphs
 from .buffers import GrowArray
 from .sherman_morrison import Modification, perturbation
 from .sm_partition import partitioned_stream
-from .transfer import Staged
+from .transfer import PINNED, Staged
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
@@ -65,8 +65,9 @@ class _Ticket:
     """One factorization in flight: what it was made from and the events that time it (or the
     future of the background thread that enqueues it and returns those events)."""
 
-    def __init__(self, step, gen, uids, version, R, start=None, done=None, cpu_ms=None, future=None):
+    def __init__(self, step, gen, uids, version, R, start=None, done=None, cpu_ms=None, future=None, R_host=None):
         self.step, self.gen, self.uids, self.version, self.R = step, gen, uids, version, R
+        self.R_host = R_host  # (page-locked copy of R, the event after its copy), GPU only
         self.start, self.done, self.cpu_ms, self.future = start, done, cpu_ms, future
 
     def events(self):
@@ -207,6 +208,7 @@ class AsyncDevicePreconditioner:
         self.factor_version = -1
         self._R_ref_np = None  # R(t_u) of the factor in use on the host, made when a fold needs it ...
         self._R_ref_src = None  # ... from this device array (the factor's own R), where not changed since
+        self._R_ref_copy = None  # ... or its page-locked copy made at the request (pinned array, event)
         self.R_ref = None  # device copy
         self.dR = None
         self.factor_step = -1
@@ -250,11 +252,16 @@ class AsyncDevicePreconditioner:
         triplets = fem.assemble_triplets(system.m_coef, system.k_coef)
         self.backend.assemble(triplets, 3 * fem.n_nodes, stream=self._main, topology=meta.get("version"))
         R = wp.clone(fem.current_node_rotations())  # R(t_u) of this factor
+        R_host = None
+        if self._main is not None:  # read back now, behind the clone: a fold after the install then
+            buf = PINNED.empty(R.shape, R.dtype)  # waits for this copy only, not for the steps queued by then
+            wp.copy(buf, R, stream=self._main)
+            R_host = (buf, self._main.record_event())
         if self._side is None:
             t0 = time.perf_counter()
             self.backend.factorize()
             ticket = _Ticket(self.step, self._gen, uids, int(meta.get("version", -1)), R,
-                             cpu_ms=1000.0 * (time.perf_counter() - t0))
+                             cpu_ms=1000.0 * (time.perf_counter() - t0), R_host=R_host)
         else:
             # the factor's own stream, or the simulation's for a backend that must factorize and
             # solve on one stream (cuDSS)
@@ -266,9 +273,9 @@ class AsyncDevicePreconditioner:
                 if self._pool is None:
                     self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="factor-enqueue",
                                                     initializer=self._thread_init)
-                ticket = _Ticket(*args, future=self._pool.submit(self._enqueue, side, ready, *events))
+                ticket = _Ticket(*args, future=self._pool.submit(self._enqueue, side, ready, *events), R_host=R_host)
             else:
-                ticket = _Ticket(*args, *self._enqueue(side, ready, *events))
+                ticket = _Ticket(*args, *self._enqueue(side, ready, *events), R_host=R_host)
             self._busy = ticket
         self.last_request_step = self.step
         return ticket
@@ -308,7 +315,7 @@ class AsyncDevicePreconditioner:
             return False
         self.uids = t.uids
         self.factor_version = t.version
-        self._R_ref_src, self._R_ref_np = t.R, None  # read to the host only if a fold or compaction needs it
+        self._R_ref_src, self._R_ref_copy, self._R_ref_np = t.R, t.R_host, None  # on the host once a fold or compaction needs it
         self.factor_step = t.step
         self.factorization_ms = t.ms()
         self.factor_latency_steps = self.step - t.step
@@ -446,15 +453,21 @@ class AsyncDevicePreconditioner:
 
     @property
     def R_ref_host(self) -> np.ndarray | None:
-        """R(t_u) of the factor in use, (n, 3, 3) on the host (read from the device at the first
-        use after an install); set by the folds and the compaction."""
+        """R(t_u) of the factor in use, (n, 3, 3) on the host (at the first use after an install:
+        from the page-locked copy the request made, once that copy is done, else read from the
+        device); set by the folds and the compaction."""
         if self._R_ref_np is None and self._R_ref_src is not None:
-            self._R_ref_np = self._R_ref_src.numpy().astype(np.float64)
+            if self._R_ref_copy is not None:
+                buf, copied = self._R_ref_copy
+                wp.synchronize_event(copied)
+                self._R_ref_np = buf.numpy().astype(np.float64)  # (a copy: the buffer goes with the ticket)
+            else:
+                self._R_ref_np = self._R_ref_src.numpy().astype(np.float64)
         return self._R_ref_np
 
     @R_ref_host.setter
     def R_ref_host(self, value: np.ndarray) -> None:
-        self._R_ref_np, self._R_ref_src = value, None
+        self._R_ref_np, self._R_ref_src, self._R_ref_copy = value, None, None
 
     def _upload_R_ref(self) -> None:
         """R_ref (device, kept address) := R(t_u): copied on the device from the factor's own R

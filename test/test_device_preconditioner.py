@@ -266,6 +266,23 @@ def test_asynchronous_schedule_installs_each_factor_after_its_request():
         assert ps["refresh_interval"] >= 3
 
 
+def test_the_factors_rotations_reach_the_host_as_they_were_requested():
+    """R(t_u), which the folds read on the host, is the rotation the factor in use was made
+    with: on a GPU from the page-locked copy its request enqueued (no read of the device array
+    that would wait for the steps queued since), on the CPU the array itself."""
+    ov = {"solver": {"preconditioner": "async_ldlt", "tolerance": 1e-8,
+                     "ldlt": {"backend": "dense", "refresh_every": 2, "rotate": True, "deterministic": False}}}
+    with load_scene("test_small.yaml", device=DEVICE, overrides=ov) as sim:
+        pre = sim.preconditioner
+        for _ in range(12):
+            sim.step()
+        assert pre.factor_count >= 3 and pre.factor_step > 0
+        assert (pre._R_ref_copy is not None) == CUDA
+        made_with = pre._R_ref_src.numpy().astype(np.float64)
+        assert np.abs(made_with - np.eye(3)).max() > 1e-4  # the bent cantilever's nodes have turned
+        assert np.array_equal(pre.R_ref_host, made_with)
+
+
 def test_device_refresh_every_sets_the_interval_of_the_device_backends_only():
     """``device_refresh_every`` replaces ``refresh_every`` for a device factor (dense here) and
     leaves CHOLMOD's; a bad value is refused."""

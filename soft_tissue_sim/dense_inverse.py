@@ -19,16 +19,17 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   using the double-precision inverse;
 * the Sherman-Morrison-Woodbury correction of eq. (5)-(7) is exact and folded into the
   inverse: U = P^-1 G is a gather of columns, Q = (I + N S)^-1 N a small solve on the device
-  (S = G^T U, nothing read back), and P^-1 - U Q U^T replaces P^-1 (a rank-3k update, cuBLAS
-  ``gemm``);
+  (S = G^T U; cuSOLVER's ``getrf`` and ``getrs``, nothing read back), and P^-1 - U Q U^T
+  replaces P^-1 (a rank-3k update, cuBLAS ``gemm``): :class:`LibraryFold`, nine calls into
+  kept buffers;
 * the Delassus operator W = H P^-1 H^T of eq. (4) gathers the 3x3 blocks of the contact
   nodes (:func:`delassus_kernel`, an entry of W per thread; :func:`delassus_matrix_kernel`
   for a row count read on the device, the contact LCP solved there).
 
 The matrix is symmetric and stored row-major (C order); LAPACK and cuSOLVER see it as its
 column-major transpose, the same matrix. On the CPU ``potri`` fills one triangle, which
-:func:`symmetrize_kernel` mirrors. Arrays are Warp arrays; CuPy (GPU) or NumPy (CPU) view them
-without copies for the library calls (``xp``).
+:func:`symmetrize_kernel` mirrors. Arrays are Warp arrays, handed to cuSOLVER and cuBLAS by
+address (GPU) or viewed by NumPy without copies (CPU: the fold's arithmetic, :func:`fold_into`).
 
 Capacity. The inverse in use is an (n3, n3) view with a fixed row stride L (the leading
 dimension, :func:`leading_dimension`: n3 with headroom, a multiple of 96) into a store whose
@@ -122,6 +123,35 @@ def pad_identity_kernel(P: wp.array2d(dtype=wp.float64), k: int):
     v = wp.where(i == j, wp.float64(1.0), wp.float64(0.0))
     P[i, j] = v
     P[j, i] = v
+
+
+@wp.kernel
+def fold_columns_kernel(P: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32),
+                        UT: wp.array2d(dtype=wp.float64)):
+    """UT[c, i] = P[rows[c], i]: the columns U = P G of the symmetric P, written as rows (reads
+    and writes contiguous); UT row-major is U column-major (n x k, leading dimension n)."""
+    c, i = wp.tid()
+    UT[c, i] = P[rows[c], i]
+
+
+@wp.kernel
+def fold_small_kernel(UT: wp.array2d(dtype=wp.float64), rows: wp.array(dtype=wp.int32),
+                      S: wp.array2d(dtype=wp.float64), M: wp.array2d(dtype=wp.float64)):
+    """S = G^T P G (the rows of U at the affected DOFs) and M = I, the two k x k inputs of
+    M := I + N S."""
+    a, b = wp.tid()
+    S[a, b] = UT[b, rows[a]]
+    M[a, b] = wp.where(a == b, wp.float64(1.0), wp.float64(0.0))
+
+
+@wp.kernel
+def symmetrize_small_kernel(Q: wp.array2d(dtype=wp.float64)):
+    """Q := (Q + Q^T) / 2 in place (each pair once)."""
+    a, b = wp.tid()
+    if a < b:
+        v = wp.float64(0.5) * (Q[a, b] + Q[b, a])
+        Q[a, b] = v
+        Q[b, a] = v
 
 
 @wp.kernel
@@ -268,49 +298,86 @@ def strided_square(buf: wp.array, n: int, ld: int) -> wp.array:
     return a
 
 
-def fold_into(xp, P, rows, N, blas=None, stream: int = 0) -> None:
+def fold_into(xp, P, rows, N) -> None:
     """P <- P - U Q U^T in place (``xp`` arrays; P may have a row stride), U = P[:, rows],
     Q = (I + N S)^-1 N with S = U[rows] (:func:`~soft_tissue_sim.sherman_morrison.woodbury_q`):
-    :meth:`DenseInverse.fold`'s arithmetic. ``blas`` (GPU): a cuBLAS handle (nvmath-python's
-    bindings) for the rank update, a ``dgemm`` into P with its leading dimension, on the raw
-    CUDA stream ``stream``; without one, an ``xp`` expression."""
+    :meth:`DenseInverse.fold`'s arithmetic on the CPU (and the reference of :class:`LibraryFold`,
+    the GPU's)."""
     from .sherman_morrison import woodbury_q
 
     r = xp.asarray(rows)
     U = xp.ascontiguousarray(P[r].T)  # columns of the symmetric P: rows are contiguous
     Q = woodbury_q(xp.asarray(N), U[r], xp)
     V = xp.ascontiguousarray(U @ Q)
-    if blas is None:
-        P -= U @ V.T
-    else:
-        gemm_update(blas, P, U, V, stream)
+    P -= U @ V.T
 
 
 _MINUS_ONE = np.array([-1.0])
 _ONE = np.array([1.0])
+_ZERO = np.array([0.0])
 
 
-def gemm_update(h, P, U, V, stream: int = 0) -> None:
-    """P <- P - U V^T in place with cuBLAS's ``dgemm`` (handle ``h``, raw stream ``stream``): P an
-    (n, n) row-major CuPy array with unit column stride and row stride ld (its leading
-    dimension), U and V C-contiguous (n, k). cuBLAS sees the column-major P^T (ld ld) and updates
-    it as P^T - V U^T: op(A) = V, given as the column-major (k, n) V^T (transposed, lda k), and
-    op(B) = U^T, the column-major (k, n) U^T (lda k)."""
-    from nvmath.bindings import cublas
+def _matrix_view(buf: GrowArray, rows: int, cols: int) -> wp.array:
+    """A (rows, cols) row-major view of ``buf``'s first rows * cols elements."""
+    flat = buf.view(rows * cols)
+    a = wp.array(ptr=flat.ptr, dtype=flat.dtype, shape=(rows, cols), device=flat.device)
+    a._ref = flat
+    return a
 
-    n, k = U.shape
-    item = P.itemsize
-    if P.dtype != np.float64 or P.strides[1] != item or P.strides[0] % item or P.shape != (n, n):
-        raise ValueError(f"gemm_update needs an (n, n) float64 matrix with unit column stride, got "
-                         f"{P.dtype} {P.shape} strides {P.strides}")
-    if V.shape != (n, k) or not (U.flags.c_contiguous and V.flags.c_contiguous):
-        raise ValueError("gemm_update needs C-contiguous U and V of one shape (n, k)")
-    if n == 0 or k == 0:
-        return
-    ld = P.strides[0] // item
-    cublas.set_stream(h, int(stream))
-    cublas.dgemm(h, 1, 0, n, n, k, _MINUS_ONE.ctypes.data, V.data.ptr, k, U.data.ptr, k,
-                 _ONE.ctypes.data, P.data.ptr, ld)  # (transa T, transb N)
+
+class LibraryFold:
+    """The fold P <- P - U Q U^T of :meth:`DenseInverse.fold` on the inverse's device from its
+    own kept buffers: the affected DOFs and N sent in one page-locked copy, U and S = G^T U
+    gathered by two launches, M = I + N S by cuBLAS's ``dgemm``, Q = M^-1 N by cuSOLVER's
+    ``getrf`` and ``getrs``, symmetrized by a launch, V = U Q and P - V U^T by two ``dgemm``
+    (P's leading dimension): nine calls in all, nothing allocated while the buffers hold, nothing
+    read back. The same arithmetic as :func:`fold_into` (``getrf``'s pivoting for NumPy's
+    ``solve``). ``cublas`` and ``cusolver``: nvmath-python's binding modules (or stand-ins with
+    their signatures on host memory, for a test on the CPU device)."""
+
+    def __init__(self, device):
+        self.device = wp.get_device(device)
+        self.staged = PackedArrays({"rows": wp.int32, "N": wp.float64, "Q": wp.float64}, self.device)
+        f64 = (GrowArray(wp.float64, self.device) for _ in range(5))
+        self._UT, self._V, self._S, self._M, self._work = f64
+        self._ipiv = GrowArray(wp.int32, self.device)
+        self.info = wp.zeros(1, dtype=wp.int32, device=self.device)  # getrf's and getrs's (not read)
+        self._lwork: dict[int, int] = {}
+
+    def __call__(self, cublas, cusolver, blas, solver, P: wp.array, ld: int, rows: np.ndarray, N: np.ndarray,
+                 stream: int = 0) -> None:
+        k, n = len(rows), int(P.shape[0])
+        if k == 0 or n == 0:
+            return
+        st = self.staged
+        st.reserve({"rows": k, "N": k * k, "Q": k * k})
+        st.host("rows")[...] = rows
+        st.host("N")[...] = np.asarray(N, np.float64).ravel()
+        st.host("Q")[...] = st.host("N")  # getrs's right-hand side, overwritten by Q
+        st.send(("rows", "N", "Q"))
+        r, Nd, Q = st.array("rows"), st.array("N"), st.array("Q")
+        Q2 = wp.array(ptr=Q.ptr, dtype=wp.float64, shape=(k, k), device=self.device)
+        UT = _matrix_view(self._UT, k, n)
+        S, M = _matrix_view(self._S, k, k), _matrix_view(self._M, k, k)
+        V = self._V.view(k * n)
+        ipiv = self._ipiv.view(k)
+        wp.launch(fold_columns_kernel, (k, n), [P, r, UT], device=self.device)
+        wp.launch(fold_small_kernel, (k, k), [UT, r, S, M], device=self.device)
+        cublas.set_stream(blas, stream)
+        cusolver.set_stream(solver, stream)
+        one, zero, minus = _ONE.ctypes.data, _ZERO.ctypes.data, _MINUS_ONE.ctypes.data
+        # column-major views: N and S symmetric are themselves, so M_cm = I + N S
+        cublas.dgemm(blas, 0, 0, k, k, k, one, Nd.ptr, k, S.ptr, k, one, M.ptr, k)
+        lwork = self._lwork.get(k)
+        if lwork is None:
+            lwork = self._lwork[k] = int(cusolver.dgetrf_buffer_size(solver, k, k, M.ptr, k))
+        work = self._work.view(max(1, lwork))
+        cusolver.dgetrf(solver, k, k, M.ptr, k, work.ptr, ipiv.ptr, self.info.ptr)
+        cusolver.dgetrs(solver, 0, k, k, M.ptr, k, ipiv.ptr, Q.ptr, k, self.info.ptr)  # Q_cm = M^-1 N
+        wp.launch(symmetrize_small_kernel, (k, k), [Q2], device=self.device)
+        # U_cm (n x k, ld n) is UT row-major; V_cm = U Q; P_cm (ld) -= V U^T
+        cublas.dgemm(blas, 0, 0, n, k, k, one, UT.ptr, n, Q.ptr, k, zero, V.ptr, n)
+        cublas.dgemm(blas, 0, 1, n, n, k, minus, V.ptr, n, UT.ptr, n, one, P.ptr, ld)
 
 
 def array_module(device):
@@ -325,26 +392,6 @@ def array_module(device):
 def xp_view(xp, a: wp.array):
     """``a`` as an ``xp`` array, sharing its memory."""
     return a.numpy() if xp is np else xp.asarray(a)
-
-
-class _StreamHandle:
-    """A raw CUDA stream handle in the ``__cuda_stream__`` protocol."""
-
-    def __init__(self, handle: int):
-        self.handle = int(handle)
-
-    def __cuda_stream__(self):
-        return (0, self.handle)
-
-
-def xp_stream(xp, stream):
-    """Context in which ``xp`` enqueues on the Warp ``stream`` (no-op on the CPU)."""
-    if xp is np or stream is None:
-        return contextlib.nullcontext()
-    external = getattr(xp.cuda.Stream, "from_external", None)  # CuPy 14; ExternalStream before
-    if external is not None:
-        return external(_StreamHandle(stream.cuda_stream))
-    return xp.cuda.ExternalStream(stream.cuda_stream)
 
 
 class DenseInverse:
@@ -408,11 +455,12 @@ class DenseInverse:
         self._workspace = None
         self._blas = None  # cuBLAS (the factorization's)
         self._fold_blas = None  # cuBLAS (the folds', on the simulation's thread and stream)
+        self._fold_solver = None  # cuSOLVER (the folds')
+        self._library_fold = LibraryFold(self.device) if self.device.is_cuda else None
         self._one = np.ones(1)  # the host scalar of the cuBLAS calls
         self._W = None  # delassus: W on the device (grown to the largest m x m seen)
         self._deferred = 0  # the depth of changing() scopes open
         self._stale = False  # the single-precision copy is to be made again (changing())
-        self._fold_ready = False  # GPU: the fold's library calls made once (_prepare_gpu)
 
     # ----------------------------------------------------------- making one
     @property
@@ -446,7 +494,7 @@ class DenseInverse:
         """What the GPU factorization needs, made on the caller's thread before it is enqueued
         (possibly by another thread, which then allocates nothing and loads no module): the
         cuSOLVER and cuBLAS handles, the workspace, the second buffer (:meth:`factorize` writes
-        the identity into it, the right-hand side of ``trsm``)."""
+        the identity into it, the right-hand side of ``trsm``); the fold's handles."""
         from nvmath.bindings import cusolverDn
 
         if self._handle is None:
@@ -462,20 +510,28 @@ class DenseInverse:
             from nvmath.bindings import cublas
 
             self._blas = cublas.create()
-        if not self._fold_ready:  # the fold's library calls made once now (CuPy's kernels and
-            with xp_stream(self.xp, stream):  # handles, the fold's cuBLAS handle), not at the first cut
-                fold_into(self.xp, self.xp.eye(6), np.arange(3), 0.5 * np.eye(3), self._fold_handle(),
-                          stream.cuda_stream if stream is not None else 0)
-            self._fold_ready = True
+        if self._fold_blas is None:
+            # the fold's handles, and its calls made once on a 6 x 6 matrix: the libraries'
+            # kernels are loaded now, not at the first cut
+            from nvmath.bindings import cublas
 
-    def _fold_handle(self):
-        """GPU: the cuBLAS handle of the folds (not the factorization's, which another thread may
-        be using on another stream)."""
+            blas, solver = self._fold_handles()
+            P = wp.array(np.eye(6), dtype=wp.float64, device=self.device)
+            self._library_fold(cublas, cusolverDn, blas, solver, P, 6, np.arange(3, dtype=np.int32), 0.5 * np.eye(3),
+                               stream.cuda_stream if stream is not None else 0)
+
+    def _fold_handles(self):
+        """GPU: the cuBLAS and cuSOLVER handles of the folds (not the factorization's, which
+        another thread may be using on another stream), made once."""
         if self._fold_blas is None:
             from nvmath.bindings import cublas
 
             self._fold_blas = cublas.create()
-        return self._fold_blas
+        if self._fold_solver is None:
+            from nvmath.bindings import cusolverDn
+
+            self._fold_solver = cusolverDn.create()
+        return self._fold_blas, self._fold_solver
 
     def factorize(self, stream=None) -> None:
         """Work buffer A -> A^-1, on ``stream``: cuSOLVER and cuBLAS calls and, by column
@@ -692,13 +748,14 @@ class DenseInverse:
         S = G^T P^-1 G (:func:`~soft_tissue_sim.sherman_morrison.woodbury_q`): the exact
         corrected inverse of eq. (5)-(7) for the perturbation N (host). Runs on the
         simulation's stream, Q included: nothing is read back."""
-        xp = self.xp
         if self.device.is_cuda:
-            stream = wp.get_stream(self.device)
-            with xp_stream(xp, stream):
-                fold_into(xp, self.matrix(), rows, N, self._fold_handle(), stream.cuda_stream)
+            from nvmath.bindings import cublas, cusolverDn
+
+            blas, solver = self._fold_handles()
+            self._library_fold(cublas, cusolverDn, blas, solver, self.inv, self._ld, np.asarray(rows, np.int32), N,
+                               wp.get_stream(self.device).cuda_stream)
         else:
-            fold_into(xp, self.matrix(), rows, N)
+            fold_into(self.xp, self.matrix(), rows, N)
         self._narrow()
 
     def regrow(self, keep: np.ndarray, added: int) -> None:
@@ -742,11 +799,13 @@ class DenseInverse:
         self.inv = self.inv32 = None
 
     def close(self) -> None:
-        if self._handle is not None:
-            from nvmath.bindings import cusolverDn
+        for attr in ("_handle", "_fold_solver"):
+            h = getattr(self, attr)
+            if h is not None:
+                from nvmath.bindings import cusolverDn
 
-            cusolverDn.destroy(self._handle)
-            self._handle = None
+                cusolverDn.destroy(h)
+                setattr(self, attr, None)
         for attr in ("_blas", "_fold_blas"):
             h = getattr(self, attr)
             if h is not None:
@@ -754,7 +813,6 @@ class DenseInverse:
 
                 cublas.destroy(h)
                 setattr(self, attr, None)
-        self._fold_ready = False
         self.inv = self.inv32 = self.work = self._workspace = self._rhs = self._result = self._triplets = None
         self._full = self._full32 = self._s = None
         self._ld = 0

@@ -10,7 +10,6 @@ runs the same tests on a GPU.
 
 import ctypes
 import os
-import sys
 import types
 
 import numpy as np
@@ -264,57 +263,74 @@ def test_the_preconditioner_key_holds_across_a_cut():
         assert sim.step().converged
 
 
-def _fake_cublas():
-    """A stand-in for nvmath's cuBLAS bindings on host memory: dgemm with BLAS's column-major
-    semantics on raw pointers (to check the layout of :func:`gemm_update`)."""
+def _colmajor(ptr, rows, cols, ld, ctype=ctypes.c_double):
+    """The column-major (rows, cols) matrix with leading dimension ld at the host address ptr."""
+    buf = (ctype * (ld * (cols - 1) + rows)).from_address(ptr)
+    size = ctypes.sizeof(ctype)
+    return np.lib.stride_tricks.as_strided(np.ctypeslib.as_array(buf), (rows, cols), (size, size * ld))
+
+
+def _fake_bindings():
+    """Stand-ins for nvmath's cuBLAS and cuSOLVER bindings on host memory, with the libraries'
+    column-major semantics on raw pointers: dgemm (BLAS), dgetrf and dgetrs (LAPACK's, through
+    SciPy), so that :class:`LibraryFold`'s calls run on Warp's CPU device."""
+    import scipy.linalg as sla
+
     calls = []
 
-    def colmajor(ptr, rows, cols, ld):
-        buf = (ctypes.c_double * (ld * (cols - 1) + rows)).from_address(ptr)
-        return np.lib.stride_tricks.as_strided(np.ctypeslib.as_array(buf), (rows, cols), (8, 8 * ld))
-
     def dgemm(h, transa, transb, m, n, k, alpha, a, lda, b, ldb, beta, c, ldc):
-        calls.append((transa, transb, m, n, k, lda, ldb, ldc))
-        A = colmajor(a, k, m, lda).T if transa == 1 else colmajor(a, m, k, lda)
-        B = colmajor(b, n, k, ldb).T if transb == 1 else colmajor(b, k, n, ldb)
-        C = colmajor(c, m, n, ldc)
+        calls.append(("dgemm", transa, transb, m, n, k, lda, ldb, ldc))
+        A = _colmajor(a, k, m, lda).T if transa == 1 else _colmajor(a, m, k, lda)
+        B = _colmajor(b, n, k, ldb).T if transb == 1 else _colmajor(b, k, n, ldb)
+        C = _colmajor(c, m, n, ldc)
         al, be = (ctypes.c_double.from_address(p).value for p in (alpha, beta))
-        C[...] = al * (A @ B) + be * C
+        C[...] = al * (A @ B) + (be * C if be != 0.0 else 0.0)  # (BLAS reads no C where beta is 0)
 
-    mod = types.ModuleType("nvmath.bindings.cublas")
-    mod.set_stream = lambda h, s: None
-    mod.dgemm = dgemm
-    return mod, calls
+    def dgetrf(h, m, n, a, lda, work, ipiv, info):
+        calls.append(("dgetrf", m, n, lda))
+        A = _colmajor(a, m, n, lda)
+        lu, piv = sla.lu_factor(np.array(A))
+        A[...] = lu
+        _colmajor(ipiv, min(m, n), 1, min(m, n), ctypes.c_int)[:, 0] = piv + 1
+        ctypes.c_int.from_address(info).value = 0
+
+    def dgetrs(h, trans, n, nrhs, a, lda, ipiv, b, ldb, info):
+        calls.append(("dgetrs", trans, n, nrhs, lda, ldb))
+        piv = _colmajor(ipiv, n, 1, n, ctypes.c_int)[:, 0] - 1
+        B = _colmajor(b, n, nrhs, ldb)
+        B[...] = sla.lu_solve((np.array(_colmajor(a, n, n, lda)), piv), np.array(B), trans=trans)
+        ctypes.c_int.from_address(info).value = 0
+
+    cublas = types.SimpleNamespace(set_stream=lambda h, s: None, dgemm=dgemm)
+    cusolver = types.SimpleNamespace(set_stream=lambda h, s: None, dgetrf=dgetrf, dgetrs=dgetrs,
+                                     dgetrf_buffer_size=lambda h, m, n, a, lda: 1)
+    return cublas, cusolver, calls
 
 
-class _DevArray:
-    """A NumPy array with CuPy's ``.data.ptr`` (what gemm_update reads of its arguments)."""
-
-    def __init__(self, a):
-        self.a = a
-        self.data = types.SimpleNamespace(ptr=a.ctypes.data)
-
-    def __getattr__(self, name):
-        return getattr(self.a, name)
-
-
-def test_gemm_update_updates_a_strided_matrix_in_place(monkeypatch):
-    """The GPU fold's rank update (cuBLAS dgemm with the matrix's leading dimension), run against
-    a column-major reference dgemm on host memory: P - U V^T in the (n, n) view, the padding
-    beyond it untouched."""
-    mod, calls = _fake_cublas()
-    bindings = types.ModuleType("nvmath.bindings")
-    bindings.cublas = mod
-    monkeypatch.setitem(sys.modules, "nvmath", types.ModuleType("nvmath"))
-    monkeypatch.setitem(sys.modules, "nvmath.bindings", bindings)
-    monkeypatch.setitem(sys.modules, "nvmath.bindings.cublas", mod)
+def test_the_library_fold_equals_the_host_fold_on_a_strided_matrix():
+    """The GPU's fold (:class:`LibraryFold`: its gathers and symmetrization on Warp's CPU device,
+    its dgemm, getrf and getrs by column-major stand-ins of the libraries) against
+    :func:`fold_into` (NumPy): P - U Q U^T in the (n, n) view of a store with a larger leading
+    dimension, the padding beyond it untouched; twice, the second fold on fewer rows (the
+    buffers reused)."""
+    cublas, cusolver, calls = _fake_bindings()
     rng = np.random.default_rng(6)
-    n, k, ld = 21, 6, 40
-    store = rng.standard_normal((ld, ld))
-    before = store.copy()
-    P = store[:n, :n]
-    U, V = rng.standard_normal((n, k)), rng.standard_normal((n, k))
-    DI.gemm_update(0, _DevArray(P), _DevArray(U), _DevArray(V))
-    assert calls == [(1, 0, n, n, k, k, k, ld)]
-    np.testing.assert_allclose(store[:n, :n], before[:n, :n] - U @ V.T, rtol=0, atol=1e-13)
-    assert np.array_equal(store[n:], before[n:]) and np.array_equal(store[:, n:], before[:, n:])
+    n, ld = 21, 40
+    B = rng.standard_normal((n, n))
+    store = np.full((ld, ld), 7.0)
+    store[:n, :n] = np.linalg.inv(B @ B.T + n * np.eye(n))
+    P = wp.array(store, dtype=wp.float64, device="cpu")
+    Pv = DI.strided_square(wp.array(ptr=P.ptr, dtype=wp.float64, shape=(ld * ld,), device="cpu"), n, ld)
+    fold = DI.LibraryFold("cpu")
+    ref = store.copy()
+    for rows in (np.array([3, 4, 5, 12, 13, 14]), np.array([0, 1, 2])):
+        k = len(rows)
+        C = rng.standard_normal((k, k))
+        N = 0.1 * (C + C.T)
+        DI.fold_into(np, ref[:n, :n], rows, N)
+        fold(cublas, cusolver, 0, 0, Pv, ld, rows.astype(np.int32), N)
+        got = P.numpy()
+        np.testing.assert_allclose(got[:n, :n], ref[:n, :n], rtol=0, atol=1e-13)
+        assert np.all(got[n:] == 7.0) and np.all(got[:, n:] == 7.0)
+    assert [c[0] for c in calls] == ["dgemm", "dgetrf", "dgetrs", "dgemm", "dgemm"] * 2
+    assert calls[4] == ("dgemm", 0, 1, n, n, 6, n, n, ld)  # the rank update with P's leading dimension

@@ -283,6 +283,26 @@ def test_the_factors_rotations_reach_the_host_as_they_were_requested():
         assert np.array_equal(pre.R_ref_host, made_with)
 
 
+@pytest.mark.skipif(not CUDA, reason="CuPy's kernels are the GPU fold's (NumPy on the CPU)")
+def test_the_first_cut_on_a_gpu_compiles_no_cupy_kernel():
+    """A cut's correction calls cuBLAS and cuSOLVER on kept buffers (:class:`LibraryFold`), so the
+    first cut of a process makes no CuPy kernel (which took a few hundred milliseconds on a
+    machine without CuPy's cache, when the fold was CuPy's). In a process of its own: this one
+    may have made them already."""
+    import subprocess
+    import sys
+
+    here = os.path.dirname(os.path.abspath(__file__))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([here, os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run([sys.executable, os.path.join(here, "fold_probe.py"), DEVICE], env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    line = [ln for ln in out.stdout.splitlines() if ln.startswith("changed")][-1]
+    changed, folds, compiled = (int(w) for w in line.split()[1::2])
+    assert changed == 1 and folds >= 1
+    assert compiled == 0
+
+
 def test_device_refresh_every_sets_the_interval_of_the_device_backends_only():
     """``device_refresh_every`` replaces ``refresh_every`` for a device factor (dense here) and
     leaves CHOLMOD's; a bad value is refused."""

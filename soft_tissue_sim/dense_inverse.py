@@ -344,6 +344,13 @@ class LibraryFold:
         self.info = wp.zeros(1, dtype=wp.int32, device=self.device)  # getrf's and getrs's (not read)
         self._lwork: dict[int, int] = {}
 
+    def release(self) -> None:
+        """Let the buffers go (allocates nothing; the next fold makes them again)."""
+        self.staged = PackedArrays(dict(self.staged.fields), self.device)
+        for buf in (self._UT, self._V, self._S, self._M, self._work, self._ipiv):
+            buf.release()
+        self._lwork.clear()
+
     def __call__(self, cublas, cusolver, blas, solver, P: wp.array, ld: int, rows: np.ndarray, N: np.ndarray,
                  stream: int = 0) -> None:
         k, n = len(rows), int(P.shape[0])
@@ -819,3 +826,5 @@ class DenseInverse:
         self._store = self._empty_stores()
         self._inv32_buf = GrowArray(wp.float32, self.device, headroom=1.0)
         self._work_buf, self._rhs_buf = (GrowArray(b.dtype, self.device) for b in (self._work_buf, self._rhs_buf))
+        if self._library_fold is not None:
+            self._library_fold.release()

@@ -333,4 +333,10 @@ def test_the_library_fold_equals_the_host_fold_on_a_strided_matrix():
         np.testing.assert_allclose(got[:n, :n], ref[:n, :n], rtol=0, atol=1e-13)
         assert np.all(got[n:] == 7.0) and np.all(got[:, n:] == 7.0)
     assert [c[0] for c in calls] == ["dgemm", "dgetrf", "dgetrs", "dgemm", "dgemm"] * 2
+    fold.release()  # (what DenseInverse.close does): the buffers go, the next fold makes them again
+    assert fold._UT.buffer is None and fold.staged.buffer is None
+    rows = np.array([6, 7, 8])
+    DI.fold_into(np, ref[:n, :n], rows, N[:3, :3])
+    fold(cublas, cusolver, 0, 0, Pv, ld, rows.astype(np.int32), N[:3, :3])
+    np.testing.assert_allclose(P.numpy()[:n, :n], ref[:n, :n], rtol=0, atol=1e-13)
     assert calls[4] == ("dgemm", 0, 1, n, n, 6, n, n, ld)  # the rank update with P's leading dimension

@@ -368,6 +368,37 @@ def test_bad_configuration_ends_with_a_fatal_line_and_exit_code_1(tmp_path):
         assert (what if what != "no such scene" else "no_such_scene.yaml") in fatal[0], fatal
 
 
+def test_the_node_process_keeps_its_long_lived_objects_out_of_full_collections(ros):
+    """``python -m soft_tissue_sim.ros`` freezes what it made before spinning (the scene, its
+    buffers and kernels), so that Python's full collections, which walked them all, no longer
+    stall a step; its rate diagnostics say how many objects that is."""
+    ctx = ros[0]
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    ns = f"gc_{os.getpid()}"
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    proc = subprocess.Popen([sys.executable, "-m", "soft_tissue_sim.ros", "--ros-args", "-r", f"__ns:=/{ns}",
+                             "-p", "device:=cpu", "-p", "scene:=test_small.yaml", "-p", "diagnostics_rate_hz:=5.0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    frozen = []
+    listener = rclpy.create_node("gc_listener", context=ctx)
+
+    def on_diag(msg):
+        for st in msg.status:
+            if st.name.startswith("soft_tissue_sim: rate") and st.hardware_id == "cpu":
+                frozen.extend(int(kv.value) for kv in st.values if kv.key == "gc_frozen_objects")
+
+    listener.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
+    add(ros, listener)
+    try:
+        assert wait_for(lambda: frozen or proc.poll() is not None, timeout=120.0)
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        assert frozen[-1] > 1000  # the scene's objects at least (tens of thousands)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
+
+
 # ------------------------------------------------------------------ the physics thread
 def test_each_step_uses_the_newest_pose_and_publishes_a_wrench(ros):
     ctx = ros[0]

@@ -28,7 +28,7 @@ def main(argv=None) -> int:
     from rclpy.parameter import Parameter
 
     from ..report import Progress, summarize, table
-    from .node import SimNode
+    from .node import SimNode, freeze_long_lived
     from .scripted_instrument import ScriptedInstrument, script_for_scene, script_parameters
 
     ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.ros.demo")
@@ -68,6 +68,7 @@ def main(argv=None) -> int:
                   f"{np.round(script.end, 4).tolist()}, press {script.press_depth * 1000:.1f} mm, "
                   f"{script.total_s:.2f} s of simulation time ({script.total_s / sim.dt:.0f} steps)", flush=True)
         tri0 = len(sim.surface_triangles())
+        freeze_long_lived()
         prog, stats = Progress(args.steps), []
         window = []  # wall times of recent steps, for steps/s
         force_max, phases = 0.0, []

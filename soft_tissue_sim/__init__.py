@@ -7,7 +7,9 @@ The solver core imports nothing from rclpy; :mod:`soft_tissue_sim.ros` adapts it
 from .implicit_integration import StepStats
 from .material import ParameterError
 from .mesh import MeshError, TetMesh, load_mesh
+from .realtime import freeze_long_lived
 from .scene import Simulation, load_scene
 
-__all__ = ["load_scene", "Simulation", "StepStats", "TetMesh", "load_mesh", "MeshError", "ParameterError"]
+__all__ = ["load_scene", "Simulation", "StepStats", "TetMesh", "load_mesh", "MeshError", "ParameterError",
+           "freeze_long_lived"]
 __version__ = "0.1.0"

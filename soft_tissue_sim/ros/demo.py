@@ -28,7 +28,8 @@ def main(argv=None) -> int:
     from rclpy.parameter import Parameter
 
     from ..report import Progress, summarize, table
-    from .node import SimNode, freeze_long_lived
+    from ..realtime import freeze_long_lived
+    from .node import SimNode
     from .scripted_instrument import ScriptedInstrument, script_for_scene, script_parameters
 
     ap = argparse.ArgumentParser(prog="python -m soft_tissue_sim.ros.demo")

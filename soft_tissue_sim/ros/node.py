@@ -92,6 +92,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
+from ..realtime import freeze_long_lived
 from ..scene import load_scene
 from . import parameters
 from .input_thread import InputThread, ThreadServedGroup
@@ -107,17 +108,6 @@ RATE_WARN_FRACTION = 0.95  # diagnostics WARN under this fraction of rate_hz (re
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
 SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=SERVICE_QUEUE_DEPTH,
                          reliability=ReliabilityPolicy.RELIABLE)
-
-
-def freeze_long_lived() -> int:
-    """Move every object alive now into the collector's permanent generation (after collecting
-    what is garbage already): the scene, its buffers, kernels and graphs and the node live as long
-    as the process, and a full collection that walked them all would stall a step many times over
-    its length. Objects made later are collected as before. Returns how many objects are frozen.
-    For the applications that run a node (``main``, the demo), after it is made."""
-    gc.collect()
-    gc.freeze()
-    return gc.get_freeze_count()
 
 
 class InputRejected(ValueError):

@@ -78,16 +78,16 @@ def _candidates(points, tets, tris, nrm, tol):
     the tets near a (non-degenerate) blade triangle with unit normal ``nrm`` (the box of the
     whole path over all tets with :func:`_near_blade`, then each triangle's box over those,
     :func:`_near_triangles`) that have vertices on both sides of its plane (+tol). Returns
-    (tet indices, triangle indices, the tets' vertices (k, 4, 3)), ordered by triangle, then tet."""
+    (tet indices, triangle indices), ordered by triangle, then tet."""
     near = _near_blade(points, tets, tris.reshape(-1, 3), tol)  # the box of the whole path first
     if not len(near):
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 3))
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     Xn = points[tets[near]]  # (k, 4, 3)
     owner, j = _near_triangles(Xn, tris, tol)
     cand, X = near[j], Xn[j]
     d = _dot(X - tris[owner, 0][:, None], nrm[owner][:, None])
     straddle = (d.min(axis=1) <= tol) & (d.max(axis=1) >= -tol)
-    return cand[straddle], owner[straddle], X[straddle]
+    return cand[straddle], owner[straddle]
 
 
 def _tets_cut(points, tets, tris, nrm, tol):
@@ -95,7 +95,7 @@ def _tets_cut(points, tets, tris, nrm, tol):
     :func:`_candidates` whose section by a triangle's plane overlaps it
     (:func:`tets_cut_kernel`). Returns (tet indices, triangle indices) of the pairs, ordered by
     triangle, then tet; the exact tests of all triangles run as one launch."""
-    cand, owner, _X = _candidates(points, tets, tris, nrm, tol)
+    cand, owner = _candidates(points, tets, tris, nrm, tol)
     if not len(cand):
         return cand, owner
     hit = np.zeros(len(cand), np.int32)

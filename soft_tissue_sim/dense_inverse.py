@@ -283,10 +283,10 @@ def rows_apply_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=w
     out[i] = (scale * free[i]) * (dR[i] * acc)
 
 
-def _square_view(buf: GrowArray, n: int) -> wp.array:
-    """An (n, n) row-major view of ``buf``'s first n^2 values (reallocated, contents lost, only
-    when it outgrows the allocation)."""
-    return typed_view(buf.view(n * n), 0, buf.dtype, (n, n))
+def _matrix_view(buf: GrowArray, rows: int, cols: int) -> wp.array:
+    """A (rows, cols) row-major view of ``buf``'s first rows * cols values (reallocated, contents
+    lost, only when it outgrows the allocation)."""
+    return typed_view(buf.view(rows * cols), 0, buf.dtype, (rows, cols))
 
 
 def strided_square(buf: wp.array, n: int, ld: int) -> wp.array:
@@ -317,14 +317,6 @@ _ONE = np.array([1.0])
 _ZERO = np.array([0.0])
 
 
-def _matrix_view(buf: GrowArray, rows: int, cols: int) -> wp.array:
-    """A (rows, cols) row-major view of ``buf``'s first rows * cols elements."""
-    flat = buf.view(rows * cols)
-    a = wp.array(ptr=flat.ptr, dtype=flat.dtype, shape=(rows, cols), device=flat.device)
-    a._ref = flat
-    return a
-
-
 class LibraryFold:
     """The fold P <- P - U Q U^T of :meth:`DenseInverse.fold` on the inverse's device from its
     own kept buffers: the affected DOFs and N sent in one page-locked copy, U and S = G^T U
@@ -332,10 +324,18 @@ class LibraryFold:
     ``getrf`` and ``getrs``, symmetrized by a launch, V = U Q and P - V U^T by two ``dgemm``
     (P's leading dimension): nine calls in all, nothing allocated while the buffers hold, nothing
     read back. The same arithmetic as :func:`fold_into` (``getrf``'s pivoting for NumPy's
-    ``solve``). ``cublas`` and ``cusolver``: nvmath-python's binding modules (or stand-ins with
-    their signatures on host memory, for a test on the CPU device)."""
+    ``solve``). It owns a cuBLAS and a cuSOLVER handle (not the factorization's, which another
+    thread may be using on another stream) until :meth:`close`. ``cublas`` and ``cusolver``:
+    nvmath-python's binding modules by default (or stand-ins with their signatures on host
+    memory, for a test on the CPU device)."""
 
-    def __init__(self, device):
+    def __init__(self, device, cublas=None, cusolver=None):
+        if cublas is None:
+            from nvmath.bindings import cublas
+        if cusolver is None:
+            from nvmath.bindings import cusolverDn as cusolver
+        self.cublas, self.cusolver = cublas, cusolver
+        self.blas, self.solver = cublas.create(), cusolver.create()
         self.device = wp.get_device(device)
         self.staged = PackedArrays({"rows": wp.int32, "N": wp.float64, "Q": wp.float64}, self.device)
         f64 = (GrowArray(wp.float64, self.device) for _ in range(5))
@@ -351,9 +351,20 @@ class LibraryFold:
             buf.release()
         self._lwork.clear()
 
-    def __call__(self, cublas, cusolver, blas, solver, P: wp.array, ld: int, rows: np.ndarray, N: np.ndarray,
-                 stream: int = 0) -> None:
-        k, n = len(rows), int(P.shape[0])
+    def close(self) -> None:
+        """The buffers (:meth:`release`) and the handles go."""
+        self.release()
+        if self.blas is not None:
+            self.cublas.destroy(self.blas)
+            self.cusolver.destroy(self.solver)
+            self.blas = self.solver = None
+
+    def __call__(self, P: wp.array, rows: np.ndarray, N: np.ndarray, stream: int = 0) -> None:
+        """P <- P - U Q U^T (P an (n, n) float64 view with unit column stride, its row stride the
+        leading dimension) for the DOFs ``rows`` and the perturbation N, on the raw CUDA stream
+        ``stream``."""
+        cublas, cusolver, blas, solver = self.cublas, self.cusolver, self.blas, self.solver
+        k, n, ld = len(rows), int(P.shape[0]), P.strides[0] // P.strides[1]
         if k == 0 or n == 0:
             return
         st = self.staged
@@ -362,8 +373,7 @@ class LibraryFold:
         st.host("N")[...] = np.asarray(N, np.float64).ravel()
         st.host("Q")[...] = st.host("N")  # getrs's right-hand side, overwritten by Q
         st.send(("rows", "N", "Q"))
-        r, Nd, Q = st.array("rows"), st.array("N"), st.array("Q")
-        Q2 = wp.array(ptr=Q.ptr, dtype=wp.float64, shape=(k, k), device=self.device)
+        r, Nd, Q = st.array("rows"), st.array("N"), st.alias("Q", wp.float64, (k, k))
         UT = _matrix_view(self._UT, k, n)
         S, M = _matrix_view(self._S, k, k), _matrix_view(self._M, k, k)
         V = self._V.view(k * n)
@@ -381,7 +391,7 @@ class LibraryFold:
         work = self._work.view(max(1, lwork))
         cusolver.dgetrf(solver, k, k, M.ptr, k, work.ptr, ipiv.ptr, self.info.ptr)
         cusolver.dgetrs(solver, 0, k, k, M.ptr, k, ipiv.ptr, Q.ptr, k, self.info.ptr)  # Q_cm = M^-1 N
-        wp.launch(symmetrize_small_kernel, (k, k), [Q2], device=self.device)
+        wp.launch(symmetrize_small_kernel, (k, k), [Q], device=self.device)
         # U_cm (n x k, ld n) is UT row-major; V_cm = U Q; P_cm (ld) -= V U^T
         cublas.dgemm(blas, 0, 0, n, k, k, one, UT.ptr, n, Q.ptr, k, zero, V.ptr, n)
         cublas.dgemm(blas, 0, 1, n, n, k, minus, V.ptr, n, UT.ptr, n, one, P.ptr, ld)
@@ -461,9 +471,7 @@ class DenseInverse:
         self._lwork = 0
         self._workspace = None
         self._blas = None  # cuBLAS (the factorization's)
-        self._fold_blas = None  # cuBLAS (the folds', on the simulation's thread and stream)
-        self._fold_solver = None  # cuSOLVER (the folds')
-        self._library_fold = LibraryFold(self.device) if self.device.is_cuda else None
+        self._library_fold: LibraryFold | None = None  # GPU: the folds (made with the first factor)
         self._one = np.ones(1)  # the host scalar of the cuBLAS calls
         self._W = None  # delassus: W on the device (grown to the largest m x m seen)
         self._deferred = 0  # the depth of changing() scopes open
@@ -488,7 +496,7 @@ class DenseInverse:
         stream."""
         rows, cols, vals = triplets
         if self.work is None or self.work.shape[0] != n3:
-            self.work = _square_view(self._work_buf, n3)
+            self.work = _matrix_view(self._work_buf, n3, n3)
         if self.device.is_cuda:
             self._prepare_gpu(n3, stream)
             self._triplets = triplets
@@ -512,33 +520,16 @@ class DenseInverse:
             self._workspace = wp.empty(lwork, dtype=wp.float64, device=self.device)
             self._lwork = lwork
         if self._rhs is None or self._rhs.shape[0] != n:
-            self._rhs = _square_view(self._rhs_buf, n)
+            self._rhs = _matrix_view(self._rhs_buf, n, n)
         if self._blas is None:
             from nvmath.bindings import cublas
 
             self._blas = cublas.create()
-        if self._fold_blas is None:
-            # the fold's handles, and its calls made once on a 6 x 6 matrix: the libraries'
-            # kernels are loaded now, not at the first cut
-            from nvmath.bindings import cublas
-
-            blas, solver = self._fold_handles()
-            P = wp.array(np.eye(6), dtype=wp.float64, device=self.device)
-            self._library_fold(cublas, cusolverDn, blas, solver, P, 6, np.arange(3, dtype=np.int32), 0.5 * np.eye(3),
+        if self._library_fold is None:  # the folds, and their calls made once on a 6 x 6 matrix:
+            self._library_fold = LibraryFold(self.device)  # the libraries' kernels loaded now, not
+            P = wp.array(np.eye(6), dtype=wp.float64, device=self.device)  # at the first cut
+            self._library_fold(P, np.arange(3, dtype=np.int32), 0.5 * np.eye(3),
                                stream.cuda_stream if stream is not None else 0)
-
-    def _fold_handles(self):
-        """GPU: the cuBLAS and cuSOLVER handles of the folds (not the factorization's, which
-        another thread may be using on another stream), made once."""
-        if self._fold_blas is None:
-            from nvmath.bindings import cublas
-
-            self._fold_blas = cublas.create()
-        if self._fold_solver is None:
-            from nvmath.bindings import cusolverDn
-
-            self._fold_solver = cusolverDn.create()
-        return self._fold_blas, self._fold_solver
 
     def factorize(self, stream=None) -> None:
         """Work buffer A -> A^-1, on ``stream``: cuSOLVER and cuBLAS calls and, by column
@@ -756,11 +747,7 @@ class DenseInverse:
         corrected inverse of eq. (5)-(7) for the perturbation N (host). Runs on the
         simulation's stream, Q included: nothing is read back."""
         if self.device.is_cuda:
-            from nvmath.bindings import cublas, cusolverDn
-
-            blas, solver = self._fold_handles()
-            self._library_fold(cublas, cusolverDn, blas, solver, self.inv, self._ld, np.asarray(rows, np.int32), N,
-                               wp.get_stream(self.device).cuda_stream)
+            self._library_fold(self.inv, np.asarray(rows, np.int32), N, wp.get_stream(self.device).cuda_stream)
         else:
             fold_into(self.xp, self.matrix(), rows, N)
         self._narrow()
@@ -806,25 +793,23 @@ class DenseInverse:
         self.inv = self.inv32 = None
 
     def close(self) -> None:
-        for attr in ("_handle", "_fold_solver"):
-            h = getattr(self, attr)
-            if h is not None:
-                from nvmath.bindings import cusolverDn
+        if self._handle is not None:
+            from nvmath.bindings import cusolverDn
 
-                cusolverDn.destroy(h)
-                setattr(self, attr, None)
-        for attr in ("_blas", "_fold_blas"):
-            h = getattr(self, attr)
-            if h is not None:
-                from nvmath.bindings import cublas
+            cusolverDn.destroy(self._handle)
+            self._handle = None
+        if self._blas is not None:
+            from nvmath.bindings import cublas
 
-                cublas.destroy(h)
-                setattr(self, attr, None)
+            cublas.destroy(self._blas)
+            self._blas = None
+        if self._library_fold is not None:
+            self._library_fold.close()
+            self._library_fold = None
         self.inv = self.inv32 = self.work = self._workspace = self._rhs = self._result = self._triplets = None
         self._full = self._full32 = self._s = None
         self._ld = 0
         self._store = self._empty_stores()
         self._inv32_buf = GrowArray(wp.float32, self.device, headroom=1.0)
         self._work_buf, self._rhs_buf = (GrowArray(b.dtype, self.device) for b in (self._work_buf, self._rhs_buf))
-        if self._library_fold is not None:
-            self._library_fold.release()
+

@@ -301,9 +301,10 @@ def _fake_bindings():
         B[...] = sla.lu_solve((np.array(_colmajor(a, n, n, lda)), piv), np.array(B), trans=trans)
         ctypes.c_int.from_address(info).value = 0
 
-    cublas = types.SimpleNamespace(set_stream=lambda h, s: None, dgemm=dgemm)
-    cusolver = types.SimpleNamespace(set_stream=lambda h, s: None, dgetrf=dgetrf, dgetrs=dgetrs,
-                                     dgetrf_buffer_size=lambda h, m, n, a, lda: 1)
+    handles = dict(create=lambda: 0, destroy=lambda h: None, set_stream=lambda h, s: None)
+    cublas = types.SimpleNamespace(dgemm=dgemm, **handles)
+    cusolver = types.SimpleNamespace(dgetrf=dgetrf, dgetrs=dgetrs, dgetrf_buffer_size=lambda h, m, n, a, lda: 1,
+                                     **handles)
     return cublas, cusolver, calls
 
 
@@ -321,22 +322,22 @@ def test_the_library_fold_equals_the_host_fold_on_a_strided_matrix():
     store[:n, :n] = np.linalg.inv(B @ B.T + n * np.eye(n))
     P = wp.array(store, dtype=wp.float64, device="cpu")
     Pv = DI.strided_square(wp.array(ptr=P.ptr, dtype=wp.float64, shape=(ld * ld,), device="cpu"), n, ld)
-    fold = DI.LibraryFold("cpu")
+    fold = DI.LibraryFold("cpu", cublas, cusolver)
     ref = store.copy()
     for rows in (np.array([3, 4, 5, 12, 13, 14]), np.array([0, 1, 2])):
         k = len(rows)
         C = rng.standard_normal((k, k))
         N = 0.1 * (C + C.T)
         DI.fold_into(np, ref[:n, :n], rows, N)
-        fold(cublas, cusolver, 0, 0, Pv, ld, rows.astype(np.int32), N)
+        fold(Pv, rows.astype(np.int32), N)
         got = P.numpy()
         np.testing.assert_allclose(got[:n, :n], ref[:n, :n], rtol=0, atol=1e-13)
         assert np.all(got[n:] == 7.0) and np.all(got[:, n:] == 7.0)
     assert [c[0] for c in calls] == ["dgemm", "dgetrf", "dgetrs", "dgemm", "dgemm"] * 2
-    fold.release()  # (what DenseInverse.close does): the buffers go, the next fold makes them again
+    fold.release()  # (what close does before the handles go): the buffers go, the next fold makes them again
     assert fold._UT.buffer is None and fold.staged.buffer is None
     rows = np.array([6, 7, 8])
     DI.fold_into(np, ref[:n, :n], rows, N[:3, :3])
-    fold(cublas, cusolver, 0, 0, Pv, ld, rows.astype(np.int32), N[:3, :3])
+    fold(Pv, rows.astype(np.int32), N[:3, :3])
     np.testing.assert_allclose(P.numpy()[:n, :n], ref[:n, :n], rtol=0, atol=1e-13)
     assert calls[4] == ("dgemm", 0, 1, n, n, 6, n, n, ld)  # the rank update with P's leading dimension

@@ -16,8 +16,8 @@ import gc
 
 def freeze_long_lived() -> int:
     """Collect what is garbage now, then freeze every object still alive (``gc.freeze``): call
-    it once the scene is loaded (and stepped once, so that its kernels and graphs exist).
-    Returns how many objects are frozen."""
+    it once the scene is loaded (objects its later steps make, such as captured graphs, stay
+    with the collector). Returns how many objects are frozen."""
     gc.collect()
     gc.freeze()
     return gc.get_freeze_count()

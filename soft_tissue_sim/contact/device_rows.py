@@ -37,6 +37,7 @@ import warp as wp
 
 from ..buffers import GrowArray, PackedArrays
 from ..transfer import Staged
+from .device_lcp import barrier
 from .geometry import tangent_frame
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
@@ -198,7 +199,7 @@ def device_rows_kernel(
             scene_mu)
         order[rank] = s
         kr[rank] = k_rows
-    wp.tile_axpy(F64(0.0), gate, gate)  # every slot's rank and rows written before any is read
+    barrier(gate)  # every slot's rank and rows written before any is read
     total, kept = rows_below(kr, found)
     if total > limit:
         if lane == 0:

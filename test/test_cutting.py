@@ -34,6 +34,22 @@ def beam_scene(n_long=8, n_cross=3, pre="async_ldlt", correction="sherman_morris
     }
 
 
+def unrotated_dense_beam(device):
+    """:func:`beam_scene` with the dense backend, unrotated (the nodal rotations a cut changes
+    are not part of the correction), on ``device``."""
+    cfg = beam_scene(rotate=False, backend="dense")
+    cfg["device"] = device
+    return cfg
+
+
+def fresh_bound(sim, rng) -> float:
+    """The bound on :func:`corrected_vs_fresh` of a corrected dense inverse: as close to
+    A_new^-1 as a fresh factor of A_new made on the simulation's device is (each device's
+    inverse rounds its own way), at least 1e-8. Installs that fresh factor."""
+    sim.preconditioner.refresh(sim.integrator)
+    return max(1e-8, 10.0 * corrected_vs_fresh(sim, rng))
+
+
 def lengthwise(sim, x0, x1, y=None, frame="rest"):
     """A vertical blade patch in the plane y = mid, from x0 to x1, through the whole height."""
     P = sim.mesh.points

@@ -41,7 +41,7 @@ import warp as wp
 
 from . import graphs
 from .buffers import GrowArray
-from .sherman_morrison import Modification, perturbation
+from .sherman_morrison import Modification, node_dofs, perturbation, summed_perturbation
 from .sm_partition import partitioned_stream
 from .transfer import PINNED, Staged
 
@@ -87,22 +87,6 @@ class _Ticket:
         if done is None:
             return float(self.cpu_ms)
         return float(wp.get_event_elapsed_time(start, done))
-
-
-def _dofs(nodes: np.ndarray) -> np.ndarray:
-    """The DOFs 3 i, 3 i + 1, 3 i + 2 of the nodes i, in order."""
-    return (3 * np.asarray(nodes, np.int64)[:, None] + np.arange(3)).ravel()
-
-
-def summed_perturbation(parts) -> tuple[np.ndarray, np.ndarray]:
-    """(nodes, N): the perturbations N_i of ``parts`` ((node indices, N_i) pairs, each N_i on
-    its nodes' DOFs) summed on the union of their nodes (ascending)."""
-    nodes = np.unique(np.concatenate([idx for idx, _ in parts]))
-    N = np.zeros((3 * len(nodes), 3 * len(nodes)))
-    for idx, Ni in parts:
-        r = _dofs(np.searchsorted(nodes, idx))
-        N[np.ix_(r, r)] += Ni
-    return nodes, N
 
 
 class FoldedCorrection:
@@ -462,7 +446,7 @@ class AsyncDevicePreconditioner:
         corr = self.correction
         if corr is None or corr.enabled:
             idx, N = parts[0] if len(parts) == 1 else summed_perturbation(parts)
-            self.backend.fold(_dofs(idx), N)
+            self.backend.fold(node_dofs(idx), N)
         if corr is not None:
             corr.folds += 1
             corr.u_ms += 1000.0 * (time.perf_counter() - t0)
@@ -471,7 +455,7 @@ class AsyncDevicePreconditioner:
         if np.array_equal(current, self.uids):
             return
         idx = self._index(current)
-        self.backend.regrow((3 * idx[:, None] + np.arange(3)).ravel(), 0)
+        self.backend.regrow(node_dofs(idx), 0)
         self.uids = current.copy()
         self.R_ref_host = self.R_ref_host[idx]
 

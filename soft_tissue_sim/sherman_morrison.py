@@ -117,6 +117,23 @@ def perturbation(mod: Modification, R_ref: np.ndarray, new_uids: np.ndarray, rot
     return N
 
 
+def node_dofs(nodes: np.ndarray) -> np.ndarray:
+    """The DOFs 3 i, 3 i + 1, 3 i + 2 of the nodes i, in order (the rows G selects)."""
+    return (3 * np.asarray(nodes, np.int64)[:, None] + np.arange(3)).ravel()
+
+
+def summed_perturbation(parts) -> tuple[np.ndarray, np.ndarray]:
+    """(nodes, N): the perturbations N_i of ``parts`` ((node indices, N_i) pairs, each N_i on
+    its nodes' DOFs, as :func:`perturbation` makes it) summed on the union of their nodes
+    (ascending): sum_i G_i N_i G_i^T = G N G^T."""
+    nodes = np.unique(np.concatenate([idx for idx, _ in parts]))
+    N = np.zeros((3 * len(nodes), 3 * len(nodes)))
+    for idx, Ni in parts:
+        r = node_dofs(np.searchsorted(nodes, idx))
+        N[np.ix_(r, r)] += Ni
+    return nodes, N
+
+
 def woodbury_q(N, S, xp=np):
     """Q = (I + N S)^-1 N (symmetric), the Woodbury form of eq. (7) that needs no N^-1
     (N is singular in general); S = G^T P^-1 G. ``xp``: the array module of N and S (NumPy, or
@@ -248,7 +265,7 @@ class ShermanMorrisonCorrection:
             return
         t0 = time.perf_counter()
         n3 = 3 * len(self.ext_uids)
-        rows = (3 * idx[:, None] + np.arange(3)).ravel()
+        rows = node_dofs(idx)
         G = np.zeros((n3, 3 * k))
         G[rows, np.arange(3 * k)] = 1.0
         U = self._solve_ext(G)  # eq. (6): all columns in one batched triangular solve

@@ -279,6 +279,25 @@ def test_markers_reset_pause_diagnostics_and_graceful_failures(ros):
     assert wait_for(lambda: sim_node.sim.step_count > 3)
 
 
+def test_the_node_builds_every_kernel_at_start_up(ros, monkeypatch):
+    """All of the package's Warp modules are built for the scene's device before the physics
+    thread starts (a fresh machine compiles them then, not at the first contact step)."""
+    import soft_tissue_sim.ros.node as node_module
+
+    calls = []
+
+    def build_all(device):
+        calls.append(device)
+        return 0.25
+
+    monkeypatch.setattr(node_module, "build_all", build_all)
+    ctx, _spinner, nodes = ros
+    node = make_node(ctx, start=False)
+    nodes.append(node)
+    assert calls == [node.sim.device]
+    assert node.kernels_s == 0.25
+
+
 def test_two_nodes_in_two_namespaces_run_side_by_side(ros):
     ctx = ros[0]
     a, b = make_node(ctx, "left"), make_node(ctx, "right")

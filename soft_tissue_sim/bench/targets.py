@@ -269,21 +269,9 @@ def markdown(paths) -> str:
 def _compile_kernels(device) -> None:
     """Build every kernel module of the package for ``device`` first, so that no row times a
     compilation (a fresh machine has no kernel cache)."""
-    import importlib
-    import pkgutil
+    from ..warp_modules import build_all
 
-    import soft_tissue_sim
-
-    for mod in pkgutil.walk_packages(soft_tissue_sim.__path__, "soft_tissue_sim."):
-        if ".ros" in mod.name or ".bench" in mod.name:
-            continue
-        try:
-            importlib.import_module(mod.name)
-        except ImportError:  # optional GPU libraries absent: those modules are not used either
-            pass
-    t0 = time.perf_counter()
-    wp.force_load(device=device)
-    print(f"  [kernels built in {time.perf_counter() - t0:.1f} s]", file=sys.stderr, flush=True)
+    print(f"  [kernels built in {build_all(device):.1f} s]", file=sys.stderr, flush=True)
 
 
 def main(argv=None) -> int:

@@ -94,6 +94,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from ..realtime import freeze_long_lived
 from ..scene import load_scene
+from ..warp_modules import build_all
 from . import parameters
 from .input_thread import InputThread, ThreadServedGroup
 from .physics_loop import PhysicsLoop
@@ -280,6 +281,10 @@ class SimNode(Node):
             dev = gp("device")
             sim = load_scene(gp("scene"), device=None if dev == "auto" else dev)
         self.sim = sim
+        # every kernel built now, not at its first launch: on a machine without the kernel cache
+        # a GPU's contact modules compile for tens of seconds, which would stall the first steps
+        self.kernels_s = build_all(sim.device)
+        self.get_logger().info(f"kernels ready on {sim.device} in {self.kernels_s:.1f} s")
         self.names = list(sim.instrument_names())
         self.on_step = None  # optional callable(StepStats), called on the physics thread after each step
         self._closing = False

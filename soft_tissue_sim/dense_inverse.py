@@ -263,12 +263,16 @@ def delassus_matrix_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dt
 def rows_apply_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.int32),
                       coef: wp.array2d(dtype=wp.vec3d), lam: wp.array(dtype=wp.float64),
                       sizes: wp.array(dtype=wp.int32), dR: wp.array(dtype=wp.mat33d), scale: wp.float64,
-                      free: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.vec3d)):
+                      free: wp.array(dtype=wp.float64), count: wp.array(dtype=wp.int32),
+                      out: wp.array(dtype=wp.vec3d)):
     """out_i = scale free_i dR_i sum_r lam_r sum_s P_(i, n_rs) dR_(n_rs)^T c_rs for the first
     sizes[0] constraint rows (nodes n_rs, coefficients c_rs): scale P^-1 H^T lambda (eq. 2) on
     the free nodes from the columns of the rows' nodes only, H^T lambda never formed. P is
-    symmetric: node i's block is read from the rows' nodes' rows, contiguous across threads."""
+    symmetric: node i's block is read from the rows' nodes' rows, contiguous across threads.
+    The nodes i with 3 i < n3 = count[0] (launched over a capacity)."""
     i = wp.tid()
+    if 3 * i >= count[0]:
+        return
     acc = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     for r in range(sizes[0]):
         lr = lam[r]
@@ -729,16 +733,18 @@ class DenseInverse:
                         W: wp.array) -> None:
         """W[:m, :m] = scale H dR A^-1 dR^T H^T, symmetric, for the first m = sizes[0] rows (read
         on the device: launches only, over W's capacity)."""
-        wp.launch(delassus_matrix_kernel, W.shape, [self.inv, nodes, coef, dR, sizes, float(scale), W],
+        wp.launch(delassus_matrix_kernel, W.shape, [self._full, nodes, coef, dR, sizes, float(scale), W],
                   device=self.device)
 
     def apply_rows(self, nodes: wp.array, coef: wp.array, lam: wp.array, sizes: wp.array, dR: wp.array,
                    scale: float, free: wp.array, out: wp.array) -> None:
         """out = scale dR A^-1 dR^T H^T lambda on the free nodes (zero on the fixed ones) for the
         first sizes[0] constraint rows in node form, lambda on the device (launches only; the
-        inverse in use, in double precision, as :meth:`delassus_matrix` reads it)."""
-        wp.launch(rows_apply_kernel, out.shape[0], [self.inv, nodes, coef, lam, sizes, dR, float(scale), free, out],
-                  device=self.device)
+        inverse in use, in double precision, as :meth:`delassus_matrix` reads it), launched over
+        the capacity (ld / 3 nodes) with the size read on the device, as :meth:`apply` is. ``out``
+        holds at least the node count."""
+        wp.launch(rows_apply_kernel, self._ld // 3,
+                  [self._full, nodes, coef, lam, sizes, dR, float(scale), free, self._count, out], device=self.device)
 
     # ----------------------------------------------------------- changing it
     def fold(self, rows: np.ndarray, N: np.ndarray) -> None:

@@ -574,10 +574,10 @@ class AsyncDevicePreconditioner:
 
     def delassus_key(self) -> tuple:
         """What :meth:`delassus_matrix`'s and :meth:`apply_rows`' launches depend on besides their
-        arguments: the inverse's address and leading dimension, its size (apply_rows is launched
-        over the node count), dR's address."""
+        arguments: the inverse's address and leading dimension, dR's address (no size: both are
+        launched over capacities and read the sizes on the device)."""
         b = self.backend
-        return b.inv.ptr, getattr(b, "ld", None), b.n3, self.dR.ptr
+        return b.inv.ptr, getattr(b, "ld", None), self.dR.ptr
 
     # -------------------------------------------------------------- lifecycle
     def invalidate(self) -> None:

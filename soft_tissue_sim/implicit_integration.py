@@ -64,13 +64,17 @@ def _copy_state_kernel(count: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec
 
 @wp.kernel
 def _update_kernel(
+    count: wp.array(dtype=wp.int32),
     dv: wp.array(dtype=wp.vec3d),
     free: wp.array(dtype=wp.float64),
     dt: wp.float64,
     v: wp.array(dtype=wp.vec3d),
     x: wp.array(dtype=wp.vec3d),
 ):
+    """v = free (v + dv), x += dt v for the current nodes (launched over a capacity)."""
     i = wp.tid()
+    if i >= count[0]:
+        return
     vi = free[i] * (v[i] + dv[i])
     v[i] = vi
     x[i] = x[i] + dt * vi
@@ -135,13 +139,17 @@ def _energy_kernel(
 
 @wp.kernel
 def _guard_kernel(
+    count: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     v: wp.array(dtype=wp.vec3d),
     mass: wp.array(dtype=wp.float64),
     out: wp.array(dtype=wp.float64),
 ):
-    """out[0] += the kinetic energy, out[1] += the number of nodes with a non-finite x or v."""
+    """out[0] += the kinetic energy, out[1] += the number of nodes with a non-finite x or v
+    (the current nodes; launched over a capacity)."""
     i = wp.tid()
+    if i >= count[0]:
+        return
     wp.atomic_add(out, 0, wp.float64(0.5) * mass[i] * wp.dot(v[i], v[i]))
     s = wp.dot(x[i], x[i]) + wp.dot(v[i], v[i])
     if not wp.isfinite(s):
@@ -150,13 +158,17 @@ def _guard_kernel(
 
 @wp.kernel
 def _correct_kernel(
+    count: wp.array(dtype=wp.int32),
     dx: wp.array(dtype=wp.vec3d),
     dt: wp.float64,
     x: wp.array(dtype=wp.vec3d),
     v: wp.array(dtype=wp.vec3d),
 ):
-    """x += dx, v += dx / dt: a correction of the positions that the velocities follow."""
+    """x += dx, v += dx / dt: a correction of the positions that the velocities follow (the
+    current nodes; launched over a capacity)."""
     i = wp.tid()
+    if i >= count[0]:
+        return
     x[i] = x[i] + dx[i]
     v[i] = v[i] + dx[i] / dt
 
@@ -517,7 +529,8 @@ class BackwardEuler:
         return stats
 
     def _launch_update(self) -> None:
-        wp.launch(_update_kernel, self.fem.n_nodes, [self.dv, self.fem.free, self.dt, self.v, self.x],
+        f = self.fem
+        wp.launch(_update_kernel, f.node_dim, [f.n_nodes_dev, self.dv, f.free, self.dt, self.v, self.x],
                   device=self.device)
 
     def _finish_launched(self) -> list:
@@ -567,10 +580,17 @@ class BackwardEuler:
 
     def _state_arrays_key(self) -> tuple:
         """What the update, the correction and the guard's launches depend on: the operator's
-        graph_key (FEM arrays, dimensions, coefficients), the node and tet counts (these launches
-        are sized by them), the state's and the guard's arrays, dt."""
+        graph_key (FEM arrays, launch dimensions, coefficients), the state's and the guard's
+        arrays, dt. No node count: these launches run over the FEM's node capacity and read the
+        count on the device, so a topology change that keeps the allocations keeps the key."""
+        return self.graph_key(), self.x.ptr, self.v.ptr, self._guard.ptr, float(self.dt)
+
+    def copy_state(self, x0: wp.array, v0: wp.array) -> None:
+        """x0 = x, v0 = v for the current nodes, launched over the node capacity (x0 and v0 hold
+        at least the node count): capturable across node-count changes, unlike a copy of the
+        count's elements."""
         f = self.fem
-        return self.graph_key(), f.n_nodes, f.n_tets, self.x.ptr, self.v.ptr, self._guard.ptr, float(self.dt)
+        wp.launch(_copy_state_kernel, f.node_dim, [f.n_nodes_dev, self.x, self.v, x0, v0], device=self.device)
 
     def energy(self) -> tuple[float, float, float]:
         """(kinetic, gravitational potential, elastic) energy at the current state."""
@@ -590,7 +610,8 @@ class BackwardEuler:
         (read it with the step's other values)."""
         out = self._guard if out is None else out
         out.zero_()
-        wp.launch(_guard_kernel, self.fem.n_nodes, [self.x, self.v, self.fem.lumped_mass, out], device=self.device)
+        f = self.fem
+        wp.launch(_guard_kernel, f.node_dim, [f.n_nodes_dev, self.x, self.v, f.lumped_mass, out], device=self.device)
         return out
 
     @property
@@ -604,7 +625,8 @@ class BackwardEuler:
         ``dx`` (n, 3) on the host or a device array."""
         if not isinstance(dx, wp.array):
             dx = wp.array(np.asarray(dx, dtype=np.float64), dtype=wp.vec3d, device=self.device)
-        wp.launch(_correct_kernel, self.fem.n_nodes, [dx, float(self.dt), self.x, self.v], device=self.device)
+        f = self.fem
+        wp.launch(_correct_kernel, f.node_dim, [f.n_nodes_dev, dx, float(self.dt), self.x, self.v], device=self.device)
 
     def elastic_energy(self) -> float:
         """Corotated strain energy sum_e V (mu eps:eps + lambda/2 tr(eps)^2), on the host (diagnostics)."""

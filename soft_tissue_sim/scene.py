@@ -558,8 +558,7 @@ class Simulation:
         guard = integ.guard_after
 
         def launches():
-            wp.copy(free[0], integ.x)
-            wp.copy(free[1], integ.v)
+            integ.copy_state(free[0], free[1])
             dx, outs = plan.launch()
             integ.correct(dx)
             integ.launch_guard(guard)

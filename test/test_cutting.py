@@ -1121,3 +1121,49 @@ def test_the_blade_kernel_is_loaded_when_the_cutter_is_made(monkeypatch):
     plan = cutter.cut_triangles(tissue, tris)
     assert plan.result.faces_cut > 0  # the kernel ran and found the blade's faces
     assert not builds, builds
+
+
+def test_the_integrators_launches_after_the_solve_replay_across_a_cut():
+    """The update of x and v, the guard's reduction, a correction and the state's copy run over
+    the FEM's node capacity and read the node count on the device: their key holds across a cut
+    that keeps the allocations, and a graph of them captured before the cut (Warp's CPU graph
+    capture) gives after it what plain launches give."""
+    from soft_tissue_sim.buffers import GrowArray
+
+    with load_scene(beam_scene(pre="jacobi"), device="cpu") as sim:
+        sim.step()
+        integ = sim.integrator
+        n0, key0 = sim.fem.n_nodes, integ._state_arrays_key()
+        dx_buf, copies = GrowArray(wp.vec3d, "cpu"), (GrowArray(wp.vec3d, "cpu"), GrowArray(wp.vec3d, "cpu"))
+        cap = 2 * n0
+        dx, x0, v0 = dx_buf.view(cap), copies[0].view(cap), copies[1].view(cap)
+
+        def launches():
+            integ._launch_update()
+            integ.launch_guard()
+            integ.correct(dx)
+            integ.copy_state(x0, v0)
+
+        with wp.ScopedCapture(device="cpu") as cap_:
+            launches()
+        assert lengthwise(sim, 0.015, 0.035).changed
+        n1 = sim.fem.n_nodes
+        assert n1 > n0 and integ._state_arrays_key() == key0
+        rng = np.random.default_rng(3)
+        start = [rng.standard_normal((n1, 3)) for _ in range(3)]
+
+        def run(replay):
+            integ.x.assign(start[0])
+            integ.v.assign(start[1])
+            integ.dv.assign(start[2])
+            dx.assign(np.concatenate([0.01 * start[0], np.zeros((cap - n1, 3))]))
+            if replay:
+                wp.capture_launch(cap_.graph)
+            else:
+                launches()
+            return [a.numpy()[:n1].copy() for a in (integ.x, integ.v, x0, v0)] + [integ._guard.numpy().copy()]
+
+        replayed, plain = run(True), run(False)
+        for a, b in zip(replayed, plain):
+            np.testing.assert_array_equal(a, b)
+        assert not np.array_equal(replayed[0], start[0])

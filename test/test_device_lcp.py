@@ -390,12 +390,15 @@ def test_the_correction_from_the_rows_columns_is_the_inverse_applied_to_h_transp
     z = np.einsum("nij,nj->ni", dR, (P @ s).reshape(n, 3))
     expected = 1e-4 * free[:, None] * z
     d = DEVICE
-    out = wp.zeros(n, dtype=wp.vec3d, device=d)
-    wp.launch(rows_apply_kernel, n, [wp.array(P, dtype=wp.float64, device=d), wp.array(nodes, dtype=wp.int32, device=d),
-                                     wp.array(coef, dtype=wp.vec3d, device=d), wp.array(lam, dtype=wp.float64, device=d),
-                                     wp.array([m, m], dtype=wp.int32, device=d), wp.array(dR, dtype=wp.mat33d, device=d),
-                                     1e-4, wp.array(free, dtype=wp.float64, device=d), out], device=d)
-    np.testing.assert_allclose(out.numpy(), expected, rtol=1e-12, atol=1e-18)
+    cap = n + 5  # launched over a capacity: the nodes past the count (read on the device) untouched
+    out = wp.zeros(cap, dtype=wp.vec3d, device=d)
+    wp.launch(rows_apply_kernel, cap, [wp.array(P, dtype=wp.float64, device=d), wp.array(nodes, dtype=wp.int32, device=d),
+                                       wp.array(coef, dtype=wp.vec3d, device=d), wp.array(lam, dtype=wp.float64, device=d),
+                                       wp.array([m, m], dtype=wp.int32, device=d), wp.array(dR, dtype=wp.mat33d, device=d),
+                                       1e-4, wp.array(free, dtype=wp.float64, device=d),
+                                       wp.array([3 * n], dtype=wp.int32, device=d), out], device=d)
+    np.testing.assert_allclose(out.numpy()[:n], expected, rtol=1e-12, atol=1e-18)
+    assert not out.numpy()[n:].any()
     assert not out.numpy()[nodes[0, 1]].any()
 
 

@@ -468,11 +468,11 @@ def test_capsule_lying_across_an_edge_counts_it_once(tmp_path, along):
         sec = topo.out.section(0, "face")
         with wp.ScopedDevice("cpu"):  # the scene's device, whatever Warp's default is
             wp.launch(capsule_faces_kernel, len(faces),
-                      [wp.array(pts, dtype=wp.vec3d), topo.faces_wp, wp.array(np.ones_like(faces), dtype=wp.vec3i),
+                      [topo.counts, wp.array(pts, dtype=wp.vec3d), topo.faces_wp, wp.array(np.ones_like(faces), dtype=wp.vec3i),
                        wp.array([a, b, a, b], dtype=wp.vec3d), wp.array([r, 1.0, 0.0], dtype=wp.float64), 0.002,
                        wp.zeros(1, dtype=wp.int32), 0],
                       outputs=[topo.out.slots(sec)])
-        act = topo.out.active.numpy()[sec.base: sec.base + sec.size]
+        act = topo.out.active.numpy()[sec.base: sec.base + sec.count]
         assert sorted(np.flatnonzero(act).tolist()) == ridge_faces
 
 
@@ -669,9 +669,9 @@ def test_the_self_collision_search_reaches_as_far_as_each_pair_moves(tmp_path, c
         sim.step()
         topo = sim.contact._topo
         sec = topo.out.section(-1, "self")
-        active = topo.out.active.numpy()[sec.base:sec.base + sec.size] != 0
+        active = topo.out.active.numpy()[sec.base:sec.base + sec.count] != 0
         node = topo.surface[active]
-        tri_nodes = topo.faces[topo.out.tri.numpy()[sec.base:sec.base + sec.size][active]]
+        tri_nodes = topo.faces[topo.out.tri.numpy()[sec.base:sec.base + sec.count][active]]
     between = ((node < n) & (tri_nodes >= n).all(axis=1) & (tri_nodes < 2 * n).all(axis=1)) | (
         (node >= n) & (node < 2 * n) & (tri_nodes < n).all(axis=1))
     assert not (node >= 2 * n).any()  # B is far from everything
@@ -705,7 +705,7 @@ def test_a_mesh_obstacle_is_searched_as_far_as_each_node_moves(tmp_path, falling
         sim.step()
         topo = sim.contact._topo
         sec = topo.out.section(0, "node")
-        active = topo.out.active.numpy()[sec.base:sec.base + sec.size] != 0
+        active = topo.out.active.numpy()[sec.base:sec.base + sec.count] != 0
         node = topo.surface[active]
     assert not (node >= n).any()  # B is far from the floor
     assert (len(node) > 0) == (falling > 0.0)

@@ -16,7 +16,10 @@ piercing along an instrument's blade (a cut), and any piercing by a tool that wa
 through the surface at the step's start (inside a cut or a hole).
 
 Invariant: a :class:`SurfaceTopology` belongs to one mesh; it is rebuilt when cutting changes
-the mesh (:meth:`SurfaceTopology.matches`), never reused across a change.
+the mesh (:meth:`SurfaceTopology.matches`), never reused across a change. Its device arrays
+are the kept :class:`SurfaceBuffers`', and the launches run over their capacities, reading the
+counts in use on the device: a captured detection replays on the next surface while that fits
+the same allocations (:attr:`SurfaceTopology.layout`).
 """
 
 from __future__ import annotations
@@ -70,15 +73,21 @@ def blade_span(inst: Instrument) -> tuple[float, float]:
 
 @dataclass
 class Section:
-    """The slots one detection launch writes: ``size`` of them from ``base``, for object ``obj``
-    (-1: the tissue itself); ``kind`` says what a thread is: "node" (a surface node against the
-    object), "face" (a surface triangle against an instrument) or "self" (a surface node against
-    the tissue's own triangles)."""
+    """The slots one detection launch writes: ``size`` of them from ``base`` (the capacity the
+    launch runs over), of which the first ``count`` are in use, for object ``obj`` (-1: the
+    tissue itself); ``kind`` says what a thread is: "node" (a surface node against the object),
+    "face" (a surface triangle against an instrument) or "self" (a surface node against the
+    tissue's own triangles)."""
 
     obj: int
     kind: str
     base: int
     size: int
+    count: int = -1
+
+    def __post_init__(self):
+        if self.count < 0:
+            self.count = self.size
 
 
 _OUTPUTS = (("active", wp.int32), ("gap", wp.float64), ("normal", wp.vec3d), ("point", wp.vec3d), ("tri", wp.int32),
@@ -143,16 +152,16 @@ class SlotMap:
         faces = np.zeros((0, 3), np.int64) if faces is None else np.asarray(faces).reshape(-1, 3)
         self.tris = np.concatenate([faces.astype(np.int64), np.full((1, 3), -1, np.int64)])
         self.tri_row = np.full(n_slots, len(faces), np.int64)
-        for sec in sections:
-            sl = slice(sec.base, sec.base + sec.size)
+        for sec in sections:  # the slots in use (the rest of a section's capacity: no object, no node)
+            sl = slice(sec.base, sec.base + sec.count)
             self.obj[sl] = sec.obj
             if sec.kind == "face":
                 self.kind[sl] = _FACE
-                self.face[sl] = np.arange(sec.size)
-                self.tri_row[sl] = np.arange(sec.size)
+                self.face[sl] = np.arange(sec.count)
+                self.tri_row[sl] = np.arange(sec.count)
             else:
                 self.kind[sl] = _SELF if sec.kind == "self" else _NODE
-                self.node[sl] = surface[: sec.size]
+                self.node[sl] = surface[: sec.count]
                 if sec.kind == "self":
                     self.tri_row[sl] = 0
         self.no_tri = self.kind == _NODE
@@ -183,16 +192,22 @@ _SERIALS = itertools.count()
 
 class SurfaceBuffers:
     """The device arrays of the surfaces one contact solver builds, kept from one surface to
-    the next (a cut replaces the surface every few steps): the surface's tables in one
-    :class:`~soft_tissue_sim.buffers.PackedArrays` (sent in one copy), the output slots and
-    the per-node work arrays as grow-only views, and the per-object arrays, whose size is the
-    solver's (the same for every surface)."""
+    the next (a cut replaces the surface every few steps): the surface's tables and counts in
+    one :class:`~soft_tissue_sim.buffers.PackedArrays` (sent in one copy; each table at a fixed
+    place while it fits its capacity), the output slots and the per-node work arrays as
+    grow-only views, the self-collision BVH (rebuilt in place for a new surface of the same
+    face capacity), the per-object arrays, whose size is the solver's (the same for every
+    surface), and the detection's captured graphs (:class:`~soft_tissue_sim.graphs.Replayer`):
+    a new surface that fits the same allocations replays them."""
 
     def __init__(self, n_objects: int, device):
         dev = wp.get_device(device)
-        self.tables = PackedArrays({"nodes": wp.int32, "faces": wp.vec3i, "edge_owner": wp.vec3i,
-                                    "node_comp": wp.int32, "face_comp": wp.int32, "ring_offsets": wp.int32,
-                                    "ring_nodes": wp.int32}, dev)
+        self.tables = PackedArrays({"counts": wp.int32, "nodes": wp.int32, "faces": wp.vec3i,
+                                    "edge_owner": wp.vec3i, "node_comp": wp.int32, "face_comp": wp.int32,
+                                    "ring_offsets": wp.int32, "ring_nodes": wp.int32}, dev)
+        self.bvh: wp.Bvh | None = None  # over self.lowers / uppers' views of bvh_size faces
+        self.bvh_size = 0
+        self.replay = graphs.Replayer(dev, "contact detection", slots=4, eager=True)
         self.outputs = {name: GrowArray(dtype, dev) for name, dtype in _OUTPUTS}
         self.x_start, self.node_normal = GrowArray(wp.vec3d, dev), GrowArray(wp.vec3d, dev)
         self.motion = GrowArray(wp.float64, dev)
@@ -211,34 +226,33 @@ class SurfaceBuffers:
 
 class SurfaceTopology:
     """Surface data of one mesh; rebuilt when cutting changes the mesh (never reused across
-    a change of node count or tets)."""
+    a change of node count or tets). Its device arrays are the kept :class:`SurfaceBuffers`'
+    and its launches run over their capacities (:attr:`layout` names them), so that graphs
+    captured on one surface replay on the next while it fits them."""
 
-    def __init__(self, fem, self_collision: bool, objects: list = (), buffers: SurfaceBuffers | None = None,
-                 loaded: bool = False):
+    def __init__(self, fem, self_collision: bool, objects: list = (), buffers: SurfaceBuffers | None = None):
         """``objects``: the contact solver's instruments and obstacles, in order (their index is
         the contacts' ``obj``): each gets its output slots. ``buffers``: the device arrays kept
         from the surface this one replaces (the same ``objects``); its arrays become this
-        surface's (the replaced one must not be used any more). None: new ones. ``loaded``: the
-        detection's kernels are loaded (the replaced surface's detections were captured): this
-        surface's are captured at their first launch."""
+        surface's (the replaced one must not be used any more). None: new ones."""
         mesh, dev = fem.mesh, fem.device
         self.buffers = buffers = buffers if buffers is not None else SurfaceBuffers(len(objects), dev)
         self.keys = (fem.mesh, fem.mesh.tets, fem.tets, fem.n_nodes)
         self.n_nodes = n = fem.n_nodes
+        self.node_count, self.node_dim = fem.n_nodes_dev, fem.node_dim  # the FEM's node count on the device
         self.faces = mesh.boundary_faces()
         on = np.zeros(fem.n_nodes, bool)
         on[self.faces.ravel()] = True
         self.surface = np.flatnonzero(on).astype(np.int32)  # the surface nodes, ascending
-        ns = max(len(self.surface), 1)
         self.scale = extent(mesh.points) or 1.0
-        # the tables, sent in one copy: the surface nodes; the faces, and which face owns each
-        # surface edge: edge_owner[f, k] = 1 where face f owns its edge from vertex k to vertex
-        # k + 1, each edge owned by exactly one of the faces sharing it, the lowest index
-        # (np.unique's first occurrence, face-major order); for self-collision the parts, the
-        # node rings and the rest positions (the BVH's first points)
-        nf = max(len(self.faces), 1)
+        # the tables, sent in one copy: the counts in use [surface nodes, faces]; the surface
+        # nodes; the faces, and which face owns each surface edge: edge_owner[f, k] = 1 where
+        # face f owns its edge from vertex k to vertex k + 1, each edge owned by exactly one of
+        # the faces sharing it, the lowest index (np.unique's first occurrence, face-major
+        # order); for self-collision the parts and the node rings
         faces = self.faces if len(self.faces) else np.zeros((1, 3), np.int32)
-        data = {"nodes": self.surface if len(self.surface) else np.zeros(1, np.int32), "faces": faces,
+        data = {"counts": np.array([len(self.surface), len(self.faces)], np.int32),
+                "nodes": self.surface if len(self.surface) else np.zeros(1, np.int32), "faces": faces,
                 "edge_owner": edge_ownership(faces) if len(self.faces) else np.zeros((1, 3), np.int32)}
         collide = self_collision and len(self.faces)
         if collide:
@@ -252,44 +266,59 @@ class SurfaceTopology:
             h = tables.host(k)
             h[...] = v.reshape(h.shape)
         tables.send(data)
-        self.nodes, self.faces_wp, self.edge_owner = (tables.array(k) for k in ("nodes", "faces", "edge_owner"))
+        self.counts, self.nodes, self.faces_wp, self.edge_owner = (
+            tables.array(k) for k in ("counts", "nodes", "faces", "edge_owner"))
+        # the launches' dimensions: the capacities of the surface nodes' and the faces' tables
+        ns, nf = tables.capacity["nodes"], tables.capacity["faces"]
+        self.node_slots, self.face_slots = ns, nf
         # state of one detection on the device: the step's start, each node's motion in the free
         # motion, which instruments were through the surface at the start, the smallest gap
+        # (the per-node arrays are zeroed whole: a captured zeroing covers the allocation)
         self.x_start, self.motion = buffers.x_start.view(n), buffers.motion.view(n)
         self.inside, self.min_gap = buffers.inside, buffers.min_gap
-        for a in (self.x_start, self.motion, self.inside, self.min_gap):
+        for a in (buffers.x_start.buffer, buffers.motion.buffer, self.inside, self.min_gap):
             a.zero_()
         self.bvh = None
         if collide:
             self.node_comp, self.face_comp, self.ring_offsets, self.ring_nodes = (
                 tables.array(k) for k in ("node_comp", "face_comp", "ring_offsets", "ring_nodes"))
             self.node_normal = buffers.node_normal.view(n)
-            self.node_normal.zero_()
+            buffers.node_normal.buffer.zero_()
             # the triangles' boxes (each detection widens them by their vertices' motion and
-            # refits), first at the rest positions, made on the device
+            # refits), first at the rest positions, made on the device; the BVH over the face
+            # capacity (the unused slots' boxes far away), rebuilt in place where it fits
             self.lowers, self.uppers = buffers.lowers.view(nf), buffers.uppers.view(nf)
-            wp.launch(face_bounds_kernel, nf, [fem.rest, self.faces_wp, self.motion, self.scale],
+            wp.launch(face_bounds_kernel, nf, [self.counts, fem.rest, self.faces_wp, self.motion, self.scale],
                       outputs=[self.lowers, self.uppers], device=dev)
-            self.bvh = wp.Bvh(self.lowers, self.uppers)
+            if buffers.bvh is None or buffers.bvh_size != nf or buffers.bvh.lowers is not self.lowers:
+                buffers.bvh, buffers.bvh_size = wp.Bvh(self.lowers, self.uppers), nf
+            else:
+                buffers.bvh.rebuild()
+            self.bvh = buffers.bvh
         # output slots: per object, one per surface node and, for an instrument, one per surface
-        # face; then one per surface node for self-collision
+        # face; then one per surface node for self-collision (each section a capacity's worth)
         sections, base = [], 0
         for oi, obj in enumerate(objects):
-            sections.append(Section(oi, "node", base, ns))
+            sections.append(Section(oi, "node", base, ns, len(self.surface)))
             base += ns
             if isinstance(obj, Instrument):
-                sections.append(Section(oi, "face", base, nf))
+                sections.append(Section(oi, "face", base, nf, len(self.faces)))
                 base += nf
         if self.bvh is not None:
-            sections.append(Section(-1, "self", base, ns))
+            sections.append(Section(-1, "self", base, ns, len(self.surface)))
         self.out = Outputs(sections, dev, buffers.outputs)
         self.slot_map = SlotMap(sections, self.out.active.shape[0], self.surface, self.faces)
         # the objects' geometry of the step, on the device (see upload_objects)
         self.objects_in, self.geom, self.params, self.origins = (buffers.objects_in, buffers.geom, buffers.params,
                                                                  buffers.origins)
-        # captured detections, by arguments
-        self.replay = graphs.Replayer(dev, "contact detection", slots=4, eager=True, loaded=loaded)
-        self.serial = next(_SERIALS)  # names this surface in the keys of graphs that launch on it
+        # captured detections, by arguments: kept with the buffers, across surfaces
+        self.replay = buffers.replay
+        self.serial = next(_SERIALS)  # names this surface (what was uploaded for it)
+        # what the detection's launches depend on besides their arguments: the allocations and
+        # the capacities they run over (a new surface that fits them keeps this)
+        self.layout = (tables.buffer.ptr, ns, nf, self.out.active.ptr, self.x_start.ptr, self.motion.ptr,
+                       self.node_count.ptr, self.node_dim, bool(len(self.surface)),
+                       None if self.bvh is None else (self.bvh.id, self.node_normal.ptr, self.lowers.ptr))
 
     def matches(self, fem) -> bool:
         k = self.keys
@@ -331,52 +360,55 @@ def launch_detection(topo: SurfaceTopology, objects: list, x: wp.array, x_featur
     contacts (:mod:`soft_tissue_sim.contact.detection`). ``faces`` False leaves out the
     instruments against the triangles (their slots stay empty).
 
-    On CUDA the launches are captured once per set of arguments as a graph and replayed
+    On CUDA the launches are captured once per set of arguments and allocations
+    (``topo.layout``) as a graph and replayed, across surfaces that fit the same allocations
     (nothing in them depends on the host but the arrays' addresses: ``topo.replay``)."""
     if not len(topo.surface):
         return
     args = (x, x_features, x_start, float(distance), float(facing), float(depth), bool(faces))
     dev = wp.get_device(device)
-    key = (x.ptr, x_features.ptr, None if x_start is None else x_start.ptr) + args[3:] if dev.is_cuda \
+    key = (topo.layout, x.ptr, x_features.ptr, None if x_start is None else x_start.ptr) + args[3:] if dev.is_cuda \
         else None  # on the CPU: plain launches
     topo.replay.run(key, lambda: _launch_all(topo, objects, *args, dev))
 
 
 def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, x_start, dist, facing, depth, faces,
                 device) -> None:
-    """The launches of :func:`launch_detection`."""
+    """The launches of :func:`launch_detection`, over the surface's capacities (the counts in
+    use read on the device)."""
     out = topo.out
     out.active.zero_()
-    ns, nf = len(topo.surface), len(topo.faces)
+    ns, nf, counts = topo.node_slots, topo.face_slots, topo.counts
     topo.inside.zero_()
     for oi, obj in enumerate(objects):
         sec = out.slots(out.section(oi, "node"))
         if isinstance(obj, Instrument):
-            wp.launch(capsule_contacts_kernel, ns, [x, topo.nodes, topo.geom, topo.params, oi, dist],
+            wp.launch(capsule_contacts_kernel, ns, [counts, x, topo.nodes, topo.geom, topo.params, oi, dist],
                       outputs=[sec], device=device)
             if not faces:
                 continue
             if x_start is not None:
-                wp.launch(capsule_crossings_kernel, nf, [x_start, topo.faces_wp, topo.geom, oi],
+                wp.launch(capsule_crossings_kernel, nf, [counts, x_start, topo.faces_wp, topo.geom, oi],
                           outputs=[topo.inside], device=device)
             wp.launch(capsule_faces_kernel, nf,
-                      [x, topo.faces_wp, topo.edge_owner, topo.geom, topo.params, dist, topo.inside, oi],
+                      [counts, x, topo.faces_wp, topo.edge_owner, topo.geom, topo.params, dist, topo.inside, oi],
                       outputs=[out.slots(out.section(oi, "face"))], device=device)
         elif isinstance(obj, PlaneObstacle):
-            wp.launch(plane_contacts_kernel, ns, [x, topo.nodes, topo.geom, oi, dist], outputs=[sec], device=device)
+            wp.launch(plane_contacts_kernel, ns, [counts, x, topo.nodes, topo.geom, oi, dist], outputs=[sec],
+                      device=device)
         elif isinstance(obj, MeshObstacle):
             wmesh, verts, tris = obj.warp_mesh(device)
             wp.launch(trimesh_contacts_kernel, ns,
-                      [x_features, topo.nodes, wmesh.id, verts, tris, dist, topo.motion, topo.scale],
+                      [counts, x_features, topo.nodes, wmesh.id, verts, tris, dist, topo.motion, topo.scale],
                       outputs=[sec], device=device)
     if topo.bvh is not None:
-        wp.launch(face_bounds_kernel, nf, [x_features, topo.faces_wp, topo.motion, topo.scale],
+        wp.launch(face_bounds_kernel, nf, [counts, x_features, topo.faces_wp, topo.motion, topo.scale],
                   outputs=[topo.lowers, topo.uppers], device=device)
         topo.bvh.refit()
-        topo.node_normal.zero_()
-        wp.launch(face_normals_kernel, nf, [x_features, topo.faces_wp, topo.node_normal], device=device)
+        topo.buffers.node_normal.buffer.zero_()
+        wp.launch(face_normals_kernel, nf, [counts, x_features, topo.faces_wp, topo.node_normal], device=device)
         wp.launch(self_contacts_kernel, ns,
-                  [x_features, topo.nodes, topo.bvh.id, topo.faces_wp, topo.face_comp, topo.node_comp,
+                  [counts, x_features, topo.nodes, topo.bvh.id, topo.faces_wp, topo.face_comp, topo.node_comp,
                    topo.node_normal, topo.ring_offsets, topo.ring_nodes, dist, topo.motion, topo.scale, facing, depth],
                   outputs=[out.slots(out.section(-1, "self"))], device=device)
 
@@ -384,7 +416,8 @@ def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, x_start, di
 def launch_start(topo: SurfaceTopology, x: wp.array, v: wp.array, dt: float, device) -> None:
     """``topo.x_start`` = x - dt v (the step's start from the free motion) and ``topo.motion`` =
     how far each node moved in it (the triangle features' search, node by node), on the device."""
-    wp.launch(step_start_kernel, topo.n_nodes, [x, v, float(dt), topo.x_start, topo.motion], device=device)
+    wp.launch(step_start_kernel, topo.node_dim, [topo.node_count, x, v, float(dt), topo.x_start, topo.motion],
+              device=device)
 
 
 def launch_min_gap(topo: SurfaceTopology, device) -> wp.array:

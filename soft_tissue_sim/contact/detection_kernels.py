@@ -8,7 +8,10 @@ contact within ``distance``, 0 elsewhere), so that one read brings every object'
 the host: the normal is a unit vector pointing the way the tissue is pushed, the gap is < 0
 for a penetration, the point lies on the other surface. Search radii that depend on the state
 (how far each node moved in the free motion) are read from a device array, not passed from the
-host.
+host. The kernels are launched over capacities (surface nodes, surface faces, nodes) and read
+the counts in use from a device array (``counts`` = [surface nodes, surface faces]), so that a
+captured detection holds for every surface that fits the same allocations: the threads past a
+count return at once (a face past the count gets a box far from everything, :data:`FAR`).
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ from .geometry import (
 )
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
+
+FAR = wp.constant(wp.float32(1.0e30))  # where the BVH boxes of the faces' unused slots sit
 
 
 @wp.struct
@@ -74,6 +79,7 @@ def search_margin(far: wp.float64, scale: wp.float64):
 
 @wp.kernel
 def plane_contacts_kernel(
+    counts: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     nodes: wp.array(dtype=wp.int32),
     geom: wp.array(dtype=wp.vec3d),
@@ -84,6 +90,8 @@ def plane_contacts_kernel(
     """Surface node k against the plane of object ``obj`` (point geom[4 obj], unit normal
     geom[4 obj + 1]): gap = n . (x - point)."""
     k = wp.tid()
+    if k >= counts[0]:
+        return
     point = geom[4 * obj]
     normal = geom[4 * obj + 1]
     xp = x[nodes[k]]
@@ -95,6 +103,7 @@ def plane_contacts_kernel(
 
 @wp.kernel
 def capsule_contacts_kernel(
+    counts: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     nodes: wp.array(dtype=wp.int32),
     geom: wp.array(dtype=wp.vec3d),
@@ -106,6 +115,8 @@ def capsule_contacts_kernel(
     """Surface node k against the capsule of instrument ``obj`` (axis a = geom[4 obj], b =
     geom[4 obj + 1], radius params[3 obj]): gap = |x - closest axis point| - radius."""
     k = wp.tid()
+    if k >= counts[0]:
+        return
     a = geom[4 * obj]
     b = geom[4 * obj + 1]
     radius = params[3 * obj]
@@ -131,6 +142,7 @@ def capsule_contacts_kernel(
 
 @wp.kernel
 def capsule_faces_kernel(
+    counts: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
     edge_owner: wp.array(dtype=wp.vec3i),
@@ -159,6 +171,8 @@ def capsule_faces_kernel(
     ``inside[tool]`` (the tool was already through the surface at the step's start, e.g. in a cut:
     the triangles around it are then only kept a radius away from the axis)."""
     f = wp.tid()
+    if f >= counts[1]:
+        return
     clear(out, f)
     a = geom[4 * tool]
     b = geom[4 * tool + 1]
@@ -240,6 +254,7 @@ def capsule_faces_kernel(
 
 @wp.kernel
 def capsule_crossings_kernel(
+    counts: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
     geom: wp.array(dtype=wp.vec3d),
@@ -249,6 +264,8 @@ def capsule_crossings_kernel(
     """inside[tool] = 1 where the axis of instrument ``tool`` at its previous pose (geom[4 tool
     + 2] to geom[4 tool + 3]) passes through any surface triangle (zeroed before)."""
     f = wp.tid()
+    if f >= counts[1]:
+        return
     a = geom[4 * tool + 2]
     b = geom[4 * tool + 3]
     t = faces[f]
@@ -268,6 +285,7 @@ def capsule_crossings_kernel(
 
 @wp.kernel
 def trimesh_contacts_kernel(
+    counts: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     nodes: wp.array(dtype=wp.int32),
     mesh_id: wp.uint64,
@@ -283,6 +301,8 @@ def trimesh_contacts_kernel(
     from the float32 BVH (inside/outside from the angle-weighted pseudo normal), then the float64
     closest point."""
     k = wp.tid()
+    if k >= counts[0]:
+        return
     i = nodes[k]
     xp = x[i]
     clear(out, k)
@@ -318,12 +338,15 @@ def trimesh_contacts_kernel(
 
 @wp.kernel
 def face_normals_kernel(
+    counts: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
     node_normal: wp.array(dtype=wp.vec3d),
 ):
     """Area-weighted outward normals accumulated on the surface nodes."""
     f = wp.tid()
+    if f >= counts[1]:
+        return
     t = faces[f]
     n = wp.cross(x[t[1]] - x[t[0]], x[t[2]] - x[t[0]])
     for j in range(3):
@@ -338,6 +361,7 @@ def triangle_motion(motion: wp.array(dtype=wp.float64), t: wp.vec3i):
 
 @wp.kernel
 def face_bounds_kernel(
+    counts: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     faces: wp.array(dtype=wp.vec3i),
     motion: wp.array(dtype=wp.float64),
@@ -349,6 +373,10 @@ def face_bounds_kernel(
     its vertices moved in the step (the largest ``motion``), in float32 with a margin
     (:func:`search_margin`) so that the float64 tests decide."""
     f = wp.tid()
+    if f >= counts[1]:  # a slot of the capacity past the faces: a box far away
+        lowers[f] = wp.vec3(FAR, FAR, FAR)
+        uppers[f] = wp.vec3(FAR, FAR, FAR)
+        return
     t = faces[f]
     a = x[t[0]]
     b = x[t[1]]
@@ -363,6 +391,7 @@ def face_bounds_kernel(
 
 @wp.kernel
 def self_contacts_kernel(
+    counts: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     nodes: wp.array(dtype=wp.int32),
     bvh_id: wp.uint64,
@@ -396,6 +425,8 @@ def self_contacts_kernel(
     smallest |gap| wins.
     """
     k = wp.tid()
+    if k >= counts[0]:
+        return
     p = nodes[k]
     xp = x[p]
     clear(out, k)
@@ -474,6 +505,7 @@ def self_contacts_kernel(
 
 @wp.kernel
 def step_start_kernel(
+    count: wp.array(dtype=wp.int32),
     x: wp.array(dtype=wp.vec3d),
     v: wp.array(dtype=wp.vec3d),
     dt: wp.float64,
@@ -481,8 +513,10 @@ def step_start_kernel(
     motion: wp.array(dtype=wp.float64),
 ):
     """The tissue at the step's start from the free motion: x_start = x - dt v, and how far each
-    node moved in it: motion = |dt v|."""
+    node moved in it: motion = |dt v|. The nodes i < count[0] (launched over a capacity)."""
     i = wp.tid()
+    if i >= count[0]:
+        return
     d = dt * v[i]
     x_start[i] = x[i] - d
     motion[i] = wp.length(d)

@@ -416,7 +416,7 @@ class DeviceRows:
         self._motion.send()
 
     def key(self, limit: int) -> tuple:
-        return (self.serial, int(limit), self.count.ptr, self.list.ptr, self.record.ptr, self.header.ptr,
+        return (self._tables.buffer.ptr, int(limit), self.count.ptr, self.list.ptr, self.record.ptr, self.header.ptr,
                 self.wrench.ptr, self.slot_node.ptr, self.tris.ptr, self.warm_force.ptr, self.warm_stamp.ptr,
                 self._motion.array.ptr)
 

@@ -170,18 +170,16 @@ class ContactSolver:
 
     # ------------------------------------------------------------ detection
     def _retire_topology(self) -> None:
-        """Hand the captured detections of the surface being replaced to :mod:`..graphs`
-        (released where no factorization runs)."""
+        """Hand the captured detections of the surfaces (kept with their buffers) to
+        :mod:`..graphs` (released where no factorization runs): on reset, where the buffers go."""
         if self._topo is not None:
             self._topo.replay.clear()
 
     def _topology(self, fem) -> SurfaceTopology:
         if self._topo is None or not self._topo.matches(fem):
-            self._retire_topology()
-            old = self._topo
+            old = self._topo  # its arrays and captured detections are kept: a surface that fits them replays these
             self._topo = SurfaceTopology(fem, self.options["self_collision"], self.objects,
-                                         None if old is None else old.buffers,  # its arrays, kept
-                                         loaded=old is not None and old.replay.captures > 0)
+                                         None if old is None else old.buffers)
         return self._topo
 
     def refresh_surface(self, fem) -> float:
@@ -219,11 +217,11 @@ class ContactSolver:
 
     def penetration_key(self, body) -> tuple:
         """What :meth:`launch_penetration`'s launches depend on, for a caller that captures them
-        (the surface, by its serial, the positions' and the detection's arrays, the options);
-        the surface is brought up to date here, outside any capture."""
+        (the surface's allocations and capacities, its ``layout``, the positions' and the
+        detection's arrays, the options); the surface is brought up to date here, outside any
+        capture."""
         topo = self._topology(body.fem)
-        return (topo.serial, len(topo.surface), body.integrator.x.ptr, topo.x_start.ptr, topo.min_gap.ptr,
-                *self._detection_options())
+        return (topo.layout, body.integrator.x.ptr, topo.x_start.ptr, topo.min_gap.ptr, *self._detection_options())
 
     def _detection_options(self) -> tuple:
         """The options a detection's launches take by value (part of their graphs' keys)."""
@@ -239,7 +237,7 @@ class ContactSolver:
         topo = self._topology(body.fem)
         if not len(topo.surface):
             return None
-        topo.motion.zero_()
+        topo.buffers.motion.buffer.zero_()  # the whole allocation: a captured zeroing covers every node count
         x = body.integrator.x
         self._launch(topo, x, x, topo.x_start)
         return launch_min_gap(topo, self.device)
@@ -256,7 +254,7 @@ class ContactSolver:
         integ = body.integrator
         topo = self._topology(body.fem)
         upload_objects(topo, self.objects)
-        return (topo.serial, integ.x.ptr, integ.v.ptr, float(integ.dt), body.fem.free.ptr, *self._detection_options())
+        return (topo.layout, integ.x.ptr, integ.v.ptr, float(integ.dt), body.fem.free.ptr, *self._detection_options())
 
     def launch_detection_of(self, body: BodyView) -> list[wp.array]:
         """Launch the detection of the free motion (``body.integrator``'s x and v) prepared by

@@ -13,6 +13,7 @@ import pytest
 import warp as wp
 
 from soft_tissue_sim import graphs, load_scene
+from soft_tissue_sim.cutting import sweep_triangles
 
 DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 
@@ -247,21 +248,41 @@ def test_a_mesh_change_within_the_capacities_keeps_the_step_graphs():
         assert sim.contact._topo is not old and sim.contact._topo.replay is old.replay
 
 
-def test_graphs_replayed_across_mesh_changes_give_the_steps_of_plain_launches():
-    """Two removals, the build's and the PCG's graphs replayed across both: the same trajectory
-    as plain launches (bit for bit on the CPU; on a GPU up to the order of atomic sums)."""
+def _change(sim, kind: str, k: int):
+    """A removal of the tets around a node, or a cut across the block's upper half (nodes added)."""
+    if kind == "removal":
+        return sim.remove_elements(sim.positions()[-1 - k], 0.008)
+    P = sim.mesh.points
+    x, lo, hi = 0.005 * k + 0.0175, P.min(axis=0) - 1e-3, P.max(axis=0) + 1e-3
+    mid = 0.5 * (lo[2] + hi[2])
+    return sim.cut_triangles(sweep_triangles([x, lo[1], mid], [x, lo[1], hi[2]], [x, hi[1], mid], [x, hi[1], hi[2]]),
+                             frame="rest")
+
+
+@pytest.mark.parametrize("kind", ["removal", "cut"])
+def test_graphs_replayed_across_mesh_changes_give_the_steps_of_plain_launches(kind):
+    """Two removals (node counts down) or two cuts (up), the step's graphs (the build's, the
+    PCG's, the one after the solve: detection, rows, LCP, correction) replayed across both: the
+    same trajectory as plain launches (bit for bit on the CPU; on a GPU up to the order of
+    atomic sums)."""
     with _pressed_block(True, cutting=True) as a, _pressed_block(False, cutting=True) as b:
         top = float(a.mesh.points[:, 2].max())
+        after = a.integrator._after_replay
         for k in range(9):
+            if k == 3:
+                captured = after.captures
             for sim in (a, b):
                 sim.set_instrument_pose("probe", [0.021, 0.011, top + 0.004 - 0.0005 * k], [0, 0, 0, 1])
                 if k in (3, 6):
-                    assert sim.remove_elements(sim.positions()[-1 - k], 0.008).changed
+                    n = sim.mesh.n_nodes
+                    assert _change(sim, kind, k).changed
+                    assert (sim.mesh.n_nodes > n) == (kind == "cut")
                 sim.step()
             assert a.mesh.n_nodes == b.mesh.n_nodes and a.mesh.n_tets == b.mesh.n_tets
             np.testing.assert_allclose(a.positions(), b.positions(), rtol=0.0, atol=1e-12)
             np.testing.assert_allclose(a.velocities(), b.velocities(), rtol=0.0, atol=1e-10)
         assert a.integrator.cg.replay.captures == 1 and a.integrator._build_replay.captures == 1
+        assert after.captures == captured >= 1  # the changes kept its key
         assert b.integrator.cg.replay.captures == 0
 
 

@@ -17,19 +17,28 @@ import time
 import warp as wp
 
 
-def build_all(device) -> float:
-    """Import every module of the package that may hold Warp code (not the ROS adapter, not
-    the benchmarks; a module whose optional GPU library is missing is skipped: nothing uses
-    it then) and build all of Warp's loaded modules for ``device``. Returns the seconds it took."""
+def package_modules() -> list[str]:
+    """Import every module of the package that may hold Warp code (not the ROS adapter, not the
+    benchmarks; a module whose optional GPU library is missing is skipped: nothing uses it
+    then); returns their names."""
     import soft_tissue_sim
 
+    names = []
     for mod in pkgutil.walk_packages(soft_tissue_sim.__path__, "soft_tissue_sim."):
         if ".ros" in mod.name or ".bench" in mod.name:
             continue
         try:
             importlib.import_module(mod.name)
         except ImportError:
-            pass
+            continue
+        names.append(mod.name)
+    return names
+
+
+def build_all(device) -> float:
+    """Build all of Warp's loaded modules, the package's first (:func:`package_modules`), for
+    ``device``. Returns the seconds the build took."""
+    package_modules()
     t0 = time.perf_counter()
     wp.force_load(device=wp.get_device(device))
     return time.perf_counter() - t0

@@ -5,18 +5,9 @@ import subprocess
 import sys
 
 CHECK = """
-import json, pkgutil, importlib, warp as wp
-import soft_tissue_sim
-from soft_tissue_sim.warp_modules import build_all
-names = []
-for mod in pkgutil.walk_packages(soft_tissue_sim.__path__, "soft_tissue_sim."):
-    if ".ros" in mod.name or ".bench" in mod.name:
-        continue
-    try:
-        importlib.import_module(mod.name)
-    except ImportError:
-        continue
-    names.append(mod.name)
+import json, warp as wp
+from soft_tissue_sim.warp_modules import build_all, package_modules
+names = package_modules()
 def unbuilt():
     out = []
     for name in names:

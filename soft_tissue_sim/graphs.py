@@ -88,8 +88,13 @@ class Replayer:
         self.failures = 0  # captures failed in a row
         self.captures = 0
         self.replays = 0
+        self.plain = 0  # runs of plain launches (not inside another replayer's capture)
         self._graphs: OrderedDict = OrderedDict()
         self._seen: OrderedDict = OrderedDict()
+
+    def counts(self) -> dict:
+        """{captures, replays, plain}: how its launches have run so far."""
+        return {"captures": self.captures, "replays": self.replays, "plain": self.plain}
 
     def graph(self, key):
         """The graph kept for ``key``, or None."""
@@ -101,13 +106,18 @@ class Replayer:
 
     def run(self, key, launches) -> bool:
         """Run ``launches`` for ``key`` (see the class); True where a graph was launched."""
-        if key is None or not self.enabled or self.device.is_capturing:  # capturing: part of the outer graph
+        if self.device.is_capturing:  # part of the outer graph
+            launches()
+            return False
+        if key is None or not self.enabled:
+            self.plain += 1
             launches()
             return False
         graph = self._graphs.get(key)
         if graph is None:
             if key not in self._seen and not (self.eager and (self.loaded or self.captures > 0)):
                 self._see(key)
+                self.plain += 1
                 launches()
                 return False
             first = key not in self._seen  # an eager capture at the key's first use
@@ -118,6 +128,7 @@ class Replayer:
                 self.error = f"{type(exc).__name__}: {exc}"
                 if first:  # (it may have met what a first run does: an allocation) as if not eager
                     self._see(key)
+                    self.plain += 1
                     launches()
                     return False
                 self.failures += 1
@@ -127,6 +138,7 @@ class Replayer:
                     times = f" {self.failures} times in a row" if self.max_failures > 1 else ""
                     warnings.warn(f"{self.name}: graph capture failed{times} ({self.error}); launching directly",
                                   RuntimeWarning, stacklevel=3)
+                self.plain += 1
                 launches()
                 return False
             graph = cap.graph

@@ -578,6 +578,16 @@ class BackwardEuler:
         self._correction_replay.run(key, launches)
         return readback.read(self.device)
 
+    def replayers(self) -> dict:
+        """The step's graph replayers by name (the build, the PCG's where it has one, the
+        launches after the solve, the correction's): what they ran, in the benchmarks."""
+        reps = {"build": self._build_replay, "after the solve": self._after_replay,
+                "correction": self._correction_replay}
+        pcg = getattr(self.cg, "replay", None)
+        if pcg is not None:
+            reps["PCG"] = pcg
+        return reps
+
     def _state_arrays_key(self) -> tuple:
         """What the update, the correction and the guard's launches depend on: the operator's
         graph_key (FEM arrays, launch dimensions, coefficients), the state's and the guard's

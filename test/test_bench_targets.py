@@ -43,11 +43,13 @@ def test_the_resection_rows_include_the_cut_rows(monkeypatch):
     def fake_run(device, progress=False):
         calls.append(device)
         rows = _rows([0.0, 4.0, 0.0, 6.0, 8.0], [False, True, False, True, True])
-        return rows, [{}] * 3, True, True, 0, 0, {"inverted_tets_end": 0}
+        graphs = {"after the solve": {"captures": 4, "replays": 655, "plain": 6}}
+        return rows, [{}] * 3, True, True, 0, 0, {"inverted_tets_end": 0, "step_graphs": graphs}
 
     monkeypatch.setattr(brain, "run", fake_run)
     rows = {r["name"]: r for r in targets.brain_resection_rows("cpu")}
     assert calls == ["cpu"]
+    assert "the launches after the solve captured 4, replayed 655, plain 6" in rows["brain_resection_step_median_ms"]["note"]
     assert rows["brain_cut_ms_median"]["value"] == 6.0 and rows["brain_cut_ms_median"]["met"] is False
     assert rows["brain_cut_ms_p99"]["value"] == pytest.approx(np.percentile([4.0, 6.0, 8.0], 99))
     assert rows["brain_cut_ms_p99"]["goal"] == rows["brain_resection_step_p99_ms"]["goal"] == 20.0

@@ -86,7 +86,7 @@ def test_graphs_stay_parked_while_the_preconditioner_factorizes():
         assert graphs.parked() == 0
 
 
-def test_a_new_surface_retires_the_captured_detections():
+def test_a_reset_retires_the_captured_detections():
     with load_scene("default.yaml", device=DEVICE) as sim:
         sim.step()
         topo = sim.contact._topo
@@ -195,6 +195,12 @@ def test_an_eager_replayer_captures_new_keys_at_their_first_use():
     assert seen[plain] == [False, True, False, False]
     assert seen[eager] == [False, True, True, True]
     assert seen[loaded] == [True, False, True, True]
+    assert [rep.counts() for rep in (plain, eager, loaded)] == [
+        {"captures": 1, "replays": 1, "plain": 3}, {"captures": 3, "replays": 3, "plain": 1},
+        {"captures": 3, "replays": 4, "plain": 0}]
+    none = graphs.Replayer(DEVICE, "test")
+    none.run(None, lambda: a.fill_(1.0))  # no key: plain launches
+    assert none.counts() == {"captures": 0, "replays": 0, "plain": 1}
     for rep in (plain, eager, loaded):
         rep.clear()
     # a capture at a key's first use that fails (as an allocation in a capture does): plain

@@ -130,12 +130,13 @@ def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_clea
         tumour_left = int((sim.mesh.material_ids == 1).sum())
         finite = bool(np.isfinite(sim.positions()).all())
         nodes_end, tets_end = sim.mesh.n_nodes, sim.mesh.n_tets
+        step_graphs = {name: rep.counts() for name, rep in sim.integrator.replayers().items()}
     finally:
         sim.close()
     info = {"freed_by_plan": bool(freed_planned), "cleanup_bites": len(bites), "cut_sizes": surgeon.cut_sizes,
             "tumour_tets_intact": tumour_intact, "bites": bites, "freed_at_step": freed_step,
             "tumour_drop_when_freed_m": z_freed, "extracted_tets": int(sum(extracted)),
-            "tumour_left_end": tumour_left, "inverted_tets_end": inverted}
+            "tumour_left_end": tumour_left, "inverted_tets_end": inverted, "step_graphs": step_graphs}
     return rows, mods, freed, finite, nodes_end, tets_end, info
 
 
@@ -228,7 +229,7 @@ def main(argv=None) -> int:
         "tumour_tets_intact": info["tumour_tets_intact"], "cut_sizes": info["cut_sizes"],
         "freed_at_step": info["freed_at_step"], "tumour_drop_when_freed_m": info["tumour_drop_when_freed_m"],
         "extracted_tets": info["extracted_tets"], "tumour_left_end": info["tumour_left_end"],
-        "inverted_tets_end": info["inverted_tets_end"],
+        "inverted_tets_end": info["inverted_tets_end"], "step_graphs": info["step_graphs"],
         "finite": finite, "nodes_end": n_end, "tets_end": t_end,
         "wall_s": time.perf_counter() - t0,
     }

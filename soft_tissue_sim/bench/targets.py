@@ -179,7 +179,9 @@ def brain_resection_rows(device):
     rows, mods, freed, finite, _, _, info = run(device, progress=True)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
-    note = f"{len(rows)} steps, {len(mods)} modifications; {resection_split(rows)}"
+    g = info["step_graphs"]["after the solve"]
+    note = (f"{len(rows)} steps, {len(mods)} modifications; {resection_split(rows)}; the launches after the solve "
+            f"captured {g['captures']}, replayed {g['replays']}, plain {g['plain']}")
     out = [_row("brain_resection_step_median_ms", float(np.median(wall)), "ms", 2.0, note=note),
            _row("brain_resection_step_p99_ms", float(np.percentile(wall, 99)), "ms", 20.0, note=note),
            _row("brain_resection_iterations_mean", float(its.mean()), "iterations", 5.7, note=note),

@@ -140,11 +140,14 @@ def test_after_changes_every_array_equals_a_fresh_build():
             for name in ("counts", "nodes", "faces_wp", "edge_owner", "node_comp", "face_comp", "ring_offsets",
                          "ring_nodes", "x_start"):
                 assert np.array_equal(getattr(topo, name).numpy(), getattr(new, name).numpy()), name
-            nf = len(new.faces)  # the boxes: those of the faces, then the capacity's unused slots far away
+            nf = len(new.faces)  # the boxes: those of the faces, then the capacity's unused slots' outside
             for name in ("lowers", "uppers"):
-                kept, made = getattr(topo, name).numpy(), getattr(new, name).numpy()
-                assert np.array_equal(kept[:nf], made[:nf]), name
-                assert (kept[nf:] >= 1e29).all() and (made[nf:] >= 1e29).all(), name
+                assert np.array_equal(getattr(topo, name).numpy()[:nf], getattr(new, name).numpy()[:nf]), name
+            for t in (topo, new):  # a point below the faces' boxes (beyond every query: their extent away)
+                lo, up = t.lowers.numpy(), t.uppers.numpy()
+                assert len(lo) >= nf and np.array_equal(lo[nf:], up[nf:]) and np.isfinite(lo).all()
+                assert (lo[nf:] < lo[:nf].min(axis=0)).all()
+            assert len(new.lowers) > nf  # a fresh build has unused slots (headroom)
             assert ([(s.obj, s.kind, s.count) for s in topo.out.sections]
                     == [(s.obj, s.kind, s.count) for s in new.out.sections])
             got = sim.contact.detect(sim)

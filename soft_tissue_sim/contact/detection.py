@@ -37,6 +37,7 @@ from ..mesh import extent
 from ..transfer import Staged
 from .detection_kernels import (
     Slots,
+    box_corner_init_kernel,
     capsule_contacts_kernel,
     capsule_crossings_kernel,
     capsule_faces_kernel,
@@ -47,6 +48,7 @@ from .detection_kernels import (
     self_contacts_kernel,
     step_start_kernel,
     trimesh_contacts_kernel,
+    unused_boxes_kernel,
 )
 from .geometry import edge_ownership
 from .records import Contacts
@@ -207,6 +209,7 @@ class SurfaceBuffers:
                                     "ring_offsets": wp.int32, "ring_nodes": wp.int32}, dev)
         self.bvh: wp.Bvh | None = None  # over self.lowers / uppers' views of bvh_size faces
         self.bvh_size = 0
+        self.corner = wp.zeros(6, dtype=wp.float32, device=dev)  # the faces' boxes' bounds (lower, upper)
         self.replay = graphs.Replayer(dev, "contact detection", slots=4, eager=True)
         self.outputs = {name: GrowArray(dtype, dev) for name, dtype in _OUTPUTS}
         self.x_start, self.node_normal = GrowArray(wp.vec3d, dev), GrowArray(wp.vec3d, dev)
@@ -286,10 +289,10 @@ class SurfaceTopology:
             buffers.node_normal.buffer.zero_()
             # the triangles' boxes (each detection widens them by their vertices' motion and
             # refits), first at the rest positions, made on the device; the BVH over the face
-            # capacity (the unused slots' boxes far away), rebuilt in place where it fits
+            # capacity (the unused slots' boxes outside the faces' bounds), rebuilt in place
+            # where it fits
             self.lowers, self.uppers = buffers.lowers.view(nf), buffers.uppers.view(nf)
-            wp.launch(face_bounds_kernel, nf, [self.counts, fem.rest, self.faces_wp, self.motion, self.scale],
-                      outputs=[self.lowers, self.uppers], device=dev)
+            launch_face_boxes(self, fem.rest, dev)
             if buffers.bvh is None or buffers.bvh_size != nf or buffers.bvh.lowers is not self.lowers:
                 buffers.bvh, buffers.bvh_size = wp.Bvh(self.lowers, self.uppers), nf
             else:
@@ -402,8 +405,7 @@ def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, x_start, di
                       [counts, x_features, topo.nodes, wmesh.id, verts, tris, dist, topo.motion, topo.scale],
                       outputs=[sec], device=device)
     if topo.bvh is not None:
-        wp.launch(face_bounds_kernel, nf, [counts, x_features, topo.faces_wp, topo.motion, topo.scale],
-                  outputs=[topo.lowers, topo.uppers], device=device)
+        launch_face_boxes(topo, x_features, device)
         topo.bvh.refit()
         topo.buffers.node_normal.buffer.zero_()
         wp.launch(face_normals_kernel, nf, [counts, x_features, topo.faces_wp, topo.node_normal], device=device)
@@ -411,6 +413,17 @@ def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, x_start, di
                   [counts, x_features, topo.nodes, topo.bvh.id, topo.faces_wp, topo.face_comp, topo.node_comp,
                    topo.node_normal, topo.ring_offsets, topo.ring_nodes, dist, topo.motion, topo.scale, facing, depth],
                   outputs=[out.slots(out.section(-1, "self"))], device=device)
+
+
+def launch_face_boxes(topo: SurfaceTopology, x: wp.array, device) -> None:
+    """The self-collision BVH's boxes at ``x`` (widened by ``topo.motion``): the faces' over
+    the face capacity, and those of the slots past the faces in use at a point outside the
+    faces' bounds (:func:`~.detection_kernels.unused_boxes_kernel`)."""
+    corner, nf = topo.buffers.corner, topo.face_slots
+    wp.launch(box_corner_init_kernel, 6, [corner], device=device)
+    wp.launch(face_bounds_kernel, nf, [topo.counts, x, topo.faces_wp, topo.motion, topo.scale],
+              outputs=[topo.lowers, topo.uppers, corner], device=device)
+    wp.launch(unused_boxes_kernel, nf, [topo.counts, corner, topo.lowers, topo.uppers], device=device)
 
 
 def launch_start(topo: SurfaceTopology, x: wp.array, v: wp.array, dt: float, device) -> None:

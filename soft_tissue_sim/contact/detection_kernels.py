@@ -11,7 +11,8 @@ for a penetration, the point lies on the other surface. Search radii that depend
 host. The kernels are launched over capacities (surface nodes, surface faces, nodes) and read
 the counts in use from a device array (``counts`` = [surface nodes, surface faces]), so that a
 captured detection holds for every surface that fits the same allocations: the threads past a
-count return at once (a face past the count gets a box far from everything, :data:`FAR`).
+count return at once (the self-collision BVH's boxes of the unused face slots sit outside the
+faces' bounds: :func:`unused_boxes_kernel`).
 """
 
 from __future__ import annotations
@@ -29,7 +30,6 @@ from .geometry import (
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
-FAR = wp.constant(wp.float32(1.0e30))  # where the BVH boxes of the faces' unused slots sit
 
 
 @wp.struct
@@ -368,14 +368,16 @@ def face_bounds_kernel(
     scale: wp.float64,
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
+    corner: wp.array(dtype=wp.float32),
 ):
     """The self-collision BVH's box of surface triangle f: its vertices at x, widened by how far
     its vertices moved in the step (the largest ``motion``), in float32 with a margin
-    (:func:`search_margin`) so that the float64 tests decide."""
+    (:func:`search_margin`) so that the float64 tests decide; the boxes' bounds gathered into
+    ``corner`` (its lower corner, then its upper one: set to +-inf by
+    :func:`box_corner_init_kernel` before) for :func:`unused_boxes_kernel`. Nothing past the
+    faces in use."""
     f = wp.tid()
-    if f >= counts[1]:  # a slot of the capacity past the faces: a box far away
-        lowers[f] = wp.vec3(FAR, FAR, FAR)
-        uppers[f] = wp.vec3(FAR, FAR, FAR)
+    if f >= counts[1]:
         return
     t = faces[f]
     a = x[t[0]]
@@ -385,8 +387,43 @@ def face_bounds_kernel(
     lo = wp.min(a, wp.min(b, c))  # componentwise
     hi = wp.max(a, wp.max(b, c))
     w = search_margin(m, scale)
-    lowers[f] = to_vec3f(lo) - wp.vec3(w, w, w)
-    uppers[f] = to_vec3f(hi) + wp.vec3(w, w, w)
+    bl = to_vec3f(lo) - wp.vec3(w, w, w)
+    bu = to_vec3f(hi) + wp.vec3(w, w, w)
+    lowers[f] = bl
+    uppers[f] = bu
+    for k in range(3):
+        wp.atomic_min(corner, k, bl[k])
+        wp.atomic_max(corner, 3 + k, bu[k])
+
+
+@wp.kernel
+def box_corner_init_kernel(corner: wp.array(dtype=wp.float32)):
+    """corner = (+inf, +inf, +inf, -inf, -inf, -inf): the bounds of no box."""
+    k = wp.tid()
+    if k < 3:
+        corner[k] = wp.float32(wp.inf)
+    else:
+        corner[k] = -wp.float32(wp.inf)
+
+
+@wp.kernel
+def unused_boxes_kernel(counts: wp.array(dtype=wp.int32), corner: wp.array(dtype=wp.float32),
+                        lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
+    """The boxes of the capacity's slots past the faces in use: a point outside the faces'
+    bounds (``corner``, :func:`face_bounds_kernel`) by their largest extent, beyond every query
+    of the self-contact search (which skips such a slot anyway), and near enough that the BVH's
+    Morton codes, quantized over the bounds of all boxes, keep their resolution."""
+    f = wp.tid()
+    if f < counts[1]:
+        return
+    e = wp.max(corner[3] - corner[0], wp.max(corner[4] - corner[1], corner[5] - corner[2]))
+    if not (e >= wp.float32(0.0)):  # no face in use: the origin
+        lowers[f] = wp.vec3()
+        uppers[f] = wp.vec3()
+        return
+    p = wp.vec3(corner[0], corner[1], corner[2]) - wp.vec3(e + wp.float32(1.0e-3))
+    lowers[f] = p
+    uppers[f] = p
 
 
 @wp.kernel
@@ -422,7 +459,7 @@ def self_contacts_kernel(
     positions searched are the step's start, where the last correction left at most a
     contact tolerance of penetration, so a node deeper behind a triangle is on the body's
     far side, not in it (taking it pushes the body through itself). The candidate of
-    smallest |gap| wins.
+    smallest |gap| wins (of equal ones the lowest face index, whatever the BVH's order).
     """
     k = wp.tid()
     if k >= counts[0]:
@@ -448,6 +485,8 @@ def self_contacts_kernel(
     query = wp.bvh_query_aabb(bvh_id, lo, hi)
     f = int(0)
     while wp.bvh_query_next(query, f):
+        if f >= counts[1]:  # a slot past the faces in use (its box lies outside every query)
+            continue
         t = faces[f]
         ok = t[0] != p and t[1] != p and t[2] != p
         va = x[t[0]]
@@ -486,12 +525,15 @@ def self_contacts_kernel(
                     valid = True
             if valid and wp.abs(g) >= near + triangle_motion(motion, t):
                 valid = False  # farther than the pair can close in on each other in the step
-            if valid and wp.abs(g) < best:  # the node's own neighbourhood last: the costliest test
+            # the smallest |gap| wins, the lowest face index among equal ones: the result does
+            # not depend on the order the BVH gives the candidates in
+            better = wp.abs(g) < best or (wp.abs(g) == best and f < best_face)
+            if valid and better:  # the node's own neighbourhood last: the costliest test
                 for j in range(ring_offsets[p], ring_offsets[p + 1]):
                     r = ring_nodes[j]
                     if r == t[0] or r == t[1] or r == t[2]:
                         valid = False
-            if valid and wp.abs(g) < best:
+            if valid and better:
                 best = wp.abs(g)
                 best_face = f
                 best_w = w

@@ -99,8 +99,9 @@ _OUTPUTS = (("active", wp.int32), ("gap", wp.float64), ("normal", wp.vec3d), ("p
 class Outputs:
     """The output slots of every launch of one detection, in one set of device arrays, so that
     one read brings them all to the host (:meth:`read`). ``buffers``: the
-    :class:`~soft_tissue_sim.buffers.GrowArray` per array to take them from (zeroed), kept
-    across surfaces; None: new arrays."""
+    :class:`~soft_tissue_sim.buffers.GrowArray` per array to take them from, kept across
+    surfaces; None: new arrays. Only ``active`` is zeroed (as every detection does first): the
+    other arrays are read where a slot is active, which its kernel has then written."""
 
     def __init__(self, sections: list[Section], device, buffers: dict | None = None):
         self.sections = sections
@@ -110,7 +111,8 @@ class Outputs:
                 a = wp.zeros(n, dtype=dtype, device=device)
             else:
                 a = buffers[name].view(n)
-                a.zero_()
+                if name == "active":
+                    a.zero_()
             setattr(self, name, a)
         self.all = self.slots(Section(-2, "all", 0, n))
 

@@ -476,7 +476,6 @@ class DenseInverse:
         self._workspace = None
         self._blas = None  # cuBLAS (the factorization's)
         self._library_fold: LibraryFold | None = None  # GPU: the folds (made with the first factor)
-        self._one = np.ones(1)  # the host scalar of the cuBLAS calls
         self._W = None  # delassus: W on the device (grown to the largest m x m seen)
         self._deferred = 0  # the depth of changing() scopes open
         self._stale = False  # the single-precision copy is to be made again (changing())
@@ -592,7 +591,7 @@ class DenseInverse:
         after; else whole (``trsm`` against the identity, ``trmm``)."""
         from nvmath.bindings import cublas
 
-        one, L, X, C = self._one.ctypes.data, self.work.ptr, self._rhs.ptr, self.work.ptr
+        one, L, X, C = _ONE.ctypes.data, self.work.ptr, self._rhs.ptr, self.work.ptr
         b = int(self.inverse_block)
         if b <= 0 or b >= n:  # (side left, lower, op, non-unit diagonal)
             cublas.dtrsm(h, 0, 0, 0, 0, n, n, one, L, n, X, n)

@@ -445,7 +445,7 @@ class AsyncDevicePreconditioner:
             parts.append((idx, perturbation(mod, self.R_ref_host[idx], created, self.rotate)))
         corr = self.correction
         if corr is None or corr.enabled:
-            idx, N = parts[0] if len(parts) == 1 else summed_perturbation(parts)
+            idx, N = summed_perturbation(parts)
             self.backend.fold(node_dofs(idx), N)
         if corr is not None:
             corr.folds += 1

@@ -110,16 +110,12 @@ class Replayer:
             launches()
             return False
         if key is None or not self.enabled:
-            self.plain += 1
-            launches()
-            return False
+            return self._plain(launches)
         graph = self._graphs.get(key)
         if graph is None:
             if key not in self._seen and not (self.eager and (self.loaded or self.captures > 0)):
                 self._see(key)
-                self.plain += 1
-                launches()
-                return False
+                return self._plain(launches)
             first = key not in self._seen  # an eager capture at the key's first use
             try:
                 with wp.ScopedCapture(device=self.device) as cap:
@@ -128,9 +124,7 @@ class Replayer:
                 self.error = f"{type(exc).__name__}: {exc}"
                 if first:  # (it may have met what a first run does: an allocation) as if not eager
                     self._see(key)
-                    self.plain += 1
-                    launches()
-                    return False
+                    return self._plain(launches)
                 self.failures += 1
                 self._seen.pop(key, None)
                 if self.failures >= self.max_failures:
@@ -138,9 +132,7 @@ class Replayer:
                     times = f" {self.failures} times in a row" if self.max_failures > 1 else ""
                     warnings.warn(f"{self.name}: graph capture failed{times} ({self.error}); launching directly",
                                   RuntimeWarning, stacklevel=3)
-                self.plain += 1
-                launches()
-                return False
+                return self._plain(launches)
             graph = cap.graph
             self._graphs[key] = graph
             self.failures = 0
@@ -152,6 +144,12 @@ class Replayer:
         wp.capture_launch(graph)
         self.replays += 1
         return True
+
+    def _plain(self, launches) -> bool:
+        """Run ``launches`` plainly (counted in :attr:`plain`); False: no graph launched."""
+        self.plain += 1
+        launches()
+        return False
 
     def _see(self, key) -> None:
         """Remember ``key`` as seen (the last 2 slots keys)."""

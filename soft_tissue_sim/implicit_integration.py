@@ -405,8 +405,7 @@ class BackwardEuler:
         """The launches of :meth:`build`."""
         fem, dt = self.fem, self.dt
         if self.keep_start:
-            wp.launch(_copy_state_kernel, fem.node_dim, [fem.n_nodes_dev, self.x, self.v, self._x0, self._v0],
-                      device=self.device)
+            self.copy_state(self._x0, self._v0)
         fem.update_rotations(self.x)
         wp.launch(_gravity_kernel, fem.node_dim,
                   [fem.n_nodes_dev, fem.lumped_mass, wp.vec3d(*self.gravity), self.f_ext, self.f], device=self.device)

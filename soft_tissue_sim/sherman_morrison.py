@@ -125,7 +125,9 @@ def node_dofs(nodes: np.ndarray) -> np.ndarray:
 def summed_perturbation(parts) -> tuple[np.ndarray, np.ndarray]:
     """(nodes, N): the perturbations N_i of ``parts`` ((node indices, N_i) pairs, each N_i on
     its nodes' DOFs, as :func:`perturbation` makes it) summed on the union of their nodes
-    (ascending): sum_i G_i N_i G_i^T = G N G^T."""
+    (ascending): sum_i G_i N_i G_i^T = G N G^T. One part is returned as it is."""
+    if len(parts) == 1:
+        return parts[0]
     nodes = np.unique(np.concatenate([idx for idx, _ in parts]))
     N = np.zeros((3 * len(nodes), 3 * len(nodes)))
     for idx, Ni in parts:

@@ -5,7 +5,7 @@ kernels. With a warm cache that costs a few milliseconds; on a machine that has 
 this version of the package yet it is a compilation, tens of seconds for the contact modules
 on a GPU. Left to the first launch, it lands in the middle of a run: the first contact step of
 a node stalls, its wrenches stop and its service calls time out. :func:`build_all` does all of
-it up front (the node calls it at start-up on a GPU; ``bench targets`` before its first row).
+it up front (the node calls it at start-up; ``bench targets`` before its first row).
 """
 
 from __future__ import annotations

@@ -58,10 +58,13 @@ def lengthwise(sim, x0, x1, y=None, frame="rest"):
     return sim.cut_triangles(sweep_triangles([x0, y, z0], [x0, y, z1], [x1, y, z0], [x1, y, z1]), frame=frame)
 
 
-def crosswise(sim, x, frame="rest"):
+def crosswise(sim, x, frame="rest", upper_half=False):
+    """A blade patch in the plane x, across the whole width, through the whole height (or its
+    upper half)."""
     P = sim.mesh.points
     lo, hi = P.min(axis=0) - 1e-3, P.max(axis=0) + 1e-3
-    return sim.cut_triangles(sweep_triangles([x, lo[1], lo[2]], [x, lo[1], hi[2]], [x, hi[1], lo[2]],
+    z0 = 0.5 * (lo[2] + hi[2]) if upper_half else lo[2]
+    return sim.cut_triangles(sweep_triangles([x, lo[1], z0], [x, lo[1], hi[2]], [x, hi[1], z0],
                                              [x, hi[1], hi[2]]), frame=frame)
 
 

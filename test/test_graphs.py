@@ -13,7 +13,7 @@ import pytest
 import warp as wp
 
 from soft_tissue_sim import graphs, load_scene
-from soft_tissue_sim.cutting import sweep_triangles
+from test_cutting import crosswise
 
 DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 
@@ -258,11 +258,7 @@ def _change(sim, kind: str, k: int):
     """A removal of the tets around a node, or a cut across the block's upper half (nodes added)."""
     if kind == "removal":
         return sim.remove_elements(sim.positions()[-1 - k], 0.008)
-    P = sim.mesh.points
-    x, lo, hi = 0.005 * k + 0.0175, P.min(axis=0) - 1e-3, P.max(axis=0) + 1e-3
-    mid = 0.5 * (lo[2] + hi[2])
-    return sim.cut_triangles(sweep_triangles([x, lo[1], mid], [x, lo[1], hi[2]], [x, hi[1], mid], [x, hi[1], hi[2]]),
-                             frame="rest")
+    return crosswise(sim, 0.005 * k + 0.0175, upper_half=True)
 
 
 @pytest.mark.parametrize("kind", ["removal", "cut"])

@@ -209,8 +209,7 @@ class SurfaceBuffers:
         self.tables = PackedArrays({"counts": wp.int32, "nodes": wp.int32, "faces": wp.vec3i,
                                     "edge_owner": wp.vec3i, "node_comp": wp.int32, "face_comp": wp.int32,
                                     "ring_offsets": wp.int32, "ring_nodes": wp.int32}, dev)
-        self.bvh: wp.Bvh | None = None  # over self.lowers / uppers' views of bvh_size faces
-        self.bvh_size = 0
+        self.bvh: wp.Bvh | None = None  # over the views of self.lowers / uppers it was made with
         self.corner = wp.zeros(6, dtype=wp.float32, device=dev)  # the faces' boxes' bounds (lower, upper)
         self.replay = graphs.Replayer(dev, "contact detection", slots=4, eager=True)
         self.outputs = {name: GrowArray(dtype, dev) for name, dtype in _OUTPUTS}
@@ -295,8 +294,8 @@ class SurfaceTopology:
             # where it fits
             self.lowers, self.uppers = buffers.lowers.view(nf), buffers.uppers.view(nf)
             launch_face_boxes(self, fem.rest, dev)
-            if buffers.bvh is None or buffers.bvh_size != nf or buffers.bvh.lowers is not self.lowers:
-                buffers.bvh, buffers.bvh_size = wp.Bvh(self.lowers, self.uppers), nf
+            if buffers.bvh is None or buffers.bvh.lowers is not self.lowers:  # (a view is kept while its size holds)
+                buffers.bvh = wp.Bvh(self.lowers, self.uppers)
             else:
                 buffers.bvh.rebuild()
             self.bvh = buffers.bvh

@@ -417,7 +417,7 @@ def unused_boxes_kernel(counts: wp.array(dtype=wp.int32), corner: wp.array(dtype
     if f < counts[1]:
         return
     e = wp.max(corner[3] - corner[0], wp.max(corner[4] - corner[1], corner[5] - corner[2]))
-    if not (e >= wp.float32(0.0)):  # no face in use: the origin
+    if not (e >= wp.float32(0.0)):  # bounds not finite (positions of a diverged step): the origin
         lowers[f] = wp.vec3()
         uppers[f] = wp.vec3()
         return

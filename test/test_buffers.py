@@ -147,6 +147,11 @@ def test_after_changes_every_array_equals_a_fresh_build():
                 lo, up = t.lowers.numpy(), t.uppers.numpy()
                 assert len(lo) >= nf and np.array_equal(lo[nf:], up[nf:]) and np.isfinite(lo).all()
                 assert (lo[nf:] < lo[:nf].min(axis=0)).all()
+                # each in a cell of its own of the GPU LBVH's Morton grid (1024 a side over the
+                # bounds of all boxes): boxes sharing a code make a chain of that builder
+                box_lo, box_up = lo.min(axis=0), up.max(axis=0)
+                cells = np.clip(((0.5 * (lo + up)[nf:] - box_lo) / (box_up - box_lo) * 1024).astype(int), 0, 1023)
+                assert len(np.unique(cells, axis=0)) == len(lo) - nf
             assert len(new.lowers) > nf  # a fresh build has unused slots (headroom)
             assert ([(s.obj, s.kind, s.count) for s in topo.out.sections]
                     == [(s.obj, s.kind, s.count) for s in new.out.sections])

@@ -86,7 +86,7 @@ def test_rows_built_on_the_device_give_the_host_rows_steps(tmp_path, graph, rows
             np.testing.assert_array_equal(a, b)  # may take either triangle: the states differ by rounding)
         np.testing.assert_allclose(cd[3], ch[3], rtol=1e-6, atol=1e-7)  # [N]: a contact barely pressed may differ
         np.testing.assert_allclose(xd, xh, rtol=0, atol=EXACT)
-        np.testing.assert_allclose(wd, wh, rtol=1e-6, atol=1e-9)  # both tools' forces and torques
+        np.testing.assert_allclose(wd, wh, rtol=1e-5, atol=1e-8)  # both tools' forces and torques
     assert kinds["self_contacts"] > 0 and kinds["face_contacts"] > 0
     held = np.array([w for _, _, w, *_ in dev[25:]])
     assert (held[:, 8] > 0.0).all()  # the spatula pushed up by the tissue

@@ -12,7 +12,7 @@ host. The kernels are launched over capacities (surface nodes, surface faces, no
 the counts in use from a device array (``counts`` = [surface nodes, surface faces]), so that a
 captured detection holds for every surface that fits the same allocations: the threads past a
 count return at once (the self-collision BVH's boxes of the unused face slots sit outside the
-faces' bounds: :func:`unused_boxes_kernel`).
+faces' bounds, each at its own point: :func:`unused_boxes_kernel`).
 """
 
 from __future__ import annotations
@@ -409,19 +409,29 @@ def box_corner_init_kernel(corner: wp.array(dtype=wp.float32)):
 @wp.kernel
 def unused_boxes_kernel(counts: wp.array(dtype=wp.int32), corner: wp.array(dtype=wp.float32),
                         lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
-    """The boxes of the capacity's slots past the faces in use: a point outside the faces'
-    bounds (``corner``, :func:`face_bounds_kernel`) by their largest extent, beyond every query
-    of the self-contact search (which skips such a slot anyway), and near enough that the BVH's
-    Morton codes, quantized over the bounds of all boxes, keep their resolution."""
+    """The boxes of the capacity's slots past the faces in use: points on a grid in the cube of
+    side e (the faces' largest extent, from ``corner``: :func:`face_bounds_kernel`) beside the
+    faces' lower corner, 1 mm off. Beyond every query of the self-contact search (which skips
+    such a slot anyway), and near enough that the BVH's Morton codes, quantized over the bounds
+    of all boxes, keep their resolution. Distinct points, so distinct codes: the GPU's LBVH
+    builder makes a chain (a tree as deep as the slots are many, which its refit climbs one
+    level at a time) of boxes that share a code."""
     f = wp.tid()
-    if f < counts[1]:
+    nf = counts[1]
+    if f < nf:
         return
     e = wp.max(corner[3] - corner[0], wp.max(corner[4] - corner[1], corner[5] - corner[2]))
     if not (e >= wp.float32(0.0)):  # bounds not finite (positions of a diverged step): the origin
         lowers[f] = wp.vec3()
         uppers[f] = wp.vec3()
         return
-    p = wp.vec3(corner[0], corner[1], corner[2]) - wp.vec3(e + wp.float32(1.0e-3))
+    j = f - nf
+    side = wp.int32(1)  # the grid's points per edge: side^3 >= the unused slots
+    while side * side * side < lowers.shape[0] - nf:
+        side += 1
+    h = e / wp.float32(side)
+    g = wp.vec3(wp.float32(j % side), wp.float32((j / side) % side), wp.float32(j / (side * side)))
+    p = wp.vec3(corner[0], corner[1], corner[2]) - wp.vec3(e + wp.float32(1.0e-3)) + h * g
     lowers[f] = p
     uppers[f] = p
 

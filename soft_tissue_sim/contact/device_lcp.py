@@ -526,46 +526,98 @@ def _block_solver(width: int) -> wp.Kernel:
                          dg: wp.array(dtype=wp.float64), diag: Any, part: Any, gate: Any):
         """:func:`.pgs.pgs_sweeps` (contacts of one or three rows) by a block, from lambda in ``lam``
         (updated in place): every lane makes each contact's update (the same values from the same
-        reads, written alike), and a changed row's column of W goes into delta (the shared tile
-        ``dv``) by all of them, each lane its own elements; the same operations in the same order.
-        Returns (sweeps, residual); delta stays in ``dv``. A frictionless set (nc == m): by
+        reads, written alike), and the changed rows' columns of W move delta, held in the device
+        row ``dg``, each lane its own elements (i = lane + k bd: no shared tile's element, whose
+        assignment makes the block wait), all three rows of a contact in one pass (each element
+        gets the host's additions in the host's order), the first element of each of the next
+        contact's rows read into registers while a contact is made; a contact that changes
+        nothing costs no barrier. The same operations in the same order. Returns (sweeps,
+        residual); delta ends in ``dv`` too. A frictionless set (nc == m): by
         :func:`block_frictionless_sweeps`."""
         if nc == m:
             return block_frictionless_sweeps(W, d0, lam, m, max_iterations, tolerance, lane, bd, dv, dg, diag, part,
                                              gate)
         zero = F64(0.0)
-        block_delta(W, d0, lam, m, lane, bd, dv, gate)
+        barrier(gate)  # lambda written (each lane its own rows)
+        block_rows_delta(W, d0, lam, m, dg, lane, bd, gate)
         it = int(0)
         res = F64(-1.0)
         for sweep in range(max_iterations):
             change = zero
+            r = row_start[0]
+            k = n_rows[0]
+            nxt0 = zero
+            nxt1 = zero
+            nxt2 = zero
+            if lane < m:
+                nxt0 = W[r, lane]
+                if k == 3:
+                    nxt1 = W[r + 1, lane]
+                    nxt2 = W[r + 2, lane]
             for c in range(nc):
                 r = row_start[c]
                 k = n_rows[c]
-                ln, l1, l2, ch = contact_update(W, dv, lam, r, k, mu[c], pyramid)
-                barrier(gate)  # every lane has read delta and lambda before any writes them
-                for q in range(k):
-                    j = r + q
-                    value = ln
-                    if q == 1:
-                        value = l1
-                    elif q == 2:
-                        value = l2
-                    d = value - lam[j]
-                    if d != zero:
-                        wp.tile_axpy(d, wp.tile_load(W[j], shape=width), dv)
-                        lam[j] = value
+                w0 = nxt0
+                w1 = nxt1
+                w2 = nxt2
+                if c + 1 < nc and lane < m:  # the next contact's rows' first elements, in flight
+                    rn = row_start[c + 1]
+                    nxt0 = W[rn, lane]
+                    if n_rows[c + 1] == 3:
+                        nxt1 = W[rn + 1, lane]
+                        nxt2 = W[rn + 2, lane]
+                ln, l1, l2, ch = contact_update(W, dg, lam, r, k, mu[c], pyramid)
+                e0 = ln - lam[r]
+                e1 = zero
+                e2 = zero
+                if k == 3:
+                    e1 = l1 - lam[r + 1]
+                    e2 = l2 - lam[r + 2]
+                if e0 != zero or e1 != zero or e2 != zero:  # (the same in every lane)
+                    barrier(gate)  # every lane has read delta and lambda before any writes them
+                    if lane < m:
+                        v = dg[lane]
+                        if e0 != zero:
+                            v += w0 * e0
+                        if e1 != zero:
+                            v += w1 * e1
+                        if e2 != zero:
+                            v += w2 * e2
+                        dg[lane] = v
+                    for i in range(lane + bd, m, bd):
+                        v = dg[i]
+                        if e0 != zero:
+                            v += W[r, i] * e0
+                        if e1 != zero:
+                            v += W[r + 1, i] * e1
+                        if e2 != zero:
+                            v += W[r + 2, i] * e2
+                        dg[i] = v
+                    lam[r] = ln
+                    if k == 3:
+                        lam[r + 1] = l1
+                        lam[r + 2] = l2
+                    barrier(gate)  # delta moved before the next contact reads it
                 change = wp.max(change, ch)
             it = sweep + 1
             res = F64(-1.0)
             if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-                block_delta(W, d0, lam, m, lane, bd, dv, gate)
-                res = jacobi_change(W, dv, lam, row_start, n_rows, mu, pyramid, nc)
+                barrier(gate)  # every lane's last reads (contacts without a change wait for none) are over
+                block_rows_delta(W, d0, lam, m, dg, lane, bd, gate)
+                res = jacobi_change(W, dg, lam, row_start, n_rows, mu, pyramid, nc)
                 if res <= tolerance:
                     break
         if res < zero:  # the sweeps ran out: the residual of where they stopped
-            block_delta(W, d0, lam, m, lane, bd, dv, gate)
-            res = jacobi_change(W, dv, lam, row_start, n_rows, mu, pyramid, nc)
+            barrier(gate)
+            block_rows_delta(W, d0, lam, m, dg, lane, bd, gate)
+            res = jacobi_change(W, dg, lam, row_start, n_rows, mu, pyramid, nc)
+        barrier(gate)  # every lane's reads of delta are over
+        for base in range(0, width, bd):  # every lane assigns in every round (see block_delta)
+            i = base + lane
+            v = F64(0.0)
+            if i < m:
+                v = dg[i]
+            dv[i] = v
         return it, res
 
     def device_pgs(

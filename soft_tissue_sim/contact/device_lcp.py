@@ -134,58 +134,34 @@ def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.flo
 
 
 @wp.func
-def sweep_inverse(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
-                  p: int, shift: wp.float64, piv: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
-    """L's leading p x p block := -(W_PP + shift I)^-1 (P: the rows, W symmetric) by the sweep
-    operator (Gauss-Jordan elimination of a symmetric matrix, pivots in order): each pivot k
-    copies row k into ``piv``, then every entry (dealt out to the lanes) is swept by it, the
-    block waiting after each of the two. Two barriers a pivot, where a Cholesky factor and its
-    two triangular substitutions take one a column each for each of three passes. The pivots
-    are the Schur complements' diagonals (a Cholesky factor's squared): 1, or 0 where one is
-    not positive and finite (W_PP + shift I not positive definite; every lane reads the same
-    pivot and returns alike). Every lane calls it."""
-    for e in range(lane, p * p, bd):
-        i = e // p
-        k = e % p
-        v = W[P[i], P[k]]
-        if i == k:
-            v = v + shift
-        L[i, k] = v
-    barrier(gate)
-    for k in range(p):
-        d = L[k, k]
-        if not (d > F64(0.0)) or not wp.isfinite(d):
-            return 0
-        for j in range(lane, p, bd):
-            piv[j] = L[k, j]
-        barrier(gate)
-        for e in range(lane, p * p, bd):
-            i = e // p
-            j = e % p
-            if i == k:
-                if j == k:
-                    L[i, j] = F64(-1.0) / d
-                else:
-                    L[i, j] = piv[j] / d
-            elif j == k:
-                L[i, j] = piv[i] / d
-            else:
-                L[i, j] = L[i, j] - piv[i] * piv[j] / d
-        barrier(gate)
-    return 1
-
-
-@wp.func
-def block_negated_product(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
-                          x: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
-    """x = -L b over L's leading p x p block (:func:`sweep_inverse`'s -A^-1: x = A^-1 b), each
-    lane its own rows; then the block waits. Every lane calls it; b is left as it is."""
+def block_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
+                     y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
+    """x with L L^T x = b (L's leading p x p block, lower; y: work) by the block's lanes, each its
+    own rows (i = lane + k bd): forward L y = b a column at a time (y_j from the row's sum so far,
+    then every later row less L_ij y_j; the sums in x), backward L^T x = y a row at a time from
+    the last (x_q, then every earlier row less L_qi x_q; the sums in y), the block waiting after
+    each. The same operations in the same order whatever the lanes. Every lane calls it; b is
+    left as it is."""
     for i in range(lane, p, bd):
-        t = F64(0.0)
-        for c in range(p):
-            t = t - L[i, c] * b[c]
-        x[i] = t
+        x[i] = b[i]
     barrier(gate)
+    for j in range(p):
+        yj = x[j] / L[j, j]
+        for i in range(lane, p, bd):
+            if i > j:
+                x[i] = x[i] - L[i, j] * yj
+            elif i == j:
+                y[j] = yj
+        barrier(gate)
+    for q in range(p):
+        j = p - 1 - q
+        xj = y[j] / L[j, j]
+        for i in range(lane, p, bd):
+            if i < j:
+                y[i] = y[i] - L[j, i] * xj
+            elif i == j:
+                x[j] = xj
+        barrier(gate)
 
 
 @wp.func
@@ -229,7 +205,7 @@ def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype
 
 # rows of the active-set method's work arrays (DeviceLCP.work: float64, DeviceLCP.iwork: int32)
 # (and _DSW: delta of the frictionless sweeps)
-_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA, _SCALARS, _DSW = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10  # _Y: a pivot's row
+_LAM, _S, _B, _X, _X2, _Y, _R, _RAT, _DELTA, _SCALARS, _DSW = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10
 _PASSIVE, _P, _LOW, _FLAGS = 0, 1, 2, 3
 WORK_ROWS, IWORK_ROWS = 11, 4
 
@@ -293,13 +269,12 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
                       iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any, col: Any, width: int,
                       part: Any):
     """:func:`.pgs.active_set` by the block (Lawson and Hanson's method from ``lam0``, the face
-    problems solved with the inverse of W_PP + 1e-12 max(diag W) I in ``L``, made by the sweep
-    operator (:func:`sweep_inverse`; the host factorizes by LAPACK's Cholesky: the same face
-    solution to rounding), and one step of refinement against W_PP; ``dmax`` the largest
-    diagonal entry of W): the same steps in the same order. The inverse, its products
-    (:func:`block_negated_product`), the products W lambda, the faces' residuals, the moves of
-    lambda, the passive list and the search for the row to join are shared by the lanes
-    (:func:`block_rows_delta`, a row each; ``col`` and ``part`` shared tiles of ``width`` and of
+    problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
+    refinement against W_PP; ``dmax`` the largest diagonal entry of W): the same steps in the
+    same order. The factorization, the triangular solves, the products W lambda, the faces'
+    residuals, the moves of lambda, the passive list and the search for the row to join are
+    shared by the lanes (:func:`cholesky_columns`, :func:`block_substitute`,
+    :func:`block_rows_delta`, a row each; ``col`` and ``part`` shared tiles of ``width`` and of
     the lanes' count); the ratio test and the join's choice among the lanes' candidates are lane
     0's (:func:`face_ratio`), whose verdicts the others read from ``iwork[_FLAGS]`` after the
     block's barrier. Every lane calls it and gets the face
@@ -343,21 +318,20 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
         p = flags[0]
         if p > 0:
             steps += 1
-            if sweep_inverse(W, L, P, p, shift, work[_Y], lane, bd, gate) == 0:
+            if cholesky_columns(W, L, P, p, shift, 1, lane, bd, gate, col, width) == 0:
                 return steps
             # the face solve, its residual against W_PP and the refinement (the lanes, a row
             # each), the ratio test (lane 0), the move of lambda (the lanes, a row each)
             for a in range(lane, p, bd):
                 b[a] = -d0[P[a]]
-            barrier(gate)
-            block_negated_product(L, b, p, x, lane, bd, gate)
+            block_substitute(L, b, p, work[_Y], x, lane, bd, gate)
             for a in range(lane, p, bd):
                 t = b[a]
                 for c in range(p):
                     t -= W[P[a], P[c]] * x[c]
                 r[a] = t
             barrier(gate)
-            block_negated_product(L, r, p, work[_X2], lane, bd, gate)
+            block_substitute(L, r, p, work[_Y], work[_X2], lane, bd, gate)
             if lane == 0:
                 flags[1] = face_ratio(m, p, joined, work, iwork)
             barrier(gate)
@@ -526,98 +500,46 @@ def _block_solver(width: int) -> wp.Kernel:
                          dg: wp.array(dtype=wp.float64), diag: Any, part: Any, gate: Any):
         """:func:`.pgs.pgs_sweeps` (contacts of one or three rows) by a block, from lambda in ``lam``
         (updated in place): every lane makes each contact's update (the same values from the same
-        reads, written alike), and the changed rows' columns of W move delta, held in the device
-        row ``dg``, each lane its own elements (i = lane + k bd: no shared tile's element, whose
-        assignment makes the block wait), all three rows of a contact in one pass (each element
-        gets the host's additions in the host's order), the first element of each of the next
-        contact's rows read into registers while a contact is made; a contact that changes
-        nothing costs no barrier. The same operations in the same order. Returns (sweeps,
-        residual); delta ends in ``dv`` too. A frictionless set (nc == m): by
+        reads, written alike), and a changed row's column of W goes into delta (the shared tile
+        ``dv``) by all of them, each lane its own elements; the same operations in the same order.
+        Returns (sweeps, residual); delta stays in ``dv``. A frictionless set (nc == m): by
         :func:`block_frictionless_sweeps`."""
         if nc == m:
             return block_frictionless_sweeps(W, d0, lam, m, max_iterations, tolerance, lane, bd, dv, dg, diag, part,
                                              gate)
         zero = F64(0.0)
-        barrier(gate)  # lambda written (each lane its own rows)
-        block_rows_delta(W, d0, lam, m, dg, lane, bd, gate)
+        block_delta(W, d0, lam, m, lane, bd, dv, gate)
         it = int(0)
         res = F64(-1.0)
         for sweep in range(max_iterations):
             change = zero
-            r = row_start[0]
-            k = n_rows[0]
-            nxt0 = zero
-            nxt1 = zero
-            nxt2 = zero
-            if lane < m:
-                nxt0 = W[r, lane]
-                if k == 3:
-                    nxt1 = W[r + 1, lane]
-                    nxt2 = W[r + 2, lane]
             for c in range(nc):
                 r = row_start[c]
                 k = n_rows[c]
-                w0 = nxt0
-                w1 = nxt1
-                w2 = nxt2
-                if c + 1 < nc and lane < m:  # the next contact's rows' first elements, in flight
-                    rn = row_start[c + 1]
-                    nxt0 = W[rn, lane]
-                    if n_rows[c + 1] == 3:
-                        nxt1 = W[rn + 1, lane]
-                        nxt2 = W[rn + 2, lane]
-                ln, l1, l2, ch = contact_update(W, dg, lam, r, k, mu[c], pyramid)
-                e0 = ln - lam[r]
-                e1 = zero
-                e2 = zero
-                if k == 3:
-                    e1 = l1 - lam[r + 1]
-                    e2 = l2 - lam[r + 2]
-                if e0 != zero or e1 != zero or e2 != zero:  # (the same in every lane)
-                    barrier(gate)  # every lane has read delta and lambda before any writes them
-                    if lane < m:
-                        v = dg[lane]
-                        if e0 != zero:
-                            v += w0 * e0
-                        if e1 != zero:
-                            v += w1 * e1
-                        if e2 != zero:
-                            v += w2 * e2
-                        dg[lane] = v
-                    for i in range(lane + bd, m, bd):
-                        v = dg[i]
-                        if e0 != zero:
-                            v += W[r, i] * e0
-                        if e1 != zero:
-                            v += W[r + 1, i] * e1
-                        if e2 != zero:
-                            v += W[r + 2, i] * e2
-                        dg[i] = v
-                    lam[r] = ln
-                    if k == 3:
-                        lam[r + 1] = l1
-                        lam[r + 2] = l2
-                    barrier(gate)  # delta moved before the next contact reads it
+                ln, l1, l2, ch = contact_update(W, dv, lam, r, k, mu[c], pyramid)
+                barrier(gate)  # every lane has read delta and lambda before any writes them
+                for q in range(k):
+                    j = r + q
+                    value = ln
+                    if q == 1:
+                        value = l1
+                    elif q == 2:
+                        value = l2
+                    d = value - lam[j]
+                    if d != zero:
+                        wp.tile_axpy(d, wp.tile_load(W[j], shape=width), dv)
+                        lam[j] = value
                 change = wp.max(change, ch)
             it = sweep + 1
             res = F64(-1.0)
             if change <= tolerance:  # converged if the residual (a sweep not applied) agrees
-                barrier(gate)  # every lane's last reads (contacts without a change wait for none) are over
-                block_rows_delta(W, d0, lam, m, dg, lane, bd, gate)
-                res = jacobi_change(W, dg, lam, row_start, n_rows, mu, pyramid, nc)
+                block_delta(W, d0, lam, m, lane, bd, dv, gate)
+                res = jacobi_change(W, dv, lam, row_start, n_rows, mu, pyramid, nc)
                 if res <= tolerance:
                     break
         if res < zero:  # the sweeps ran out: the residual of where they stopped
-            barrier(gate)
-            block_rows_delta(W, d0, lam, m, dg, lane, bd, gate)
-            res = jacobi_change(W, dg, lam, row_start, n_rows, mu, pyramid, nc)
-        barrier(gate)  # every lane's reads of delta are over
-        for base in range(0, width, bd):  # every lane assigns in every round (see block_delta)
-            i = base + lane
-            v = F64(0.0)
-            if i < m:
-                v = dg[i]
-            dv[i] = v
+            block_delta(W, d0, lam, m, lane, bd, dv, gate)
+            res = jacobi_change(W, dv, lam, row_start, n_rows, mu, pyramid, nc)
         return it, res
 
     def device_pgs(

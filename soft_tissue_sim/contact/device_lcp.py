@@ -75,17 +75,12 @@ BIG = 256  # the most rows of a device LCP (the limit of contact.device_lcp_rows
 wp.set_module_options({"enable_backward": False, "block_dim": LANES})
 
 
-@wp.func_native("WP_TILE_SYNC();")
-def block_sync(): ...
-
-
 @wp.func
 def barrier(gate: Any):
-    """Every lane of the block waits here (Warp's tile barrier itself: CUDA's ``__syncthreads``,
-    the CPU's fiber switch); what a lane wrote before it, shared or in the device's memory, the
-    others see after it. ``gate``: unused (the shared tile a tile operation on which made the
-    barrier before, with two barriers of its own)."""
-    block_sync()
+    """Every lane of the block waits here (``gate``: a shared tile of zeros, each lane adding 0
+    to its own elements); what a lane wrote before it, shared or in the device's memory, the
+    others see after it."""
+    wp.tile_axpy(F64(0.0), gate, gate)
 
 
 @wp.func

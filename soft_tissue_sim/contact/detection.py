@@ -405,8 +405,9 @@ def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, x_start, di
             wp.launch(trimesh_contacts_kernel, ns,
                       [counts, x_features, topo.nodes, wmesh.id, verts, tris, dist, topo.motion, topo.scale],
                       outputs=[sec], device=device)
-    if topo.bvh is not None:
-        launch_face_boxes(topo, x_features, device)
+    if topo.bvh is not None:  # the faces' boxes (the unused slots' stay where the surface put them)
+        wp.launch(face_bounds_kernel, nf, [counts, x_features, topo.faces_wp, topo.motion, topo.scale, 0],
+                  outputs=[topo.lowers, topo.uppers, topo.buffers.corner], device=device)
         topo.bvh.refit()
         topo.buffers.node_normal.buffer.zero_()
         wp.launch(face_normals_kernel, nf, [counts, x_features, topo.faces_wp, topo.node_normal], device=device)
@@ -417,12 +418,15 @@ def _launch_all(topo: SurfaceTopology, objects: list, x, x_features, x_start, di
 
 
 def launch_face_boxes(topo: SurfaceTopology, x: wp.array, device) -> None:
-    """The self-collision BVH's boxes at ``x`` (widened by ``topo.motion``): the faces' over
-    the face capacity, and those of the slots past the faces in use at a point outside the
-    faces' bounds (:func:`~.detection_kernels.unused_boxes_kernel`)."""
+    """The self-collision BVH's boxes at ``x`` (widened by ``topo.motion``), made with a new
+    surface: the faces' over the face capacity, and those of the slots past the faces in use
+    each at its own point outside the faces' bounds
+    (:func:`~.detection_kernels.unused_boxes_kernel`). Those points are what the BVH's build
+    needs (its Morton codes are made then, not at a refit), and the search skips their slots:
+    the detections move the faces' boxes only."""
     corner, nf = topo.buffers.corner, topo.face_slots
     wp.launch(box_corner_init_kernel, 6, [corner], device=device)
-    wp.launch(face_bounds_kernel, nf, [topo.counts, x, topo.faces_wp, topo.motion, topo.scale],
+    wp.launch(face_bounds_kernel, nf, [topo.counts, x, topo.faces_wp, topo.motion, topo.scale, 1],
               outputs=[topo.lowers, topo.uppers, corner], device=device)
     wp.launch(unused_boxes_kernel, nf, [topo.counts, corner, topo.lowers, topo.uppers], device=device)
 

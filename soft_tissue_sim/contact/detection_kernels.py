@@ -31,7 +31,6 @@ from .geometry import (
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
 
-
 @wp.struct
 class Slots:
     """The output slots of a detection launch: thread k writes slot ``base + k``; ``active`` 1
@@ -366,14 +365,15 @@ def face_bounds_kernel(
     faces: wp.array(dtype=wp.vec3i),
     motion: wp.array(dtype=wp.float64),
     scale: wp.float64,
+    gather: int,
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
     corner: wp.array(dtype=wp.float32),
 ):
     """The self-collision BVH's box of surface triangle f: its vertices at x, widened by how far
     its vertices moved in the step (the largest ``motion``), in float32 with a margin
-    (:func:`search_margin`) so that the float64 tests decide; the boxes' bounds gathered into
-    ``corner`` (its lower corner, then its upper one: set to +-inf by
+    (:func:`search_margin`) so that the float64 tests decide; with ``gather``, the boxes' bounds
+    gathered into ``corner`` (its lower corner, then its upper one: set to +-inf by
     :func:`box_corner_init_kernel` before) for :func:`unused_boxes_kernel`. Nothing past the
     faces in use."""
     f = wp.tid()
@@ -391,9 +391,10 @@ def face_bounds_kernel(
     bu = to_vec3f(hi) + wp.vec3(w, w, w)
     lowers[f] = bl
     uppers[f] = bu
-    for k in range(3):
-        wp.atomic_min(corner, k, bl[k])
-        wp.atomic_max(corner, 3 + k, bu[k])
+    if gather != 0:
+        for k in range(3):
+            wp.atomic_min(corner, k, bl[k])
+            wp.atomic_max(corner, 3 + k, bu[k])
 
 
 @wp.kernel

@@ -229,6 +229,33 @@ def test_the_device_kernels_active_set_finish_is_the_hosts(cap, fewest, trials):
     assert finished >= trials // 2  # most needed the finish
 
 
+@pytest.mark.parametrize("cap, fewest", [(32, 8), (256, 40)])
+def test_the_finishs_last_face_factor_is_its_rows_cholesky_factor(cap, fewest):
+    """After the device's active-set finish (a face's factor made once, then each joining row
+    appended to it: :func:`~soft_tissue_sim.contact.device_lcp.append_row`), the factor in the
+    buffers is the Cholesky factor of W_PP + shift I with P's rows in the order they joined."""
+    rng = np.random.default_rng(11 + cap)
+    checked = 0
+    for _ in range(6):
+        m = int(rng.integers(fewest, cap + 1))
+        W, d0, lam0 = _stalling_lcp(rng, m)
+        lam0[:] = 0.0  # from nothing: every row of the last face joined one at a time
+        one = np.arange(m, dtype=np.int32)
+        lcp = DeviceLCP(cap, DEVICE)
+        lcp.stage_problem(W, d0, lam0, one, np.ones(m, np.int32), np.zeros(m))
+        lcp.solve(200, 1e-10, False, 0)  # no sweeps first: the finish from lambda = 0
+        p = int(lcp.iwork.numpy()[device_lcp._FLAGS, 0])
+        P = lcp.iwork.numpy()[device_lcp._P, :p]
+        if p < 2:
+            continue
+        assert len(set(P.tolist())) == p and P.max() < m
+        L = np.tril(lcp.L.numpy()[:p, :p])
+        ref = np.linalg.cholesky(W[np.ix_(P, P)] + 1e-12 * W.diagonal().max() * np.eye(p))
+        np.testing.assert_allclose(L, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+        checked += 1
+    assert checked >= 4
+
+
 @pytest.mark.parametrize("device_rows", [False, True])
 def test_steps_with_and_without_a_device_solve_alternate_under_graphs(device_rows):
     """A capsule tapping a clamped block every other step, graphs on: the correction's graphs

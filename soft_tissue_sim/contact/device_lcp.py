@@ -134,6 +134,45 @@ def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.flo
 
 
 @wp.func
+def append_row(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
+               q: int, shift: wp.float64, y: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
+    """L's row q for the row P[q] appended to a face whose factor (W_PP + shift I, rows P[0..q))
+    is in L's leading q x q block: W's row copied in, then a column j at a time its entry j
+    divided by the pivot (into ``y``, every lane the same value) and the entries right of it
+    less that times column j's (the lanes dealing them out), the block waiting after each
+    column; the diagonal's square root last. The same operations in the same order as
+    :func:`cholesky_columns` makes row q, so the factor is the same as one made afresh of the
+    rows in that order. 1, or 0 where the new pivot is not positive and finite (every lane reads
+    the same). Every lane calls it."""
+    rq = P[q]
+    for k in range(lane, q + 1, bd):
+        v = W[rq, P[k]]
+        if k == q:
+            v = v + shift
+        L[q, k] = v
+    barrier(gate)
+    for j in range(q):
+        lq = L[q, j] / L[j, j]
+        y[j] = lq
+        for k in range(j + 1 + lane, q + 1, bd):
+            if k < q:
+                L[q, k] = L[q, k] - lq * L[k, j]
+            else:
+                L[q, q] = L[q, q] - lq * lq
+        barrier(gate)
+    for k in range(lane, q, bd):
+        L[q, k] = y[k]
+    s = L[q, q]
+    barrier(gate)  # every lane has read the pivot before it is replaced
+    if not (s > F64(0.0)) or not wp.isfinite(s):
+        return 0
+    if lane == 0:
+        L[q, q] = wp.sqrt(s)
+    barrier(gate)
+    return 1
+
+
+@wp.func
 def block_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
                      y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
     """x with L L^T x = b (L's leading p x p block, lower; y: work) by the block's lanes, each its
@@ -271,7 +310,10 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
     """:func:`.pgs.active_set` by the block (Lawson and Hanson's method from ``lam0``, the face
     problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
     refinement against W_PP; ``dmax`` the largest diagonal entry of W): the same steps in the
-    same order. The factorization, the triangular solves, the products W lambda, the faces'
+    same order. P keeps its rows in the order they joined (``iwork[_P]``, its size in
+    ``iwork[_FLAGS, 0]``), as the host's does: a joining row is appended to the last face's
+    factor (:func:`append_row`, the factor made afresh of those rows to the bit), which is made
+    afresh at the start and after rows leave. The factorization, the triangular solves, the products W lambda, the faces'
     residuals, the moves of lambda, the passive list and the search for the row to join are
     shared by the lanes (:func:`cholesky_columns`, :func:`block_substitute`,
     :func:`block_rows_delta`, a row each; ``col`` and ``part`` shared tiles of ``width`` and of
@@ -299,27 +341,34 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
     r = work[_R]
     rat = work[_RAT]
     low = iwork[_LOW]
+    barrier(gate)  # lambda and the passive set written
+    for i in range(lane, m, bd):  # each passive row's place in P: the passive rows before it
+        if passive[i] != 0:
+            c = int(0)
+            for k in range(i):
+                c += passive[k]
+            P[c] = i
+    if lane == 0:
+        p0 = int(0)
+        for i in range(m):
+            p0 += passive[i]
+        flags[0] = p0
+    fresh = int(1)  # P's factor is to be made afresh (else: its last row just joined)
     while steps < max_steps:
-        barrier(gate)  # lambda and the passive set written
-        for i in range(lane, m, bd):  # each passive row's place in P: the passive rows before it
+        barrier(gate)  # lambda, the passive set and P written
+        for i in range(lane, m, bd):
             s[i] = zero
             low[i] = 0
-            if passive[i] != 0:
-                c = int(0)
-                for k in range(i):
-                    c += passive[k]
-                P[c] = i
-        if lane == 0:
-            p = int(0)
-            for i in range(m):
-                p += passive[i]
-            flags[0] = p
-        barrier(gate)
         p = flags[0]
+        barrier(gate)
         if p > 0:
             steps += 1
-            if cholesky_columns(W, L, P, p, shift, 1, lane, bd, gate, col, width) == 0:
+            if fresh != 0:
+                if cholesky_columns(W, L, P, p, shift, 1, lane, bd, gate, col, width) == 0:
+                    return steps
+            elif append_row(W, L, P, p - 1, shift, work[_Y], lane, bd, gate) == 0:
                 return steps
+            fresh = 0
             # the face solve, its residual against W_PP and the refinement (the lanes, a row
             # each), the ratio test (lane 0), the move of lambda (the lanes, a row each)
             for a in range(lane, p, bd):
@@ -345,7 +394,15 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
                     if low[i] != 0 and rat[i] <= alpha:
                         lam[i] = zero
                         passive[i] = 0
-                barrier(gate)  # every row moved (the loop may end here)
+                barrier(gate)  # every row moved
+                if lane == 0:  # the rows left P: the others keep their order
+                    q = int(0)
+                    for a in range(p):
+                        if passive[P[a]] != 0:
+                            P[q] = P[a]
+                            q += 1
+                    flags[0] = q
+                fresh = 1
                 joined = -1
                 continue
         for i in range(lane, m, bd):
@@ -374,6 +431,8 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
                         best = wk
             if j >= 0 and best > tolerance:
                 passive[j] = 1
+                P[flags[0]] = j  # joins P last
+                flags[0] = flags[0] + 1
             else:
                 j = -1
             flags[2] = j

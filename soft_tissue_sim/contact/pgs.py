@@ -667,7 +667,9 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
     and de Jong's form), from the warm start ``lam`` (projected onto lambda >= 0); returns
     (lambda, face solves made).
 
-    The passive set P starts as the rows with lambda > 0. A step solves the face problem of P
+    The passive set P starts as the rows with lambda > 0 (ascending), and keeps its rows in the
+    order they joined (a row joining goes last; rows leaving keep the others' order), as the
+    device's finish keeps it to append a joining row to its factor. A step solves the face problem of P
     (:func:`face_solve`, W_PP shifted by ``shift`` times the largest diagonal of W, so that
     repeated rows give a finite, shared force instead of a division by zero). If the solution
     s is positive on P it becomes lambda, and the row with the most negative delta joins P;
@@ -685,10 +687,11 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
     if m == 0:
         return lam, 0
     passive = lam > 0.0
+    order = [int(i) for i in np.flatnonzero(passive)]  # P in the order its rows joined
     shift *= float(W.diagonal().max())
     steps, joined = 0, -1
     while steps < max_steps:
-        P = np.flatnonzero(passive)
+        P = np.array(order, dtype=np.int64)
         s = np.zeros(m)
         if len(P):
             face = face_solve(W, d0, P, shift)
@@ -707,6 +710,7 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
                 lam = lam + alpha * (s - lam)
                 lam[leave] = 0.0
                 passive[leave] = False
+                order = [i for i in order if passive[i]]
                 joined = -1
                 continue
         lam = s
@@ -716,6 +720,7 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
         if w[j] <= tolerance:
             return lam, steps
         passive[j] = True
+        order.append(j)
         joined = j
     return lam, steps
 

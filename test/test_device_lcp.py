@@ -230,10 +230,11 @@ def test_the_device_kernels_active_set_finish_is_the_hosts(cap, fewest, trials):
 
 
 @pytest.mark.parametrize("cap, fewest", [(32, 8), (256, 40)])
-def test_the_finishs_last_face_factor_is_its_rows_cholesky_factor(cap, fewest):
-    """After the device's active-set finish (a face's factor made once, then each joining row
-    appended to it: :func:`~soft_tissue_sim.contact.device_lcp.append_row`), the factor in the
-    buffers is the Cholesky factor of W_PP + shift I with P's rows in the order they joined."""
+def test_the_finishs_last_face_inverse_factor_is_its_rows_cholesky_factors_inverse(cap, fewest):
+    """After the device's active-set finish (a face's inverse factor made a row at a time, then
+    each joining row appended to it: :func:`~soft_tissue_sim.contact.device_lcp.append_inverse_row`),
+    the buffers hold G = L^-1, L the Cholesky factor of W_PP + shift I with P's rows in the
+    order they joined, in the lower triangle and its transpose in the upper."""
     rng = np.random.default_rng(11 + cap)
     checked = 0
     for _ in range(6):
@@ -249,9 +250,11 @@ def test_the_finishs_last_face_factor_is_its_rows_cholesky_factor(cap, fewest):
         if p < 2:
             continue
         assert len(set(P.tolist())) == p and P.max() < m
-        L = np.tril(lcp.L.numpy()[:p, :p])
-        ref = np.linalg.cholesky(W[np.ix_(P, P)] + 1e-12 * W.diagonal().max() * np.eye(p))
-        np.testing.assert_allclose(L, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
+        G = lcp.L.numpy()[:p, :p]
+        np.testing.assert_array_equal(np.triu(G), np.tril(G).T)
+        A = W[np.ix_(P, P)] + 1e-12 * W.diagonal().max() * np.eye(p)
+        ref = np.linalg.inv(np.linalg.cholesky(A))
+        np.testing.assert_allclose(np.tril(G), ref, rtol=1e-7, atol=1e-9 * np.abs(ref).max())
         checked += 1
     assert checked >= 4
 

@@ -22,13 +22,13 @@ correction, the penetration detection and the guard (one graph a step):
    held in the block's shared memory, by the changed rows' columns of W together, each lane
    its own elements (:func:`block_pgs_sweeps`); a frictionless set (as many contacts as rows)
    is finished, as the host does, by the active-set method where the sweeps stall
-   (:func:`device_active_set`: the host's :func:`.pgs.active_set`, its factorizations and
-   products shared by the lanes, its scalar steps on lane 0), and a set with friction, where
-   ``contact.friction_active_set`` asks, by the host's friction finish on lane 0
-   (:func:`friction_finish`). The same
-   operations in the same order as the host's kernel, so the same lambda to the bit where no
-   multiply-add is fused differently (the friction finish's sums in loop order, the host's by
-   BLAS and LAPACK: to rounding);
+   (:func:`device_active_set`: the host's :func:`.pgs.active_set`, its faces' inverse
+   factors and products shared by the lanes, its scalar steps on lane 0), and a set with
+   friction, where ``contact.friction_active_set`` asks, by the host's friction finish on lane
+   0 (:func:`friction_finish`). The sweeps make the same operations in the same order as the
+   host's kernel, so the same lambda to the bit where no multiply-add is fused differently;
+   the finishes are the host's to rounding (the face solves by an inverse factor, the friction
+   finish's sums in loop order, the host's by BLAS and LAPACK);
 4. dx = dt^2 P^-1 H^T lambda (eq. 2), zeroed on the fixed nodes, from the columns of the rows'
    nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in double precision as
    W is gathered).
@@ -84,10 +84,9 @@ def barrier(gate: Any):
 
 
 @wp.func
-def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
-                     p: int, shift: wp.float64, gathered: int, lane: int, bd: int, gate: Any, col: Any, width: int):
-    """The Cholesky factor of W's rows and columns P[0..p) (0..p unless ``gathered``) plus shift I
-    into L's leading p x p block (lower triangle), by the block's lanes (``lane`` of ``bd``; one
+def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), p: int, shift: wp.float64,
+                     lane: int, bd: int, gate: Any, col: Any, width: int):
+    """The Cholesky factor of W's leading p x p block plus shift I into L's leading p x p block (lower triangle), by the block's lanes (``lane`` of ``bd``; one
     lane: 0 of 1): the rows' lower triangles copied in (each lane its own rows), then a column j
     at a time (right-looking) the column below the pivot sqrt(L_jj) scaled into the shared tile
     ``col`` (``width`` elements, every lane assigning in every round), and the entries right of
@@ -97,14 +96,8 @@ def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.flo
     where it is not positive definite (every lane reads the same pivot and returns alike).
     Every lane calls it."""
     for i in range(lane, p, bd):
-        ri = i
-        if gathered != 0:
-            ri = P[i]
         for k in range(i + 1):
-            rk = k
-            if gathered != 0:
-                rk = P[k]
-            L[i, k] = W[ri, rk]
+            L[i, k] = W[i, k]
         L[i, i] = L[i, i] + shift
     barrier(gate)
     for j in range(p):
@@ -134,73 +127,62 @@ def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.flo
 
 
 @wp.func
-def append_row(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
-               q: int, shift: wp.float64, y: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
-    """L's row q for the row P[q] appended to a face whose factor (W_PP + shift I, rows P[0..q))
-    is in L's leading q x q block: W's row copied in, then a column j at a time its entry j
-    divided by the pivot (into ``y``, every lane the same value) and the entries right of it
-    less that times column j's (the lanes dealing them out), the block waiting after each
-    column; the diagonal's square root last. The same operations in the same order as
-    :func:`cholesky_columns` makes row q, so the factor is the same as one made afresh of the
-    rows in that order. 1, or 0 where the new pivot is not positive and finite (every lane reads
+def append_inverse_row(W: wp.array2d(dtype=wp.float64), G: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
+                       q: int, shift: wp.float64, y: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
+    """Row q of G = L^-1, L the Cholesky factor of W_PP + shift I with P's rows in order, for the
+    row P[q] appended to a face whose G is in G's leading q x q block (lower triangle; its
+    transpose in the upper, so that a lane's reads of a column are the block's of a row):
+    l = G w (w: W's entries of P[q] in the rows P[0..q)), each lane its rows, into ``y``; the
+    new pivot d = W_qq + shift - l . l (every lane alike: the factor's L_qq^2); G's row q
+    -(l^T G) / sqrt(d) and 1 / sqrt(d), each lane its columns. Two barriers, where a factor's
+    new row costs one a column. 1, or 0 where d is not positive and finite (every lane reads
     the same). Every lane calls it."""
     rq = P[q]
-    for k in range(lane, q + 1, bd):
-        v = W[rq, P[k]]
-        if k == q:
-            v = v + shift
-        L[q, k] = v
+    for i in range(lane, q, bd):
+        t = F64(0.0)
+        for k in range(i + 1):
+            t += G[k, i] * W[P[k], rq]
+        y[i] = t
     barrier(gate)
-    for j in range(q):
-        lq = L[q, j] / L[j, j]
-        y[j] = lq
-        for k in range(j + 1 + lane, q + 1, bd):
-            if k < q:
-                L[q, k] = L[q, k] - lq * L[k, j]
-            else:
-                L[q, q] = L[q, q] - lq * lq
-        barrier(gate)
-    for k in range(lane, q, bd):
-        L[q, k] = y[k]
-    s = L[q, q]
-    barrier(gate)  # every lane has read the pivot before it is replaced
-    if not (s > F64(0.0)) or not wp.isfinite(s):
+    d = W[rq, rq] + shift
+    for k in range(q):
+        d -= y[k] * y[k]
+    if not (d > F64(0.0)) or not wp.isfinite(d):
         return 0
+    ljj = wp.sqrt(d)
+    for k in range(lane, q, bd):
+        t = F64(0.0)
+        for i in range(k, q):
+            t += y[i] * G[i, k]
+        v = -t / ljj
+        G[q, k] = v
+        G[k, q] = v
     if lane == 0:
-        L[q, q] = wp.sqrt(s)
+        G[q, q] = F64(1.0) / ljj
     barrier(gate)
     return 1
 
 
 @wp.func
-def block_substitute(L: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
-                     y: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
-    """x with L L^T x = b (L's leading p x p block, lower; y: work) by the block's lanes, each its
-    own rows (i = lane + k bd): forward L y = b a column at a time (y_j from the row's sum so far,
-    then every later row less L_ij y_j; the sums in x), backward L^T x = y a row at a time from
-    the last (x_q, then every earlier row less L_qi x_q; the sums in y), the block waiting after
-    each. The same operations in the same order whatever the lanes. Every lane calls it; b is
-    left as it is."""
-    for i in range(lane, p, bd):
-        x[i] = b[i]
+def apply_face_inverse(G: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
+                       z: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
+    """x = G^T G b, the face's (W_PP + shift I)^-1 b from G = L^-1 (:func:`append_inverse_row`;
+    ``z``: work): z = G b (from G's transpose in the upper triangle), then x = G^T z, each lane
+    its rows, the block waiting before (b written by the lanes) and after each. Every lane
+    calls it; b is left as it is."""
     barrier(gate)
-    for j in range(p):
-        yj = x[j] / L[j, j]
-        for i in range(lane, p, bd):
-            if i > j:
-                x[i] = x[i] - L[i, j] * yj
-            elif i == j:
-                y[j] = yj
-        barrier(gate)
-    for q in range(p):
-        j = p - 1 - q
-        xj = y[j] / L[j, j]
-        for i in range(lane, p, bd):
-            if i < j:
-                y[i] = y[i] - L[j, i] * xj
-            elif i == j:
-                x[j] = xj
-        barrier(gate)
+    for i in range(lane, p, bd):
+        t = F64(0.0)
+        for k in range(i + 1):
+            t += G[k, i] * b[k]
+        z[i] = t
+    barrier(gate)
+    for k in range(lane, p, bd):
+        t = F64(0.0)
+        for i in range(k, p):
+            t += G[i, k] * z[i]
+        x[k] = t
+    barrier(gate)
 
 
 @wp.func
@@ -228,9 +210,8 @@ def block_diagonal(W: wp.array2d(dtype=wp.float64), m: int, part: Any, lane: int
 
 
 @wp.func
-def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64),
-                            P: wp.array(dtype=wp.int32), m: int, factorize: int, dmax: wp.float64, lane: int,
-                            bd: int, gate: Any, col: Any, width: int):
+def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.float64), m: int,
+                            factorize: int, dmax: wp.float64, lane: int, bd: int, gate: Any, col: Any, width: int):
     """1 if the leading m x m block of the symmetric W is usable by Gauss-Seidel (finite, positive
     diagonal: ``dmax``, :func:`block_diagonal`'s verdict, and, with ``factorize``, a Cholesky
     factorization of W + 1e-10 max(diag W) I into L that succeeds), else 0:
@@ -239,7 +220,7 @@ def block_positive_definite(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype
         return 0
     if factorize == 0:
         return 1
-    return cholesky_columns(W, L, P, m, F64(1e-10) * dmax, 0, lane, bd, gate, col, width)
+    return cholesky_columns(W, L, m, F64(1e-10) * dmax, lane, bd, gate, col, width)
 
 
 # rows of the active-set method's work arrays (DeviceLCP.work: float64, DeviceLCP.iwork: int32)
@@ -305,22 +286,22 @@ def face_ratio(m: int, p: int, joined: int, work: wp.array2d(dtype=wp.float64), 
 def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                       L: wp.array2d(dtype=wp.float64), lam0: wp.array(dtype=wp.float64), m: int,
                       dmax: wp.float64, tolerance: wp.float64, max_steps: int, work: wp.array2d(dtype=wp.float64),
-                      iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any, col: Any, width: int,
-                      part: Any):
+                      iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any, col: Any, part: Any):
     """:func:`.pgs.active_set` by the block (Lawson and Hanson's method from ``lam0``, the face
-    problems solved by a Cholesky factor of W_PP + 1e-12 max(diag W) I in ``L`` and one step of
-    refinement against W_PP; ``dmax`` the largest diagonal entry of W): the same steps in the
-    same order. P keeps its rows in the order they joined (``iwork[_P]``, its size in
-    ``iwork[_FLAGS, 0]``), as the host's does: a joining row is appended to the last face's
-    factor (:func:`append_row`, the factor made afresh of those rows to the bit), which is made
-    afresh at the start and after rows leave. The factorization, the triangular solves, the products W lambda, the faces'
-    residuals, the moves of lambda, the passive list and the search for the row to join are
-    shared by the lanes (:func:`cholesky_columns`, :func:`block_substitute`,
-    :func:`block_rows_delta`, a row each; ``col`` and ``part`` shared tiles of ``width`` and of
-    the lanes' count); the ratio test and the join's choice among the lanes' candidates are lane
-    0's (:func:`face_ratio`), whose verdicts the others read from ``iwork[_FLAGS]`` after the
-    block's barrier. Every lane calls it and gets the face
-    solves made; lambda goes to ``work[_LAM]``."""
+    problems solved with W_PP + 1e-12 max(diag W) I and one step of refinement against W_PP;
+    ``dmax`` the largest diagonal entry of W): the same steps in the same order, the face
+    solves to their rounding. The face's inverse is kept as G = L^-1, L its Cholesky factor, in
+    ``L`` (:func:`append_inverse_row`), so that a face solve is two triangular products a
+    barrier each (:func:`apply_face_inverse`) where substitutions wait a column at a time. P
+    keeps its rows in the order they joined (``iwork[_P]``, its size in ``iwork[_FLAGS, 0]``),
+    as the host's does: a joining row is appended to the last face's G (the others' rows of G
+    do not change), which is made afresh, a row at a time, at the start and after rows leave.
+    G's rows, the products with it, W lambda, the faces' residuals, the moves of lambda, the
+    passive list and the search for the row to join are shared by the lanes (a row each;
+    ``col`` and ``part`` shared tiles of the lanes' count at least); the ratio test and the
+    join's choice among the lanes' candidates are lane 0's (:func:`face_ratio`), whose
+    verdicts the others read from ``iwork[_FLAGS]`` after the block's barrier. Every lane calls
+    it and gets the face solves made; lambda goes to ``work[_LAM]``."""
     zero = F64(0.0)
     lam = work[_LAM]
     s = work[_S]
@@ -363,24 +344,24 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
         barrier(gate)
         if p > 0:
             steps += 1
+            first = p - 1  # (the last row just joined)
             if fresh != 0:
-                if cholesky_columns(W, L, P, p, shift, 1, lane, bd, gate, col, width) == 0:
+                first = 0
+            for q in range(first, p):
+                if append_inverse_row(W, L, P, q, shift, work[_Y], lane, bd, gate) == 0:
                     return steps
-            elif append_row(W, L, P, p - 1, shift, work[_Y], lane, bd, gate) == 0:
-                return steps
             fresh = 0
             # the face solve, its residual against W_PP and the refinement (the lanes, a row
             # each), the ratio test (lane 0), the move of lambda (the lanes, a row each)
             for a in range(lane, p, bd):
                 b[a] = -d0[P[a]]
-            block_substitute(L, b, p, work[_Y], x, lane, bd, gate)
+            apply_face_inverse(L, b, p, work[_Y], x, lane, bd, gate)
             for a in range(lane, p, bd):
                 t = b[a]
                 for c in range(p):
                     t -= W[P[a], P[c]] * x[c]
                 r[a] = t
-            barrier(gate)
-            block_substitute(L, r, p, work[_Y], work[_X2], lane, bd, gate)
+            apply_face_inverse(L, r, p, work[_Y], work[_X2], lane, bd, gate)
             if lane == 0:
                 flags[1] = face_ratio(m, p, joined, work, iwork)
             barrier(gate)
@@ -665,7 +646,7 @@ def _block_solver(width: int) -> wp.Kernel:
                 if i < m:
                     v = W[i, i]
                 diag[i] = v
-        if block_positive_definite(W, L, iwork[_P], m, factorize, dmax, lane, bd, gate, col, width) == 0:
+        if block_positive_definite(W, L, m, factorize, dmax, lane, bd, gate, col, width) == 0:
             for i in range(m):
                 lam[i] = F64(0.0)
             return
@@ -681,7 +662,7 @@ def _block_solver(width: int) -> wp.Kernel:
                                    work[_DSW], diag, part, gate)
         if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
             it += device_active_set(W, d0, L, lam, m, dmax, tolerance, max_iterations - it, work, iwork, lane, bd,
-                                    gate, col, width, part)
+                                    gate, col, part)
             la = work[_LAM]  # (lane 0's last writes precede a barrier)
             block_rows_delta(W, d0, la, m, work[_DELTA], lane, bd, gate)
             ra = block_frictionless_change(work[_DELTA], la, diag, m, part, lane, bd, gate)

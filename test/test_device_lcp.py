@@ -230,33 +230,34 @@ def test_the_device_kernels_active_set_finish_is_the_hosts(cap, fewest, trials):
 
 
 @pytest.mark.parametrize("cap, fewest", [(32, 8), (256, 40)])
-def test_the_finishs_last_face_inverse_factor_is_its_rows_cholesky_factors_inverse(cap, fewest):
-    """After the device's active-set finish (a face's inverse factor made a row at a time, then
-    each joining row appended to it: :func:`~soft_tissue_sim.contact.device_lcp.append_inverse_row`),
-    the buffers hold G = L^-1, L the Cholesky factor of W_PP + shift I with P's rows in the
-    order they joined, in the lower triangle and its transpose in the upper."""
+def test_the_finishs_last_face_inverse_is_its_rows_inverse(cap, fewest):
+    """After the device's active-set finish (a face's inverse grown a row at a time as rows join,
+    :func:`~soft_tissue_sim.contact.device_lcp.border_inverse`, and rows that leave taken out of
+    it, :func:`~soft_tissue_sim.contact.device_lcp.drop_inverse`), the buffers hold
+    (W_PP + shift I)^-1 with P's rows in the order they joined."""
     rng = np.random.default_rng(11 + cap)
-    checked = 0
-    for _ in range(6):
+    checked = dropped = 0
+    for trial in range(8):
         m = int(rng.integers(fewest, cap + 1))
         W, d0, lam0 = _stalling_lcp(rng, m)
-        lam0[:] = 0.0  # from nothing: every row of the last face joined one at a time
+        W += 1e-3 * np.eye(m)  # conditioned for the check of the inverse itself
+        if trial % 2 == 0:
+            lam0[:] = 0.0  # from nothing: every row of the last face joined one at a time
         one = np.arange(m, dtype=np.int32)
         lcp = DeviceLCP(cap, DEVICE)
         lcp.stage_problem(W, d0, lam0, one, np.ones(m, np.int32), np.zeros(m))
-        lcp.solve(200, 1e-10, False, 0)  # no sweeps first: the finish from lambda = 0
+        lcp.solve(200, 1e-10, False, 0)  # no sweeps first: the finish from the warm start
         p = int(lcp.iwork.numpy()[device_lcp._FLAGS, 0])
         P = lcp.iwork.numpy()[device_lcp._P, :p]
         if p < 2:
             continue
         assert len(set(P.tolist())) == p and P.max() < m
-        G = lcp.L.numpy()[:p, :p]
-        np.testing.assert_array_equal(np.triu(G), np.tril(G).T)
-        A = W[np.ix_(P, P)] + 1e-12 * W.diagonal().max() * np.eye(p)
-        ref = np.linalg.inv(np.linalg.cholesky(A))
-        np.testing.assert_allclose(np.tril(G), ref, rtol=1e-7, atol=1e-9 * np.abs(ref).max())
+        B = lcp.L.numpy()[:p, :p]
+        ref = np.linalg.inv(W[np.ix_(P, P)] + 1e-12 * W.diagonal().max() * np.eye(p))
+        np.testing.assert_allclose(B, ref, rtol=1e-7, atol=1e-9 * np.abs(ref).max())
         checked += 1
-    assert checked >= 4
+        dropped += (lam0 > 0).sum() > 0 and not set(np.flatnonzero(lam0 > 0)) <= set(P.tolist())
+    assert checked >= 6 and dropped >= 1
 
 
 @pytest.mark.parametrize("device_rows", [False, True])

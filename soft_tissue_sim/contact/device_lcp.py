@@ -127,61 +127,66 @@ def cholesky_columns(W: wp.array2d(dtype=wp.float64), L: wp.array2d(dtype=wp.flo
 
 
 @wp.func
-def append_inverse_row(W: wp.array2d(dtype=wp.float64), G: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
-                       q: int, shift: wp.float64, y: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
-    """Row q of G = L^-1, L the Cholesky factor of W_PP + shift I with P's rows in order, for the
-    row P[q] appended to a face whose G is in G's leading q x q block (lower triangle; its
-    transpose in the upper, so that a lane's reads of a column are the block's of a row):
-    l = G w (w: W's entries of P[q] in the rows P[0..q)), each lane its rows, into ``y``; the
-    new pivot d = W_qq + shift - l . l (every lane alike: the factor's L_qq^2); G's row q
-    -(l^T G) / sqrt(d) and 1 / sqrt(d), each lane its columns. Two barriers, where a factor's
-    new row costs one a column. 1, or 0 where d is not positive and finite (every lane reads
-    the same). Every lane calls it."""
+def border_inverse(W: wp.array2d(dtype=wp.float64), B: wp.array2d(dtype=wp.float64), P: wp.array(dtype=wp.int32),
+                   q: int, shift: wp.float64, y: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
+    """B = (W_PP + shift I)^-1 grown by the row P[q] (B symmetric, in its leading q x q block):
+    u = B w (w: W's entries of P[q] in the rows P[0..q)), each lane its rows, into ``y``; the
+    Schur complement d = W_qq + shift - w . u (every lane alike); then B + u u^T / d, -u / d and
+    1 / d, each lane its columns. Two barriers. 1, or 0 where d is not positive and finite
+    (every lane reads the same). Every lane calls it."""
     rq = P[q]
     for i in range(lane, q, bd):
         t = F64(0.0)
-        for k in range(i + 1):
-            t += G[k, i] * W[P[k], rq]
+        for k in range(q):
+            t += B[k, i] * W[P[k], rq]
         y[i] = t
     barrier(gate)
     d = W[rq, rq] + shift
     for k in range(q):
-        d -= y[k] * y[k]
+        d -= W[P[k], rq] * y[k]
     if not (d > F64(0.0)) or not wp.isfinite(d):
         return 0
-    ljj = wp.sqrt(d)
     for k in range(lane, q, bd):
-        t = F64(0.0)
-        for i in range(k, q):
-            t += y[i] * G[i, k]
-        v = -t / ljj
-        G[q, k] = v
-        G[k, q] = v
+        uk = y[k] / d
+        for i in range(q):
+            B[i, k] = B[i, k] + y[i] * uk
+        B[q, k] = -uk
+        B[k, q] = -uk
     if lane == 0:
-        G[q, q] = F64(1.0) / ljj
+        B[q, q] = F64(1.0) / d
     barrier(gate)
     return 1
 
 
 @wp.func
-def apply_face_inverse(G: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
-                       z: wp.array(dtype=wp.float64), x: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
-    """x = G^T G b, the face's (W_PP + shift I)^-1 b from G = L^-1 (:func:`append_inverse_row`;
-    ``z``: work): z = G b (from G's transpose in the upper triangle), then x = G^T z, each lane
-    its rows, the block waiting before (b written by the lanes) and after each. Every lane
-    calls it; b is left as it is."""
+def drop_inverse(B: wp.array2d(dtype=wp.float64), p: int, a: int, y: wp.array(dtype=wp.float64), lane: int, bd: int,
+                 gate: Any):
+    """B = A^-1 (p x p, symmetric) made the inverse of A without row and column a, in place (row
+    and column a left as they are): B - B_a B_a^T / B_aa. Two barriers. Every lane calls it."""
+    for i in range(lane, p, bd):
+        y[i] = B[i, a]
+    barrier(gate)
+    baa = y[a]
+    for k in range(lane, p, bd):
+        if k != a:
+            uk = y[k] / baa
+            for i in range(p):
+                if i != a:
+                    B[i, k] = B[i, k] - y[i] * uk
+    barrier(gate)
+
+
+@wp.func
+def apply_inverse(B: wp.array2d(dtype=wp.float64), b: wp.array(dtype=wp.float64), p: int,
+                  x: wp.array(dtype=wp.float64), lane: int, bd: int, gate: Any):
+    """x = B b (B symmetric, p x p), each lane its rows, the block waiting before (b written by
+    the lanes) and after. Every lane calls it."""
     barrier(gate)
     for i in range(lane, p, bd):
         t = F64(0.0)
-        for k in range(i + 1):
-            t += G[k, i] * b[k]
-        z[i] = t
-    barrier(gate)
-    for k in range(lane, p, bd):
-        t = F64(0.0)
-        for i in range(k, p):
-            t += G[i, k] * z[i]
-        x[k] = t
+        for k in range(p):
+            t += B[k, i] * b[k]
+        x[i] = t
     barrier(gate)
 
 
@@ -286,7 +291,8 @@ def face_ratio(m: int, p: int, joined: int, work: wp.array2d(dtype=wp.float64), 
 def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.float64),
                       L: wp.array2d(dtype=wp.float64), lam0: wp.array(dtype=wp.float64), m: int,
                       dmax: wp.float64, tolerance: wp.float64, max_steps: int, work: wp.array2d(dtype=wp.float64),
-                      iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any, col: Any, part: Any):
+                      iwork: wp.array2d(dtype=wp.int32), lane: int, bd: int, gate: Any, col: Any, part: Any,
+                      T: wp.array2d(dtype=wp.float64)):
     """:func:`.pgs.active_set` by the block (Lawson and Hanson's method from ``lam0``, the face
     problems solved with W_PP + 1e-12 max(diag W) I and one step of refinement against W_PP;
     ``dmax`` the largest diagonal entry of W): the same steps in the same order, the face
@@ -334,7 +340,8 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
         for i in range(m):
             p0 += passive[i]
         flags[0] = p0
-    fresh = int(1)  # P's factor is to be made afresh (else: its last row just joined)
+    fresh = int(1)  # P's inverse is to be made afresh
+    grown = int(0)  # its last row just joined
     while steps < max_steps:
         barrier(gate)  # lambda, the passive set and P written
         for i in range(lane, m, bd):
@@ -344,24 +351,26 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
         barrier(gate)
         if p > 0:
             steps += 1
-            first = p - 1  # (the last row just joined)
             if fresh != 0:
-                first = 0
-            for q in range(first, p):
-                if append_inverse_row(W, L, P, q, shift, work[_Y], lane, bd, gate) == 0:
+                for q in range(p):
+                    if border_inverse(W, L, P, q, shift, work[_Y], lane, bd, gate) == 0:
+                        return steps
+            elif grown != 0:
+                if border_inverse(W, L, P, p - 1, shift, work[_Y], lane, bd, gate) == 0:
                     return steps
             fresh = 0
+            grown = 0
             # the face solve, its residual against W_PP and the refinement (the lanes, a row
             # each), the ratio test (lane 0), the move of lambda (the lanes, a row each)
             for a in range(lane, p, bd):
                 b[a] = -d0[P[a]]
-            apply_face_inverse(L, b, p, work[_Y], x, lane, bd, gate)
+            apply_inverse(L, b, p, x, lane, bd, gate)
             for a in range(lane, p, bd):
                 t = b[a]
                 for c in range(p):
                     t -= W[P[a], P[c]] * x[c]
                 r[a] = t
-            apply_face_inverse(L, r, p, work[_Y], work[_X2], lane, bd, gate)
+            apply_inverse(L, r, p, work[_X2], lane, bd, gate)
             if lane == 0:
                 flags[1] = face_ratio(m, p, joined, work, iwork)
             barrier(gate)
@@ -376,6 +385,27 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
                         lam[i] = zero
                         passive[i] = 0
                 barrier(gate)  # every row moved
+                # the rows that left, out of B (in place), then B's kept rows and columns
+                # closed up (through T) in P's new order
+                for a in range(p):
+                    if passive[P[a]] == 0:
+                        drop_inverse(L, p, a, work[_Y], lane, bd, gate)
+                for a in range(lane, p, bd):
+                    c = int(-1)
+                    if passive[P[a]] != 0:
+                        c = int(0)
+                        for k in range(a):
+                            c += passive[P[k]]
+                    low[a] = c  # (low is not read again before the next face clears it)
+                barrier(gate)
+                for k in range(lane, p, bd):
+                    ck = low[k]
+                    if ck >= 0:
+                        for i in range(p):
+                            ci = low[i]
+                            if ci >= 0:
+                                T[ci, ck] = L[i, k]
+                barrier(gate)
                 if lane == 0:  # the rows left P: the others keep their order
                     q = int(0)
                     for a in range(p):
@@ -383,7 +413,11 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
                             P[q] = P[a]
                             q += 1
                     flags[0] = q
-                fresh = 1
+                barrier(gate)
+                q = flags[0]
+                for k in range(lane, q, bd):
+                    for i in range(q):
+                        L[i, k] = T[i, k]
                 joined = -1
                 continue
         for i in range(lane, m, bd):
@@ -422,6 +456,7 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
         if j < 0:
             return steps
         joined = j
+        grown = 1
     return steps
 
 
@@ -662,7 +697,7 @@ def _block_solver(width: int) -> wp.Kernel:
                                    work[_DSW], diag, part, gate)
         if frictionless != 0 and res > tolerance and first < max_iterations and it < max_iterations:
             it += device_active_set(W, d0, L, lam, m, dmax, tolerance, max_iterations - it, work, iwork, lane, bd,
-                                    gate, col, part)
+                                    gate, col, part, fA)
             la = work[_LAM]  # (lane 0's last writes precede a barrier)
             block_rows_delta(W, d0, la, m, work[_DELTA], lane, bd, gate)
             ra = block_frictionless_change(work[_DELTA], la, diag, m, part, lane, bd, gate)

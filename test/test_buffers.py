@@ -4,7 +4,6 @@ gives the very numbers of arrays made afresh; the cost of a cut is measured whol
 import hashlib
 
 import numpy as np
-import pytest
 import warp as wp
 
 from soft_tissue_sim import buffers, load_scene

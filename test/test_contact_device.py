@@ -146,7 +146,7 @@ def test_a_retried_free_motion_keeps_the_instruments_step_poses(monkeypatch):
             poses = []
             for k in range(5):
                 _press(sim, 0.0005 * k)
-                st = sim.step()
+                sim.step()
                 probe = sim.contact.instrument("probe")
                 poses.append((probe.previous_step_pose.position.copy(), probe.step_pose.position.copy()))
             assert bool(fired) == fire

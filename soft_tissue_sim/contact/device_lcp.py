@@ -22,12 +22,12 @@ correction, the penetration detection and the guard (one graph a step):
    held in the block's shared memory, by the changed rows' columns of W together, each lane
    its own elements (:func:`block_pgs_sweeps`); a frictionless set (as many contacts as rows)
    is finished, as the host does, by the active-set method where the sweeps stall
-   (:func:`device_active_set`: the host's :func:`.pgs.active_set`, its faces' inverse
-   factors and products shared by the lanes, its scalar steps on lane 0), and a set with
+   (:func:`device_active_set`: the host's :func:`.pgs.active_set`, its faces' inverses
+   and products shared by the lanes, its scalar steps on lane 0), and a set with
    friction, where ``contact.friction_active_set`` asks, by the host's friction finish on lane
    0 (:func:`friction_finish`). The sweeps make the same operations in the same order as the
    host's kernel, so the same lambda to the bit where no multiply-add is fused differently;
-   the finishes are the host's to rounding (the face solves by an inverse factor, the friction
+   the finishes are the host's to rounding (the face solves by an updated inverse, the friction
    finish's sums in loop order, the host's by BLAS and LAPACK);
 4. dx = dt^2 P^-1 H^T lambda (eq. 2), zeroed on the fixed nodes, from the columns of the rows'
    nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in double precision as
@@ -296,18 +296,19 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
     """:func:`.pgs.active_set` by the block (Lawson and Hanson's method from ``lam0``, the face
     problems solved with W_PP + 1e-12 max(diag W) I and one step of refinement against W_PP;
     ``dmax`` the largest diagonal entry of W): the same steps in the same order, the face
-    solves to their rounding. The face's inverse is kept as G = L^-1, L its Cholesky factor, in
-    ``L`` (:func:`append_inverse_row`), so that a face solve is two triangular products a
-    barrier each (:func:`apply_face_inverse`) where substitutions wait a column at a time. P
-    keeps its rows in the order they joined (``iwork[_P]``, its size in ``iwork[_FLAGS, 0]``),
-    as the host's does: a joining row is appended to the last face's G (the others' rows of G
-    do not change), which is made afresh, a row at a time, at the start and after rows leave.
-    G's rows, the products with it, W lambda, the faces' residuals, the moves of lambda, the
-    passive list and the search for the row to join are shared by the lanes (a row each;
-    ``col`` and ``part`` shared tiles of the lanes' count at least); the ratio test and the
-    join's choice among the lanes' candidates are lane 0's (:func:`face_ratio`), whose
-    verdicts the others read from ``iwork[_FLAGS]`` after the block's barrier. Every lane calls
-    it and gets the face solves made; lambda goes to ``work[_LAM]``."""
+    solves to their rounding. The face's inverse B = (W_PP + shift I)^-1 is kept in ``L``, so
+    that a face solve is one product a barrier (:func:`apply_inverse`) where triangular
+    substitutions wait a column at a time: made a row at a time at the start and grown by a
+    joining row (:func:`border_inverse`), and rid of the rows that leave
+    (:func:`drop_inverse`), its kept rows and columns then closed up through ``T`` (the
+    friction finish's work matrix, unused by a frictionless set). P keeps its rows in the
+    order they joined (``iwork[_P]``, its size in ``iwork[_FLAGS, 0]``), as the host's does.
+    B's updates, the products with it, W lambda, the faces' residuals, the moves of lambda,
+    the passive list and the search for the row to join are shared by the lanes (a row or a
+    column each; ``col`` and ``part`` shared tiles of the lanes' count at least); the ratio
+    test and the join's choice among the lanes' candidates are lane 0's (:func:`face_ratio`),
+    whose verdicts the others read from ``iwork[_FLAGS]`` after the block's barrier. Every lane
+    calls it and gets the face solves made; lambda goes to ``work[_LAM]``."""
     zero = F64(0.0)
     lam = work[_LAM]
     s = work[_S]
@@ -420,10 +421,17 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
                         L[i, k] = T[i, k]
                 joined = -1
                 continue
+        # lambda = s, and delta = W lambda + d0 from P's columns (s is 0 elsewhere; W symmetric,
+        # so that the lanes read rows), each lane its rows
+        p = flags[0]
         for i in range(lane, m, bd):
             lam[i] = s[i]
+            d = d0[i]
+            for a in range(p):
+                c = P[a]
+                d += W[c, i] * s[c]
+            dv[i] = d
         barrier(gate)
-        block_rows_delta(W, d0, lam, m, dv, lane, bd, gate)
         # the row to join: the most negative delta outside P (the first such row), each lane's
         # among its rows, then the lanes' (the largest; of equal ones the first row)
         j = int(-1)

@@ -669,7 +669,7 @@ def active_set(W: np.ndarray, d0: np.ndarray, lam: np.ndarray, tolerance: float,
 
     The passive set P starts as the rows with lambda > 0 (ascending), and keeps its rows in the
     order they joined (a row joining goes last; rows leaving keep the others' order), as the
-    device's finish keeps it to append a joining row to its factor. A step solves the face problem of P
+    device's finish keeps it to grow and shrink its face's inverse in place. A step solves the face problem of P
     (:func:`face_solve`, W_PP shifted by ``shift`` times the largest diagonal of W, so that
     repeated rows give a finite, shared force instead of a division by zero). If the solution
     s is positive on P it becomes lambda, and the row with the most negative delta joins P;

@@ -286,8 +286,6 @@ class ContactSolver:
         with the correction and finishes it with what it reads (see :class:`PendingLCP`)."""
         t0 = time.perf_counter()
         o = self.options
-        integ = body.integrator
-        dt = integ.dt
         topo = self._topology(body.fem)
         if host is None:
             self.prepare(body, begin)

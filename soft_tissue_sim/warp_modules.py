@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
+import sys
 import time
 
 import warp as wp
@@ -35,10 +36,32 @@ def package_modules() -> list[str]:
     return names
 
 
+def cpu_only(name: str) -> bool:
+    """Whether the imported module ``name`` says its kernels run on Warp's CPU device alone (a
+    module-level ``WARP_CPU_ONLY = True``: the host's LCP, the blade's geometry)."""
+    return bool(getattr(sys.modules.get(name), "WARP_CPU_ONLY", False))
+
+
 def build_all(device) -> float:
     """Build all of Warp's loaded modules, the package's first (:func:`package_modules`), for
-    ``device``. Returns the seconds the build took."""
-    package_modules()
+    ``device``, but on a GPU the package's modules whose kernels run on the CPU alone
+    (:func:`cpu_only`): those are built for the CPU, where they run. Returns the seconds the
+    build took."""
+    names = package_modules()
+    dev = wp.get_device(device)
     t0 = time.perf_counter()
-    wp.force_load(device=wp.get_device(device))
+    if not dev.is_cuda:
+        wp.force_load(device=dev)
+        return time.perf_counter() - t0
+    host = [name for name in names if cpu_only(name)]
+    wp.force_load(device=dev, modules=[m for m in _warp_modules() if m.name not in host])
+    wp.force_load(device="cpu", modules=[wp.get_module(name) for name in host])
     return time.perf_counter() - t0
+
+
+def _warp_modules() -> list:
+    """Every loaded Warp module (the package's and Warp's own), as ``wp.force_load`` takes them
+    by default."""
+    from warp._src.context import user_modules
+
+    return list(user_modules.values())

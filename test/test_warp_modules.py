@@ -32,3 +32,40 @@ def test_build_all_builds_every_kernel_module_of_the_package(tmp_path):
     assert len(res["before"]) >= 5, res  # importing builds nothing
     assert res["after"] == [], res
     assert res["seconds"] >= 0.0
+
+
+CHECK_DEVICE = """
+import json, sys, warp as wp
+from soft_tissue_sim.warp_modules import build_all, cpu_only, package_modules
+names = package_modules()
+device = wp.get_device(sys.argv[1])
+build_all(device)
+def built(name, dev):
+    return any(key[0] == (None if dev.is_cpu else dev.context) for key in wp.get_module(name).execs)
+mods = [n for n in names if wp.get_module(n).kernels]
+print(json.dumps({"cpu_only": [n for n in names if cpu_only(n)],
+                  "on_device": [n for n in mods if built(n, device)],
+                  "on_cpu": [n for n in mods if built(n, wp.get_device("cpu"))]}))
+"""
+
+
+def test_the_modules_that_run_on_the_cpu_alone_are_built_for_it_only(tmp_path):
+    """The host's LCP and the blade's geometry say their kernels run on the CPU alone; build_all
+    builds them for the CPU whatever the device, and every other module with kernels for the
+    device (STS_TEST_DEVICE: on a GPU, the CPU-only modules are not built for it)."""
+    import os
+
+    device = os.environ.get("STS_TEST_DEVICE", "cpu")
+    script = tmp_path / "check_device.py"
+    script.write_text(CHECK_DEVICE)
+    out = subprocess.run([sys.executable, str(script), device], capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    host = {"soft_tissue_sim.contact.pgs", "soft_tissue_sim.cutting.geometry"}
+    assert set(res["cpu_only"]) == host
+    assert host <= set(res["on_cpu"])
+    if device == "cpu":
+        assert len(res["on_device"]) >= 5
+    else:
+        assert not host & set(res["on_device"])
+        assert {"soft_tissue_sim.contact.device_lcp", "soft_tissue_sim.dense_inverse"} <= set(res["on_device"])

@@ -43,6 +43,7 @@ from scipy.linalg.lapack import dpotrf, dpotrs
 from .geometry import F64
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
+WARP_CPU_ONLY = True  # this module's kernels: the host's solve (its functions are built into device_lcp's)
 
 FIRST_SWEEPS = 10  # the sweeps before an active-set finish (PGS)
 FRICTION_STEPS = 10  # with friction: the most steps of one active-set finish (PGS)

@@ -24,6 +24,8 @@ from ..mesh import interior_faces as _interior_faces
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
+WARP_CPU_ONLY = True  # its kernels run on Warp's CPU device alone (warp_modules.build_all)
+
 TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
 

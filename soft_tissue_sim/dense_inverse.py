@@ -11,8 +11,7 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   ``potri`` on the CPU);
 * an application of eq. (2), z = dR A^-1 dR^T r, is one matrix-vector product between two
   rotations (:func:`dense_apply_kernel`: a block of threads per node, its three rows against
-  the rotated vector; :func:`dense_apply_vec4_kernel` in single precision, four columns a
-  load). It reads the whole matrix once, so its time is the matrix's size over
+  the rotated vector). It reads the whole matrix once, so its time is the matrix's size over
   the memory bandwidth: with ``precision="float32"`` it reads a single-precision copy of the
   inverse (made after each install, fold and regrow; products summed in double precision),
   half the bytes. The preconditioner then differs from A(t_u)^-1 by about 1e-7 relatively,
@@ -200,51 +199,6 @@ def dense_apply_kernel(P: wp.array2d(dtype=Any), s: wp.array(dtype=wp.float64),
         a0 += wp.float64(P[r, j]) * sj
         a1 += wp.float64(P[r + 1, j]) * sj
         a2 += wp.float64(P[r + 2, j]) * sj
-    a0 = block_sum(a0)
-    a1 = block_sum(a1)
-    a2 = block_sum(a2)
-    if lane == 0:
-        z[i] = dR[i] * wp.vec3d(a0, a1, a2)
-
-
-@wp.kernel
-def dense_apply_vec4_kernel(P: wp.array2d(dtype=wp.vec4f), s: wp.array(dtype=wp.vec4d),
-                            dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
-                            count: wp.array(dtype=wp.int32)):
-    """:func:`dense_apply_kernel` for the single-precision matrix read four columns at a time
-    (``P`` the (ld, ld / 4) view of the store as vec4f, ``s`` the vector's as vec4d: 16- and
-    32-byte loads, a quarter of the iterations a lane waits through), the columns beyond n3
-    left out."""
-    t = wp.tid()
-    nt = wp.block_dim()
-    i = t // nt
-    lane = t - i * nt
-    n3 = count[0]
-    r = 3 * i
-    if r >= n3:  # the whole block (one node) leaves
-        return
-    a0 = wp.float64(0.0)
-    a1 = wp.float64(0.0)
-    a2 = wp.float64(0.0)
-    full = n3 // 4
-    for q in range(lane, full, nt):
-        sq = s[q]
-        v0 = P[r, q]
-        v1 = P[r + 1, q]
-        v2 = P[r + 2, q]
-        for k in range(4):
-            a0 += wp.float64(v0[k]) * sq[k]
-            a1 += wp.float64(v1[k]) * sq[k]
-            a2 += wp.float64(v2[k]) * sq[k]
-    if lane == 0 and 4 * full < n3:  # the last n3 mod 4 columns
-        sq = s[full]
-        v0 = P[r, full]
-        v1 = P[r + 1, full]
-        v2 = P[r + 2, full]
-        for k in range(n3 - 4 * full):
-            a0 += wp.float64(v0[k]) * sq[k]
-            a1 += wp.float64(v1[k]) * sq[k]
-            a2 += wp.float64(v2[k]) * sq[k]
     a0 = block_sum(a0)
     a1 = block_sum(a1)
     a2 = block_sum(a2)
@@ -525,7 +479,6 @@ class DenseInverse:
         self._W = None  # delassus: W on the device (grown to the largest m x m seen)
         self._deferred = 0  # the depth of changing() scopes open
         self._stale = False  # the single-precision copy is to be made again (changing())
-        self._v4key = None  # what the vec4 views of the apply were made for (_vec4_views)
 
     # ----------------------------------------------------------- making one
     @property
@@ -688,7 +641,6 @@ class DenseInverse:
         ld = leading_dimension(n)
         self._store[1].release()
         self._full = self._full32 = self.inv32 = None
-        self._v4 = self._v4key = None
         self._ld = ld
         self._full = strided_square(self._store[0].view(ld * ld), ld, ld)
         self._s = wp.empty(ld, dtype=wp.float64, device=self.device)
@@ -728,7 +680,6 @@ class DenseInverse:
         if self._full32 is None or self._full32._ref is not buf:
             self._full32 = strided_square(buf, ld, ld)
             self.inv32 = None
-            self._v4 = self._v4key = None
         if self.inv32 is None or self.inv32.shape[0] != n:
             self.inv32 = strided_square(buf, n, ld)
         wp.launch(narrow_kernel, (n, n), [self.inv, self.inv32], device=self.device, stream=stream)
@@ -751,27 +702,8 @@ class DenseInverse:
         nodes = self._ld // 3
         wp.launch(rotate_in_kernel, nodes, [dR, r, self._s, self._count], device=self.device)
         block = BLOCK if self.device.is_cuda else 1
-        if self.precision == "float32":
-            P4, s4 = self._vec4_views()
-            wp.launch(dense_apply_vec4_kernel, nodes * block, [P4, s4, dR, z, self._count], device=self.device,
-                      block_dim=block)
-            return
         wp.launch(dense_apply_kernel, nodes * block, [self._applied_full(), self._s, dR, z, self._count],
                   device=self.device, block_dim=block)
-
-    def _vec4_views(self) -> tuple[wp.array, wp.array]:
-        """The single-precision store as (ld, ld / 4) vec4f and the rotated vector as (ld / 4,)
-        vec4d (ld is a multiple of 4; both kept while their stores are)."""
-        P = self._full32
-        key = (P.ptr, self._s.ptr, self._ld)
-        if self._v4key != key:
-            ld = self._ld
-            P4 = wp.array(ptr=P.ptr, dtype=wp.vec4f, shape=(ld, ld // 4), strides=(ld * 4, 16), device=P.device)
-            P4._ref = P
-            s4 = wp.array(ptr=self._s.ptr, dtype=wp.vec4d, shape=(ld // 4,), device=self._s.device)
-            s4._ref = self._s
-            self._v4, self._v4key = (P4, s4), key
-        return self._v4
 
     def graph_key(self) -> tuple | None:
         """What a captured :meth:`apply` depends on besides its arguments (no size: see
@@ -881,7 +813,6 @@ class DenseInverse:
             self._library_fold = None
         self.inv = self.inv32 = self.work = self._workspace = self._rhs = self._result = self._triplets = None
         self._full = self._full32 = self._s = None
-        self._v4 = self._v4key = None
         self._ld = 0
         self._store = self._empty_stores()
         self._inv32_buf = GrowArray(wp.float32, self.device, headroom=1.0)

@@ -334,13 +334,3 @@ def test_the_library_fold_equals_the_host_fold_on_a_strided_matrix():
     fold(Pv, rows.astype(np.int32), N[:3, :3])
     np.testing.assert_allclose(P.numpy()[:n, :n], ref[:n, :n], rtol=0, atol=1e-13)
     assert calls[4] == ("dgemm", 0, 1, n, n, 6, n, n, ld)  # the rank update with P's leading dimension
-
-
-@pytest.mark.parametrize("nodes", [40, 41, 42, 43])
-def test_the_single_precision_apply_takes_every_column_four_at_a_time(nodes):
-    """The single-precision apply (:func:`~soft_tissue_sim.dense_inverse.dense_apply_vec4_kernel`,
-    four columns a load) equals NumPy's dR P32 dR^T r to 1e-12 for every n3 mod 4 (120 to 129
-    DOFs: the last columns after the whole groups of four included)."""
-    rng = np.random.default_rng(30 + nodes)
-    D, P = _installed(_spd(3 * nodes, rng), "float32")
-    _check(D, P, rng)

@@ -499,7 +499,9 @@ def self_contacts_kernel(
         if f >= counts[1]:  # a slot past the faces in use (its box lies outside every query)
             continue
         t = faces[f]
-        ok = t[0] != p and t[1] != p and t[2] != p
+        if t[0] == p or t[1] == p or t[2] == p:  # the node's own triangles: no vertex read
+            continue
+        ok = True
         va = x[t[0]]
         vb = x[t[1]]
         vc = x[t[2]]

@@ -40,7 +40,7 @@ on the host, with the block diagonal of A (as :meth:`.solver.ContactSolver._resp
 A frictionless set of more than :data:`.pgs.LARGE_SET_ROWS` rows (the cut faces' self
 contacts: a hundred rows and more) is not factorized whole first (O(m^3 / lanes), longer than
 its solve): its verdict is its solve's, usable where the sweeps and the active-set finish
-(which factorizes the faces it visits, and stops where one is not positive definite) end
+(which inverts the faces it visits, and stops where one is not positive definite) end
 within the tolerance; otherwise lambda = 0 and the host solves the step's contacts (with its
 check). Such a set starts the finish after :data:`.pgs.LARGE_FIRST_SWEEPS` sweeps, as on the
 host.

@@ -71,17 +71,13 @@ class Replayer:
     allocated inside a capture belongs to the graph. Another capture that fails runs the
     launches plainly and forgets the key; ``max_failures`` failures in a row turn capturing off
     for this replayer, with a warning. ``None`` as a key, ``enabled`` False, or a capture
-    already under way (a replayer's launches inside another's): plain launches.
-    ``loaded``: the launches' kernels are known to be loaded (a replayer that takes over from
-    another one, for a new surface say): with ``eager``, the first key is captured at once too."""
+    already under way (a replayer's launches inside another's): plain launches."""
 
-    def __init__(self, device, name: str, slots: int = 1, eager: bool = False, max_failures: int = 1,
-                 loaded: bool = False):
+    def __init__(self, device, name: str, slots: int = 1, eager: bool = False, max_failures: int = 1):
         self.device = wp.get_device(device)
         self.name = name
         self.slots = int(slots)
         self.eager = bool(eager)
-        self.loaded = bool(loaded)
         self.max_failures = int(max_failures)
         self.enabled = True
         self.error: str | None = None
@@ -113,7 +109,7 @@ class Replayer:
             return self._plain(launches)
         graph = self._graphs.get(key)
         if graph is None:
-            if key not in self._seen and not (self.eager and (self.loaded or self.captures > 0)):
+            if key not in self._seen and not (self.eager and self.captures > 0):
                 self._see(key)
                 return self._plain(launches)
             first = key not in self._seen  # an eager capture at the key's first use

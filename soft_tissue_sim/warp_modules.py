@@ -44,17 +44,11 @@ def cpu_only(name: str) -> bool:
 
 def build_all(device) -> float:
     """Build all of Warp's loaded modules, the package's first (:func:`package_modules`), for
-    ``device``, but on a GPU the package's modules whose kernels run on the CPU alone
-    (:func:`cpu_only`): those are built for the CPU, where they run. Returns the seconds the
-    build took."""
-    names = package_modules()
-    dev = wp.get_device(device)
+    ``device``, but the package's modules whose kernels run on the CPU alone (:func:`cpu_only`)
+    for the CPU, where they run. Returns the seconds the build took."""
+    host = [name for name in package_modules() if cpu_only(name)]
     t0 = time.perf_counter()
-    if not dev.is_cuda:
-        wp.force_load(device=dev)
-        return time.perf_counter() - t0
-    host = [name for name in names if cpu_only(name)]
-    wp.force_load(device=dev, modules=[m for m in _warp_modules() if m.name not in host])
+    wp.force_load(device=wp.get_device(device), modules=[m for m in _warp_modules() if m.name not in host])
     wp.force_load(device="cpu", modules=[wp.get_module(name) for name in host])
     return time.perf_counter() - t0
 

@@ -1,6 +1,7 @@
 """warp_modules.build_all: every Warp module of the package built for a device at once."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -53,8 +54,6 @@ def test_the_modules_that_run_on_the_cpu_alone_are_built_for_it_only(tmp_path):
     """The host's LCP and the blade's geometry say their kernels run on the CPU alone; build_all
     builds them for the CPU whatever the device, and every other module with kernels for the
     device (STS_TEST_DEVICE: on a GPU, the CPU-only modules are not built for it)."""
-    import os
-
     device = os.environ.get("STS_TEST_DEVICE", "cpu")
     script = tmp_path / "check_device.py"
     script.write_text(CHECK_DEVICE)

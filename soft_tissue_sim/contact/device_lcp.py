@@ -298,10 +298,10 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
     ``dmax`` the largest diagonal entry of W): the same steps in the same order, the face
     solves to their rounding. The face's inverse B = (W_PP + shift I)^-1 is kept in ``L``, so
     that a face solve is one product a barrier (:func:`apply_inverse`) where triangular
-    substitutions wait a column at a time: made a row at a time at the start and grown by a
-    joining row (:func:`border_inverse`), and rid of the rows that leave
-    (:func:`drop_inverse`), its kept rows and columns then closed up through ``T`` (the
-    friction finish's work matrix, unused by a frictionless set). P keeps its rows in the
+    substitutions wait a column at a time: grown a row at a time by the rows of P it does not
+    hold (all of them at the start, then each joining row: :func:`border_inverse`), and rid of
+    the rows that leave (:func:`drop_inverse`), its kept rows and columns then closed up
+    through ``T`` (the friction finish's work matrix, unused by a frictionless set). P keeps its rows in the
     order they joined (``iwork[_P]``, its size in ``iwork[_FLAGS, 0]``), as the host's does.
     B's updates, the products with it, W lambda, the faces' residuals, the moves of lambda,
     the passive list and the search for the row to join are shared by the lanes (a row or a
@@ -341,8 +341,7 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
         for i in range(m):
             p0 += passive[i]
         flags[0] = p0
-    fresh = int(1)  # P's inverse is to be made afresh
-    grown = int(0)  # its last row just joined
+    held = int(0)  # the rows of P that B holds, P[0..held): those before the rows that joined since
     while steps < max_steps:
         barrier(gate)  # lambda, the passive set and P written
         for i in range(lane, m, bd):
@@ -352,15 +351,10 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
         barrier(gate)
         if p > 0:
             steps += 1
-            if fresh != 0:
-                for q in range(p):
-                    if border_inverse(W, L, P, q, shift, work[_Y], lane, bd, gate) == 0:
-                        return steps
-            elif grown != 0:
-                if border_inverse(W, L, P, p - 1, shift, work[_Y], lane, bd, gate) == 0:
+            for q in range(held, p):  # B grown by P's rows it does not hold yet
+                if border_inverse(W, L, P, q, shift, work[_Y], lane, bd, gate) == 0:
                     return steps
-            fresh = 0
-            grown = 0
+            held = p
             # the face solve, its residual against W_PP and the refinement (the lanes, a row
             # each), the ratio test (lane 0), the move of lambda (the lanes, a row each)
             for a in range(lane, p, bd):
@@ -415,9 +409,9 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
                             q += 1
                     flags[0] = q
                 barrier(gate)
-                q = flags[0]
-                for k in range(lane, q, bd):
-                    for i in range(q):
+                held = flags[0]
+                for k in range(lane, held, bd):
+                    for i in range(held):
                         L[i, k] = T[i, k]
                 joined = -1
                 continue
@@ -464,7 +458,6 @@ def device_active_set(W: wp.array2d(dtype=wp.float64), d0: wp.array(dtype=wp.flo
         if j < 0:
             return steps
         joined = j
-        grown = 1
     return steps
 
 

@@ -331,14 +331,18 @@ class Simulation:
         return {"uids": self.node_uids.copy(), "version": self.mesh_version}
 
     def tissue(self) -> Tissue:
-        """The body as cutting reads it: the rest mesh and copies of the state on it (read in
-        one transfer)."""
+        """The body as cutting reads it: the rest mesh, and copies of the state on it read in one
+        transfer when the plan first asks for them (the positions on the device for a screen)."""
         from .cutting import Tissue
 
         integ = self.integrator
-        guess = (integ.dv,) if integ.warm_start else ()  # the solver's guess goes through a change with the state
-        x, v, free, *dv = to_host(integ.x, integ.v, self.fem.free, *guess)
-        return Tissue(self.mesh, x.copy(), v.copy(), self.node_uids, free.copy(), dv[0].copy() if dv else None)
+
+        def read():
+            guess = (integ.dv,) if integ.warm_start else ()  # the solver's guess goes through a change with the state
+            x, v, free, *dv = to_host(integ.x, integ.v, self.fem.free, *guess)
+            return x.copy(), v.copy(), free.copy(), dv[0].copy() if dv else None
+
+        return Tissue(self.mesh, node_uids=self.node_uids, read=read, positions=integ.x)
 
     def _instruments(self) -> dict:
         return self.contact.instruments if self.contact is not None else {}

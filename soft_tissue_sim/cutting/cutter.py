@@ -19,6 +19,7 @@ from ..sherman_morrison import Modification
 from ..stats import CUT_PARTS, CutStats
 from .geometry import _path_planes, faces_cut_by_triangles, load_kernels, sweep_triangles, tets_near_box
 from .records import CutPlan, CutResult, Tissue, TopologyChange
+from .screen import SweepScreen
 from .subdivision import CutState, faces_on_cut, subdivide_for_cut
 from .topology import split_along_faces
 
@@ -127,6 +128,8 @@ class Cutter:
         if self.scheme == "split":  # the faces a sweep cuts are found by a kernel on the CPU (first cut mid-run)
             load_kernels()
         self.active = False
+        self.screen = None  # screen the blade's sweeps on the body's device: None on a GPU, True also on the CPU
+        self._sweep_screen = None  # the sweep screen of the body's device (made at the first sweep there)
         self.correction = None
         inner = getattr(preconditioner, "inner", None)
         if inner is not None and hasattr(inner, "make_correction"):
@@ -177,6 +180,17 @@ class Cutter:
         p0 = s["origin"] + a * d
         q0 = s["origin"] + b * d
         return sweep_triangles(p0, p0 + e, q0, q0 + e)
+
+    def _screen(self, tissue: Tissue):
+        """The sweep screen of the device where ``tissue`` keeps its positions (:attr:`screen`: None,
+        a GPU's; True, any device's; False, none), or None: the plan then reads the state and tests
+        on the host."""
+        pos = tissue.positions
+        if pos is None or self.screen is False or (self.screen is None and not pos.device.is_cuda):
+            return None
+        if self._sweep_screen is None or self._sweep_screen.device != pos.device:
+            self._sweep_screen = SweepScreen(pos.device)
+        return self._sweep_screen
 
     # ----------------------------------------------------------------- API
     def set_active(self, active: bool) -> None:
@@ -319,10 +333,10 @@ class Cutter:
             return CutPlan(CutResult(False, "the blade swept no area: no cut", ms=ms()))
         mesh = tissue.mesh
         n = mesh.n_nodes
-        pts = tissue.x if frame == "world" else mesh.points
         tets = mesh.tets.astype(np.int64)
         tol = self.tolerance + 1e-9 * extent(mesh.points)
         if self.scheme == "subdivide":
+            pts = tissue.x if frame == "world" else mesh.points
             st = self._strokes.get(stroke) if stroke is not None else None
             ref = st.last if st is not None else (tri_n[0] if len(tri_n) else None)
             if ref is not None:  # orient the blade's normals along the stroke (the motion may reverse)
@@ -339,11 +353,16 @@ class Cutter:
         else:
             work, parent, fresh = tets, np.arange(len(tets)), np.zeros(len(tets), bool)
             ea, eb, et = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-            P = pts
-            pairs, fnodes, cut = faces_cut_by_triangles(P, work, tris, tol, faces=mesh.interior_faces(), normals=tri_n)
+            screen = self._screen(tissue) if frame == "world" else None
+            cut = None if screen is None else screen.faces_cut(tissue.positions, mesh, tris, tri_n, tol)
+            if cut is None:
+                pairs, fnodes, cut = faces_cut_by_triangles(tissue.x if frame == "world" else mesh.points, work, tris,
+                                                            tol, faces=mesh.interior_faces(), normals=tri_n)
+            else:
+                pairs, fnodes = mesh.interior_faces()[:2]
         new_tets, dup = work, np.zeros(0, np.int64)
         if cut.any():
-            new_tets, dup = split_along_faces(work, pairs[cut], fnodes[cut], pairs, fnodes, len(P), cut=cut)
+            new_tets, dup = split_along_faces(work, pairs[cut], fnodes[cut], pairs, fnodes, n + len(ea), cut=cut)
         if not len(ea) and not len(dup):
             if not cut.any():
                 return CutPlan(CutResult(False, "the blade crossed no tissue (no uncut face on its path): nothing "

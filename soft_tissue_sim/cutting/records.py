@@ -40,16 +40,38 @@ class CutResult:
     debris_ms: float = 0.0
 
 
-@dataclass
 class Tissue:
-    """What cutting reads of the body: the rest mesh and the state on it (copies)."""
+    """What cutting reads of the body: the rest mesh, the node identities and the state on the
+    nodes (copies): positions ``x``, velocities ``v``, ``free`` (1.0 free, 0.0 fixed) and ``dv``
+    (the last step's velocity change, the solver's next guess, or None).
 
-    mesh: TetMesh
-    x: np.ndarray  # (n, 3) current positions
-    v: np.ndarray  # (n, 3) velocities
-    node_uids: np.ndarray  # (n,) identities that survive topology changes
-    free: np.ndarray  # (n,) 1.0 free, 0.0 fixed
-    dv: np.ndarray | None = None  # (n, 3) the last step's velocity change (the solver's next guess), if read
+    The state is given as arrays, or as ``read``, a function returning (x, v, free, dv) that the
+    first access of any of them calls: a plan that never looks at the state (a sweep screened
+    on the device that cuts nothing) costs no read of it. ``positions``: the current positions
+    where the body keeps them (a Warp array on its device, for :class:`.screen.SweepScreen`),
+    or None."""
+
+    def __init__(self, mesh: TetMesh, x=None, v=None, node_uids=None, free=None, dv=None, *, read=None,
+                 positions=None):
+        self.mesh, self.node_uids, self.positions = mesh, node_uids, positions
+        self._read = read
+        self._state = None if read is not None else (x, v, free, dv)
+
+    @property
+    def read(self) -> bool:
+        """Whether the state is at hand (given, or read)."""
+        return self._state is not None
+
+    def _part(self, i: int):
+        if self._state is None:
+            self._state = tuple(self._read())
+            self._read = None
+        return self._state[i]
+
+    x = property(lambda self: self._part(0), doc="(n, 3) current positions")
+    v = property(lambda self: self._part(1), doc="(n, 3) velocities")
+    free = property(lambda self: self._part(2), doc="(n,) 1.0 free, 0.0 fixed")
+    dv = property(lambda self: self._part(3), doc="(n, 3) the last step's velocity change, or None")
 
 
 @dataclass

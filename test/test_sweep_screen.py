@@ -21,7 +21,8 @@ DEVICE = os.environ.get("STS_TEST_DEVICE", "cpu")
 @pytest.mark.parametrize("jitter", [0.0, 0.2])
 def test_the_screens_mask_is_the_host_plans(jitter):
     """On random blades (1 to 4 triangles, slivers, corners on nodes, in grid planes) around two
-    meshes taken in turn (the screen's tables follow the mesh it is given), the screen's mask
+    meshes taken in turn, ten blades each (the screen's tables follow the mesh it is given; its
+    marks of one blade are not the next one's, also where its count wraps), the screen's mask
     equals faces_cut_by_triangles' on the same positions, and it declines more triangles than
     it holds."""
     rng = np.random.default_rng(3)
@@ -30,7 +31,9 @@ def test_the_screens_mask_is_the_host_plans(jitter):
     screen = SweepScreen(DEVICE)
     cut_faces = 0
     for i in range(40):
-        mesh = meshes[i % 2]
+        mesh = meshes[(i // 10) % 2]
+        if i == 25:
+            screen._stamp = np.iinfo(np.int32).max - 1  # the count wraps at the next blade but one
         P = mesh.points + jitter * 0.01 * rng.uniform(-0.5, 0.5, mesh.points.shape)
         x = wp.array(P, dtype=wp.vec3d, device=DEVICE)
         tris, nrm = _path_planes(_random_blades(rng, P, 1 + i % 4))

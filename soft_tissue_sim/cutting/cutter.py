@@ -130,6 +130,7 @@ class Cutter:
         self.active = False
         self.screen = None  # screen the blade's sweeps on the body's device: None on a GPU, True also on the CPU
         self._sweep_screen = None  # the sweep screen of the body's device (made at the first sweep there)
+        self._facts = None  # (mesh, its tets as int64, its extent): see _mesh_facts
         self.correction = None
         inner = getattr(preconditioner, "inner", None)
         if inner is not None and hasattr(inner, "make_correction"):
@@ -180,6 +181,15 @@ class Cutter:
         p0 = s["origin"] + a * d
         q0 = s["origin"] + b * d
         return sweep_triangles(p0, p0 + e, q0, q0 + e)
+
+    def _mesh_facts(self, mesh: TetMesh) -> tuple:
+        """The tets as int64 and the rest extent of ``mesh``, kept for the mesh last asked about
+        (the blade plans on one mesh step after step until a change)."""
+        if self._facts is None or self._facts[0] is not mesh:
+            tets = mesh.tets.astype(np.int64)
+            tets.flags.writeable = False
+            self._facts = (mesh, tets, extent(mesh.points))
+        return self._facts[1:]
 
     def _screen(self, tissue: Tissue):
         """The sweep screen of the device where ``tissue`` keeps its positions (:attr:`screen`: None,
@@ -333,8 +343,8 @@ class Cutter:
             return CutPlan(CutResult(False, "the blade swept no area: no cut", ms=ms()))
         mesh = tissue.mesh
         n = mesh.n_nodes
-        tets = mesh.tets.astype(np.int64)
-        tol = self.tolerance + 1e-9 * extent(mesh.points)
+        tets, size = self._mesh_facts(mesh)
+        tol = self.tolerance + 1e-9 * size
         if self.scheme == "subdivide":
             pts = tissue.x if frame == "world" else mesh.points
             st = self._strokes.get(stroke) if stroke is not None else None

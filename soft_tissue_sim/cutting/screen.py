@@ -2,16 +2,18 @@
 sweep cuts, found by a kernel on the device's own positions and read back as one mask.
 
 While the pedal is down the blade is planned every step, and most sweeps change nothing: they
-cross no face, or the faces they cross separate nothing yet. On the host such a plan first reads
-the whole state back and culls the tets with NumPy. :class:`SweepScreen` answers the first
-question on the device (:func:`sweep_faces_kernel`: the test of
-:func:`.geometry.faces_cut_kernel` on every tet, each against its box, its plane and its faces,
-with the same functions), and the cutter reads the state only for a sweep that cuts something.
+cross no face, or the faces they cross separate nothing yet. On the host such a plan first
+reads the whole state back and culls the tets with NumPy. :class:`SweepScreen` finds the faces
+on the device (:func:`sweep_faces_kernel`: the test of :func:`.geometry.faces_cut_kernel` on
+every tet, against its box, its plane and its faces, with the same functions); the cutter then
+reads the state only for a sweep that separates something.
 
 Invariants: a face's answer is the host kernel's arithmetic on the same positions (its tet's
 nodes, the centroids of the face's two tets), built without fused multiply-adds on any device,
-so the mask is :func:`.geometry.faces_cut_by_triangles`' on the same positions; the mesh's tables go to the device once per mesh (the next screen after a
-change), the blade's triangles through a pinned buffer without a wait.
+so the mask is :func:`.geometry.faces_cut_by_triangles`' on the same positions. The mesh's
+tables go to the device once per mesh (at the first screen after a change), the blade's
+triangles through a pinned buffer without a wait; a face is marked with the screen's number,
+so the mask is never cleared.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from .geometry import _dot3, _section_meets
 # no gradients are taken; no fused multiply-add, so that a GPU's answer is the host's bit for bit
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
-MAX_TRIANGLES = 16  # a blade's sweep is two; more (a scripted patch) is planned on the host
+MAX_TRIANGLES = 4  # a blade's sweep is two; more (a scripted patch) is planned on the host
 
 
 @wp.func
@@ -42,12 +44,13 @@ def _centroid_side(x: wp.array(dtype=wp.vec3d), tet: wp.vec4i, a: wp.vec3d, n: w
 @wp.kernel
 def sweep_faces_kernel(x: wp.array(dtype=wp.vec3d), tets: wp.array(dtype=wp.vec4i),
                        blade: wp.array2d(dtype=wp.vec3d), tol: wp.float64, tet_face: wp.array(dtype=wp.vec4i),
-                       pairs: wp.array(dtype=wp.vec2i), cut: wp.array(dtype=wp.int32)):
+                       pairs: wp.array(dtype=wp.vec2i), stamp: wp.int32, cut: wp.array(dtype=wp.int32)):
     """For the tet t and the blade triangle k (``blade[k]``: its vertices a, b, c and unit
     normal n): where its box meets the triangle's (widened by ``tol``), its vertices lie on both
     sides of the plane (+tol), one of its interior faces lies between tets on opposite sides of
     the plane (their centroids) and its section by the plane overlaps the triangle, those faces
-    are cut (cut[face] = 1): :func:`.geometry.faces_cut_kernel` on every tet."""
+    are cut: cut[face] = ``stamp``, this screen's number (so that no zeroing comes before it).
+    :func:`.geometry.faces_cut_kernel` on every tet."""
     t, k = wp.tid()
     tet = tets[t]
     X0 = x[tet[0]]
@@ -86,29 +89,48 @@ def sweep_faces_kernel(x: wp.array(dtype=wp.vec3d), tets: wp.array(dtype=wp.vec4
     if _section_meets(X0, X1, X2, X3, a, b, c, n, tol):
         for q in range(4):
             if parts[q] != 0:
-                cut[faces[q]] = 1
+                cut[faces[q]] = stamp
 
 
 class SweepScreen:
     """The faces a blade's sweep cuts, found on ``device`` (:func:`sweep_faces_kernel`) from the
-    positions kept there. :meth:`faces_cut` returns the mask over ``mesh.interior_faces()``."""
+    positions kept there. :meth:`faces_cut` returns the mask over ``mesh.interior_faces()``.
+    Per mesh: its tables on the device, a mask and a recorded launch; per sweep: the blade's
+    copy, the launch with the next stamp, and the mask's read."""
 
     def __init__(self, device):
         self.device = wp.get_device(device)
         self._blade = Staged((MAX_TRIANGLES, 4), wp.vec3d, self.device)
         self._mesh = None  # the mesh whose tables are on the device
-        self._tables = None  # (tets, tet_face, pairs, cut) there
+        self._cut = None  # the mask (the stamp of the last screen that cut each face)
+        self._launch = None  # the kernel's launch on them, recorded
+        self._x = self._dim = None  # the positions and the launch's size it holds
+        self._stamp = 0
 
-    def _tables_for(self, mesh: TetMesh):
+    def _prepare(self, mesh: TetMesh, x: wp.array, dim: tuple):
         if self._mesh is not mesh:
             pairs, _, tet_face = mesh.interior_faces()
             d = self.device
-            self._tables = (wp.array(np.ascontiguousarray(mesh.tets, np.int32), dtype=wp.vec4i, device=d),
-                            wp.array(np.ascontiguousarray(tet_face, np.int32), dtype=wp.vec4i, device=d),
-                            wp.array(np.ascontiguousarray(pairs, np.int32), dtype=wp.vec2i, device=d),
-                            wp.zeros(len(pairs), dtype=wp.int32, device=d))
-            self._mesh = mesh
-        return self._tables
+            tables = (wp.array(np.ascontiguousarray(mesh.tets, np.int32), dtype=wp.vec4i, device=d),
+                      wp.array(np.ascontiguousarray(tet_face, np.int32), dtype=wp.vec4i, device=d),
+                      wp.array(np.ascontiguousarray(pairs, np.int32), dtype=wp.vec2i, device=d))
+            self._cut = wp.zeros(len(pairs), dtype=wp.int32, device=d)
+            self._stamp = 0
+            self._launch = wp.launch(sweep_faces_kernel, dim, [x, tables[0], self._blade.array, 0.0, tables[1],
+                                                               tables[2], 0, self._cut], device=d, record_cmd=True)
+            self._launch.tables = tables  # kept alive with it
+            self._mesh, self._x, self._dim = mesh, x, dim
+        if x is not self._x:
+            self._launch.set_param_by_name("x", x)
+            self._x = x
+        if dim != self._dim:
+            self._launch.set_dim(dim)
+            self._dim = dim
+        if self._stamp >= np.iinfo(np.int32).max:
+            self._cut.zero_()
+            self._stamp = 0
+        self._stamp += 1
+        return self._launch
 
     def faces_cut(self, x: wp.array, mesh: TetMesh, tris: np.ndarray, normals: np.ndarray, tol: float):
         """The mask (bool, one per interior face of ``mesh``) of the faces the blade triangles
@@ -118,14 +140,14 @@ class SweepScreen:
         T = len(tris)
         if T > MAX_TRIANGLES:
             return None
-        tets, tet_face, pairs, cut = self._tables_for(mesh)
-        if not len(pairs) or not T:
-            return np.zeros(len(pairs), bool)
+        if not T or not mesh.n_tets:
+            return np.zeros(len(mesh.interior_faces()[0]), bool)
         host = self._blade.view()
         host[:T, :3] = tris
         host[:T, 3] = normals
-        blade = self._blade.send(4 * T)
-        cut.zero_()
-        wp.launch(sweep_faces_kernel, (mesh.n_tets, T), [x, tets, blade, float(tol), tet_face, pairs, cut],
-                  device=self.device)
-        return to_host(cut)[0].astype(bool)
+        self._blade.send(4 * T)
+        launch = self._prepare(mesh, x, (mesh.n_tets, T))
+        launch.set_param_by_name("tol", float(tol))
+        launch.set_param_by_name("stamp", self._stamp)
+        launch.launch()
+        return to_host(self._cut)[0] == self._stamp

@@ -60,11 +60,11 @@ def test_a_tissue_reads_its_state_once_at_the_first_look():
         return mesh.points + 1.0, np.ones((n, 3)), np.ones(n), None
 
     t = Tissue(mesh, node_uids=np.arange(n), read=read)
-    assert not t.read and not calls
+    assert not t.loaded and not calls
     np.testing.assert_array_equal(t.v, np.ones((n, 3)))
     np.testing.assert_array_equal(t.x, mesh.points + 1.0)
-    assert t.dv is None and t.read and len(calls) == 1
-    assert Tissue(mesh, mesh.points, np.zeros((n, 3)), np.arange(n), np.ones(n)).read
+    assert t.dv is None and t.loaded and len(calls) == 1
+    assert Tissue(mesh, mesh.points, np.zeros((n, 3)), np.arange(n), np.ones(n)).loaded
 
 
 def _swept_beam(screen):
@@ -98,7 +98,7 @@ def _swept_beam(screen):
         for x in np.arange(0.025, P[:, 0].max() + 0.01, 0.0012):
             sim.set_instrument_pose("scalpel", [x, y, z], [0, 0, 0, 1])
             assert sim.step().converged
-        return sim.positions(), sim.mesh.tets.copy(), results, [t.read for t in made]
+        return sim.positions(), sim.mesh.tets.copy(), results, [t.loaded for t in made]
 
 
 def test_a_screened_sweep_reads_the_state_only_where_it_cuts():

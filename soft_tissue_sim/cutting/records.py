@@ -47,9 +47,9 @@ class Tissue:
 
     The state is given as arrays, or as ``read``, a function returning (x, v, free, dv) that the
     first access of any of them calls: a plan that never looks at the state (a sweep screened
-    on the device that cuts nothing) costs no read of it. ``positions``: the current positions
-    where the body keeps them (a Warp array on its device, for :class:`.screen.SweepScreen`),
-    or None."""
+    on the device that cuts nothing) costs no read of it. ``read`` gives the state at the time
+    of that first access: look before the body steps again. ``positions``: the current positions where the body keeps
+    them (a Warp array on its device, for :class:`.screen.SweepScreen`), or None."""
 
     def __init__(self, mesh: TetMesh, x=None, v=None, node_uids=None, free=None, dv=None, *, read=None,
                  positions=None):
@@ -58,7 +58,7 @@ class Tissue:
         self._state = None if read is not None else (x, v, free, dv)
 
     @property
-    def read(self) -> bool:
+    def loaded(self) -> bool:
         """Whether the state is at hand (given, or read)."""
         return self._state is not None
 

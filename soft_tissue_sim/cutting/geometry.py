@@ -318,6 +318,36 @@ def _section_meets(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, a: wp
 
 
 @wp.func
+def _near_and_across(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, a: wp.vec3d, b: wp.vec3d,
+                     c: wp.vec3d, n: wp.vec3d, tol: wp.float64):
+    """Whether the tet (X0..X3) meets the box of the triangle (a, b, c), widened by ``tol``
+    (:func:`_near_triangles`), and has vertices on both sides of its plane (unit normal n, +tol):
+    the tests before :func:`_section_meets`."""
+    for ax in range(3):
+        lo = wp.min(wp.min(a[ax], b[ax]), c[ax]) - tol
+        hi = wp.max(wp.max(a[ax], b[ax]), c[ax]) + tol
+        if X0[ax] < lo and X1[ax] < lo and X2[ax] < lo and X3[ax] < lo:
+            return False
+        if X0[ax] > hi and X1[ax] > hi and X2[ax] > hi and X3[ax] > hi:
+            return False
+    d0 = _dot3(X0 - a, n)
+    d1 = _dot3(X1 - a, n)
+    d2 = _dot3(X2 - a, n)
+    d3 = _dot3(X3 - a, n)
+    return wp.min(wp.min(d0, d1), wp.min(d2, d3)) <= tol and wp.max(wp.max(d0, d1), wp.max(d2, d3)) >= -tol
+
+
+@wp.func
+def _parts_cut(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d,
+               n: wp.vec3d, tol: wp.float64, parts: wp.vec4i):
+    """Whether the tet's faces marked in ``parts`` (those between tets on opposite sides of the
+    plane) are cut: one is marked and the tet's section by the plane meets the triangle."""
+    if parts[0] == 0 and parts[1] == 0 and parts[2] == 0 and parts[3] == 0:
+        return False
+    return _section_meets(X0, X1, X2, X3, a, b, c, n, tol)
+
+
+@wp.func
 def _side(P: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int64), t: wp.int64, a: wp.vec3d, n: wp.vec3d):
     """Whether tet t's centroid (its nodes summed in order, over 4) is on the positive side of
     the plane through a with normal n (or on it)."""
@@ -347,30 +377,15 @@ def faces_cut_kernel(P: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int6
     b = tris[k, 1]
     c = tris[k, 2]
     n = nrm[k]
-    for ax in range(3):
-        lo = wp.min(wp.min(a[ax], b[ax]), c[ax]) - tol
-        hi = wp.max(wp.max(a[ax], b[ax]), c[ax]) + tol
-        if X0[ax] < lo and X1[ax] < lo and X2[ax] < lo and X3[ax] < lo:
-            return
-        if X0[ax] > hi and X1[ax] > hi and X2[ax] > hi and X3[ax] > hi:
-            return
-    d0 = _dot3(X0 - a, n)
-    d1 = _dot3(X1 - a, n)
-    d2 = _dot3(X2 - a, n)
-    d3 = _dot3(X3 - a, n)
-    if not (wp.min(wp.min(d0, d1), wp.min(d2, d3)) <= tol and wp.max(wp.max(d0, d1), wp.max(d2, d3)) >= -tol):
+    if not _near_and_across(X0, X1, X2, X3, a, b, c, n, tol):
         return
-    parts = wp.vec4i(0, 0, 0, 0)
-    some = int(0)
+    parts = wp.vec4i(0, 0, 0, 0)  # the tet's interior faces between tets on opposite sides
     for q in range(4):
         f = tet_face[t, q]
-        if f >= wp.int64(0):
+        if f >= wp.int64(0):  # (nested: the pair is read only for a face)
             if _side(P, tets, pairs[f, 0], a, n) != _side(P, tets, pairs[f, 1], a, n):
                 parts[q] = 1
-                some = 1
-    if some == 0:
-        return
-    if _section_meets(X0, X1, X2, X3, a, b, c, n, tol):
+    if _parts_cut(X0, X1, X2, X3, a, b, c, n, tol, parts):
         for q in range(4):
             if parts[q] != 0:
                 cut[int(tet_face[t, q])] = 1

@@ -23,7 +23,7 @@ import warp as wp
 
 from ..mesh import TetMesh
 from ..transfer import Staged, to_host
-from .geometry import _dot3, _section_meets
+from .geometry import _dot3, _near_and_across, _parts_cut
 
 # no gradients are taken; no fused multiply-add, so that a GPU's answer is the host's bit for bit
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
@@ -61,32 +61,17 @@ def sweep_faces_kernel(x: wp.array(dtype=wp.vec3d), tets: wp.array(dtype=wp.vec4
     b = blade[k, 1]
     c = blade[k, 2]
     n = blade[k, 3]
-    for ax in range(3):
-        lo = wp.min(wp.min(a[ax], b[ax]), c[ax]) - tol
-        hi = wp.max(wp.max(a[ax], b[ax]), c[ax]) + tol
-        if X0[ax] < lo and X1[ax] < lo and X2[ax] < lo and X3[ax] < lo:
-            return
-        if X0[ax] > hi and X1[ax] > hi and X2[ax] > hi and X3[ax] > hi:
-            return
-    d0 = _dot3(X0 - a, n)
-    d1 = _dot3(X1 - a, n)
-    d2 = _dot3(X2 - a, n)
-    d3 = _dot3(X3 - a, n)
-    if not (wp.min(wp.min(d0, d1), wp.min(d2, d3)) <= tol and wp.max(wp.max(d0, d1), wp.max(d2, d3)) >= -tol):
+    if not _near_and_across(X0, X1, X2, X3, a, b, c, n, tol):
         return
     faces = tet_face[t]
-    parts = wp.vec4i(0, 0, 0, 0)
-    some = int(0)
+    parts = wp.vec4i(0, 0, 0, 0)  # the tet's interior faces between tets on opposite sides
     for q in range(4):
         f = faces[q]
-        if f >= 0:
+        if f >= 0:  # (nested: the pair is read only for a face)
             pr = pairs[f]
             if _centroid_side(x, tets[pr[0]], a, n) != _centroid_side(x, tets[pr[1]], a, n):
                 parts[q] = 1
-                some = 1
-    if some == 0:
-        return
-    if _section_meets(X0, X1, X2, X3, a, b, c, n, tol):
+    if _parts_cut(X0, X1, X2, X3, a, b, c, n, tol, parts):
         for q in range(4):
             if parts[q] != 0:
                 cut[faces[q]] = stamp

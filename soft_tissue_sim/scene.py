@@ -332,7 +332,8 @@ class Simulation:
 
     def tissue(self) -> Tissue:
         """The body as cutting reads it: the rest mesh, and copies of the state on it read in one
-        transfer when the plan first asks for them (the positions on the device for a screen)."""
+        transfer when the plan first asks for them (the positions and tets on the device for a
+        screen)."""
         from .cutting import Tissue
 
         integ = self.integrator
@@ -342,7 +343,8 @@ class Simulation:
             x, v, free, *dv = to_host(integ.x, integ.v, self.fem.free, *guess)
             return x.copy(), v.copy(), free.copy(), dv[0].copy() if dv else None
 
-        return Tissue(self.mesh, node_uids=self.node_uids, read=read, positions=integ.x)
+        return Tissue(self.mesh, node_uids=self.node_uids, read=read, positions=integ.x,
+                      device_tets=self.fem.tets)
 
     def _instruments(self) -> dict:
         return self.contact.instruments if self.contact is not None else {}

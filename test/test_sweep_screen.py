@@ -36,16 +36,17 @@ def test_the_screens_mask_is_the_host_plans(jitter):
             screen._stamp = np.iinfo(np.int32).max - 1  # the count wraps at the next blade but one
         P = mesh.points + jitter * 0.01 * rng.uniform(-0.5, 0.5, mesh.points.shape)
         x = wp.array(P, dtype=wp.vec3d, device=DEVICE)
+        tets = wp.array(mesh.tets, dtype=wp.vec4i, device=DEVICE)
         tris, nrm = _path_planes(_random_blades(rng, P, 1 + i % 4))
         tol = (1e-12, 1e-4)[(i // 2) % 2]
-        got = screen.faces_cut(x, mesh, tris, nrm, tol)
+        got = screen.faces_cut(x, tets, mesh, tris, nrm, tol)
         want = faces_cut_by_triangles(P, mesh.tets.astype(np.int64), tris, tol, faces=mesh.interior_faces(),
                                       normals=nrm)[2]
         np.testing.assert_array_equal(got, want)
         cut_faces += int(want.sum())
     assert cut_faces > 50  # the blades did cut
     many = np.repeat(tris[:1], MAX_TRIANGLES + 1, axis=0)
-    assert screen.faces_cut(x, mesh, many, np.repeat(nrm[:1], MAX_TRIANGLES + 1, axis=0), 1e-12) is None
+    assert screen.faces_cut(x, tets, mesh, many, np.repeat(nrm[:1], MAX_TRIANGLES + 1, axis=0), 1e-12) is None
 
 
 def test_a_tissue_reads_its_state_once_at_the_first_look():

@@ -130,7 +130,6 @@ class Cutter:
         self.active = False
         self.screen = None  # screen the blade's sweeps on the body's device: None on a GPU, True also on the CPU
         self._sweep_screen = None  # the sweep screen of the body's device (made at the first sweep there)
-        self._facts = None  # (mesh, its tets as int64, its extent): see _mesh_facts
         self.correction = None
         inner = getattr(preconditioner, "inner", None)
         if inner is not None and hasattr(inner, "make_correction"):
@@ -182,21 +181,13 @@ class Cutter:
         q0 = s["origin"] + b * d
         return sweep_triangles(p0, p0 + e, q0, q0 + e)
 
-    def _mesh_facts(self, mesh: TetMesh) -> tuple:
-        """The tets as int64 and the rest extent of ``mesh``, kept for the mesh last asked about
-        (the blade plans on one mesh step after step until a change)."""
-        if self._facts is None or self._facts[0] is not mesh:
-            tets = mesh.tets.astype(np.int64)
-            tets.flags.writeable = False
-            self._facts = (mesh, tets, extent(mesh.points))
-        return self._facts[1:]
-
     def _screen(self, tissue: Tissue):
-        """The sweep screen of the device where ``tissue`` keeps its positions (:attr:`screen`: None,
-        a GPU's; True, any device's; False, none), or None: the plan then reads the state and tests
-        on the host."""
+        """The sweep screen of the device where ``tissue`` keeps its positions and tets
+        (:attr:`screen`: None, a GPU's; True, any device's; False, none), or None: the plan then
+        reads the state and tests on the host."""
         pos = tissue.positions
-        if pos is None or self.screen is False or (self.screen is None and not pos.device.is_cuda):
+        if pos is None or tissue.device_tets is None or self.screen is False or (
+                self.screen is None and not pos.device.is_cuda):
             return None
         if self._sweep_screen is None or self._sweep_screen.device != pos.device:
             self._sweep_screen = SweepScreen(pos.device)
@@ -343,8 +334,8 @@ class Cutter:
             return CutPlan(CutResult(False, "the blade swept no area: no cut", ms=ms()))
         mesh = tissue.mesh
         n = mesh.n_nodes
-        tets, size = self._mesh_facts(mesh)
-        tol = self.tolerance + 1e-9 * size
+        tets = mesh.tets.astype(np.int64)
+        tol = self.tolerance + 1e-9 * extent(mesh.points)
         if self.scheme == "subdivide":
             pts = tissue.x if frame == "world" else mesh.points
             st = self._strokes.get(stroke) if stroke is not None else None
@@ -364,7 +355,9 @@ class Cutter:
             work, parent, fresh = tets, np.arange(len(tets)), np.zeros(len(tets), bool)
             ea, eb, et = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
             screen = self._screen(tissue) if frame == "world" else None
-            cut = None if screen is None else screen.faces_cut(tissue.positions, mesh, tris, tri_n, tol)
+            cut = None
+            if screen is not None:
+                cut = screen.faces_cut(tissue.positions, tissue.device_tets, mesh, tris, tri_n, tol)
             if cut is None:
                 pairs, fnodes, cut = faces_cut_by_triangles(tissue.x if frame == "world" else mesh.points, work, tris,
                                                             tol, faces=mesh.interior_faces(), normals=tri_n)

@@ -48,12 +48,13 @@ class Tissue:
     The state is given as arrays, or as ``read``, a function returning (x, v, free, dv) that the
     first access of any of them calls: a plan that never looks at the state (a sweep screened
     on the device that cuts nothing) costs no read of it. ``read`` gives the state at the time
-    of that first access: look before the body steps again. ``positions``: the current positions where the body keeps
-    them (a Warp array on its device, for :class:`.screen.SweepScreen`), or None."""
+    of that first access: look before the body steps again. ``positions`` and ``device_tets``:
+    the current positions and the mesh's tets where the body keeps them (Warp arrays on its
+    device: vec3d, and vec4i in ``mesh.tets``' order), for :class:`.screen.SweepScreen`; or None."""
 
     def __init__(self, mesh: TetMesh, x=None, v=None, node_uids=None, free=None, dv=None, *, read=None,
-                 positions=None):
-        self.mesh, self.node_uids, self.positions = mesh, node_uids, positions
+                 positions=None, device_tets=None):
+        self.mesh, self.node_uids, self.positions, self.device_tets = mesh, node_uids, positions, device_tets
         self._read = read
         self._state = None if read is not None else (x, v, free, dv)
 

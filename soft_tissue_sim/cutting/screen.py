@@ -10,10 +10,10 @@ reads the state only for a sweep that separates something.
 
 Invariants: a face's answer is the host kernel's arithmetic on the same positions (its tet's
 nodes, the centroids of the face's two tets), built without fused multiply-adds on any device,
-so the mask is :func:`.geometry.faces_cut_by_triangles`' on the same positions. The mesh's
-tables go to the device once per mesh (at the first screen after a change), the blade's
-triangles through a pinned buffer without a wait; a face is marked with the screen's number,
-so the mask is never cleared.
+so the mask is :func:`.geometry.faces_cut_by_triangles`' on the same positions. The positions
+and tets are the body's own device arrays; the mesh's face tables go to the device once per
+mesh (at the first screen after a change), the blade's triangles through a pinned buffer
+without a wait; a face is marked with the screen's number, so the mask is never cleared.
 """
 
 from __future__ import annotations
@@ -79,59 +79,61 @@ def sweep_faces_kernel(x: wp.array(dtype=wp.vec3d), tets: wp.array(dtype=wp.vec4
 
 class SweepScreen:
     """The faces a blade's sweep cuts, found on ``device`` (:func:`sweep_faces_kernel`) from the
-    positions kept there. :meth:`faces_cut` returns the mask over ``mesh.interior_faces()``.
-    Per mesh: its tables on the device, a mask and a recorded launch; per sweep: the blade's
-    copy, the launch with the next stamp, and the mask's read."""
+    positions and tets kept there. :meth:`faces_cut` returns the mask over
+    ``mesh.interior_faces()``. Per mesh: its face tables on the device, a mask and a recorded
+    launch; per sweep: the blade's copy, the launch with the next stamp, and the mask's read."""
 
     def __init__(self, device):
         self.device = wp.get_device(device)
         self._blade = Staged((MAX_TRIANGLES, 4), wp.vec3d, self.device)
-        self._mesh = None  # the mesh whose tables are on the device
+        self._mesh = None  # the mesh whose face tables are on the device
+        self._faces = None  # those tables (tet_face, pairs), which the recorded launch reads
         self._cut = None  # the mask (the stamp of the last screen that cut each face)
         self._launch = None  # the kernel's launch on them, recorded
-        self._x = self._dim = None  # the positions and the launch's size it holds
+        self._args = None  # (x, tets, dim) the launch holds
         self._stamp = 0
 
-    def _prepare(self, mesh: TetMesh, x: wp.array, dim: tuple):
+    def _prepare(self, mesh: TetMesh, x: wp.array, tets: wp.array, dim: tuple):
         if self._mesh is not mesh:
             pairs, _, tet_face = mesh.interior_faces()
             d = self.device
-            tables = (wp.array(np.ascontiguousarray(mesh.tets, np.int32), dtype=wp.vec4i, device=d),
-                      wp.array(np.ascontiguousarray(tet_face, np.int32), dtype=wp.vec4i, device=d),
-                      wp.array(np.ascontiguousarray(pairs, np.int32), dtype=wp.vec2i, device=d))
+            self._faces = (wp.array(np.ascontiguousarray(tet_face, np.int32), dtype=wp.vec4i, device=d),
+                           wp.array(np.ascontiguousarray(pairs, np.int32), dtype=wp.vec2i, device=d))
             self._cut = wp.zeros(len(pairs), dtype=wp.int32, device=d)
             self._stamp = 0
-            self._launch = wp.launch(sweep_faces_kernel, dim, [x, tables[0], self._blade.array, 0.0, tables[1],
-                                                               tables[2], 0, self._cut], device=d, record_cmd=True)
-            self._launch.tables = tables  # kept alive with it
-            self._mesh, self._x, self._dim = mesh, x, dim
-        if x is not self._x:
+            self._launch = wp.launch(sweep_faces_kernel, dim, [x, tets, self._blade.array, 0.0, *self._faces, 0,
+                                                               self._cut], device=d, record_cmd=True)
+            self._mesh, self._args = mesh, (x, tets, dim)
+        held_x, held_tets, held_dim = self._args
+        if x is not held_x:
             self._launch.set_param_by_name("x", x)
-            self._x = x
-        if dim != self._dim:
+        if tets is not held_tets:
+            self._launch.set_param_by_name("tets", tets)
+        if dim != held_dim:
             self._launch.set_dim(dim)
-            self._dim = dim
+        self._args = (x, tets, dim)
         if self._stamp >= np.iinfo(np.int32).max:
             self._cut.zero_()
             self._stamp = 0
         self._stamp += 1
         return self._launch
 
-    def faces_cut(self, x: wp.array, mesh: TetMesh, tris: np.ndarray, normals: np.ndarray, tol: float):
+    def faces_cut(self, x: wp.array, tets: wp.array, mesh: TetMesh, tris: np.ndarray, normals: np.ndarray,
+                  tol: float):
         """The mask (bool, one per interior face of ``mesh``) of the faces the blade triangles
-        ``tris`` (T, 3, 3; non-degenerate, with unit ``normals``) cut, on the positions ``x``
-        (``mesh``'s nodes, on this screen's device); None for more than :data:`MAX_TRIANGLES`
-        triangles (the host plans those)."""
+        ``tris`` (T, 3, 3; non-degenerate, with unit ``normals``) cut, on the positions ``x`` and
+        the tets ``tets`` (vec4i, ``mesh.tets`` on this screen's device); None for more than
+        :data:`MAX_TRIANGLES` triangles (the host plans those)."""
         T = len(tris)
         if T > MAX_TRIANGLES:
             return None
-        if not T or not mesh.n_tets:
-            return np.zeros(len(mesh.interior_faces()[0]), bool)
+        launch = self._prepare(mesh, x, tets, (mesh.n_tets, T))
+        if not len(self._cut):  # no interior face: nothing to cut
+            return np.zeros(0, bool)
         host = self._blade.view()
         host[:T, :3] = tris
         host[:T, 3] = normals
         self._blade.send(4 * T)
-        launch = self._prepare(mesh, x, (mesh.n_tets, T))
         launch.set_param_by_name("tol", float(tol))
         launch.set_param_by_name("stamp", self._stamp)
         launch.launch()

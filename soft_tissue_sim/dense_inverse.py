@@ -14,7 +14,7 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   the rotated vector). It reads the whole matrix once, so its time is the matrix's size over
   the memory bandwidth: with ``precision="float32"`` it reads a single-precision copy of the
   inverse (made after each install, fold and regrow; products summed in double precision),
-  half the bytes. The preconditioner then differs from A(t_u)^-1 by about 1e-7 relatively,
+  half the bytes, four columns a load (:func:`dense_apply32_kernel`). The preconditioner then differs from A(t_u)^-1 by about 1e-7 relatively,
   far less than a factor a few steps old does; the corrections, W and the columns U keep
   using the double-precision inverse;
 * the Sherman-Morrison-Woodbury correction of eq. (5)-(7) is exact and folded into the
@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import contextlib
 import sys
-from typing import Any
 
 import numpy as np
 import warp as wp
@@ -54,7 +53,8 @@ from .transfer import PINNED, to_host
 
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
-BLOCK = 256  # threads per node in the matrix-vector product on CUDA
+BLOCK = 256  # threads per node in the double-precision matrix-vector product on CUDA
+BLOCK32 = 128  # threads per node in the single-precision one (16-byte loads: a quarter of the loop)
 LD_MULTIPLE = 96  # leading dimensions are multiples of this: whole nodes, rows 128-byte aligned in float32
 
 
@@ -176,7 +176,7 @@ def narrow_kernel(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.fl
 
 
 @wp.kernel
-def dense_apply_kernel(P: wp.array2d(dtype=Any), s: wp.array(dtype=wp.float64),
+def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.float64),
                        dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
                        count: wp.array(dtype=wp.int32)):
     """z_i = dR_i (P s)_i for the nodes i with 3 i < n3 = count[0] (launched over a capacity; P
@@ -206,12 +206,68 @@ def dense_apply_kernel(P: wp.array2d(dtype=Any), s: wp.array(dtype=wp.float64),
         z[i] = dR[i] * wp.vec3d(a0, a1, a2)
 
 
-# both precisions declared with the module, so that building it (bench targets does, first)
-# builds them: an overload first met at a launch would rebuild the module then
-for _p in (wp.float64, wp.float32):
-    wp.overload(dense_apply_kernel, {"P": wp.array2d(dtype=_p), "s": wp.array(dtype=wp.float64),
-                                     "dR": wp.array(dtype=wp.mat33d), "z": wp.array(dtype=wp.vec3d),
-                                     "count": wp.array(dtype=wp.int32)})
+# three rows of a single-precision P against s: on CUDA 16-byte loads of four columns (rows
+# whose byte stride and base are multiples of 16, as the stores' are) and s read two doubles at
+# a time, the columns past the last multiple of four one by one; each lane's share of the
+# columns, its products summed in double precision (a block's lanes then add their shares up)
+@wp.func_native("""
+const char* base = (const char*)P.data + (size_t)r * (size_t)P.strides[0];
+const float* p0 = (const float*)base;
+const float* p1 = (const float*)(base + (size_t)P.strides[0]);
+const float* p2 = (const float*)(base + 2 * (size_t)P.strides[0]);
+const double* sd = s.data;
+double a0 = 0.0, a1 = 0.0, a2 = 0.0;
+int j0 = lane;
+#if defined(__CUDA_ARCH__)
+int n4 = n3 >> 2;
+const float4* q0 = (const float4*)p0;
+const float4* q1 = (const float4*)p1;
+const float4* q2 = (const float4*)p2;
+const double2* s2 = (const double2*)sd;
+for (int k = lane; k < n4; k += nt) {
+    float4 x = __ldg(q0 + k);
+    float4 y = __ldg(q1 + k);
+    float4 z = __ldg(q2 + k);
+    double2 u = s2[2 * k];
+    double2 w = s2[2 * k + 1];
+    a0 += (double)x.x * u.x + (double)x.y * u.y + (double)x.z * w.x + (double)x.w * w.y;
+    a1 += (double)y.x * u.x + (double)y.y * u.y + (double)y.z * w.x + (double)y.w * w.y;
+    a2 += (double)z.x * u.x + (double)z.y * u.y + (double)z.z * w.x + (double)z.w * w.y;
+}
+j0 = 4 * n4 + lane;
+#endif
+for (int j = j0; j < n3; j += nt) {
+    double sj = sd[j];
+    a0 += (double)p0[j] * sj;
+    a1 += (double)p1[j] * sj;
+    a2 += (double)p2[j] * sj;
+}
+return wp::vec3d(a0, a1, a2);
+""")
+def rows3_dot32(P: wp.array2d(dtype=wp.float32), s: wp.array(dtype=wp.float64), r: int, n3: int, lane: int,
+                nt: int) -> wp.vec3d: ...
+
+
+@wp.kernel
+def dense_apply32_kernel(P: wp.array2d(dtype=wp.float32), s: wp.array(dtype=wp.float64),
+                         dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
+                         count: wp.array(dtype=wp.int32)):
+    """:func:`dense_apply_kernel` for a single-precision P (contiguous rows, 16-byte aligned):
+    the block's lanes read four columns at a time (:func:`rows3_dot32`)."""
+    t = wp.tid()
+    nt = wp.block_dim()
+    i = t // nt
+    lane = t - i * nt
+    n3 = count[0]
+    r = 3 * i
+    if r >= n3:  # the whole block (one node) leaves
+        return
+    a = rows3_dot32(P, s, r, n3, lane, nt)
+    a0 = block_sum(a[0])
+    a1 = block_sum(a[1])
+    a2 = block_sum(a[2])
+    if lane == 0:
+        z[i] = dR[i] * wp.vec3d(a0, a1, a2)
 
 
 @wp.func
@@ -701,8 +757,10 @@ class DenseInverse:
         dR need n3 / 3 entries; their shapes are not read."""
         nodes = self._ld // 3
         wp.launch(rotate_in_kernel, nodes, [dR, r, self._s, self._count], device=self.device)
-        block = BLOCK if self.device.is_cuda else 1
-        wp.launch(dense_apply_kernel, nodes * block, [self._applied_full(), self._s, dR, z, self._count],
+        single = self.precision == "float32"
+        kernel = dense_apply32_kernel if single else dense_apply_kernel
+        block = (BLOCK32 if single else BLOCK) if self.device.is_cuda else 1
+        wp.launch(kernel, nodes * block, [self._applied_full(), self._s, dR, z, self._count],
                   device=self.device, block_dim=block)
 
     def graph_key(self) -> tuple | None:

@@ -204,14 +204,18 @@ def combine_kernel(
     y: wp.array(dtype=wp.vec3d),
     beta: wp.float64,
     z: wp.array(dtype=wp.vec3d),
+    reset: int,
 ):
-    """z = alpha * (filtered A p) + beta * y, with A p = m_coef m_i p_i + Kp_i on free nodes, p_i on fixed."""
+    """z = alpha * (filtered A p) + beta * y, with A p = m_coef m_i p_i + Kp_i on free nodes, p_i on fixed;
+    with ``reset``, Kp_i = 0 once read (Kp is then zero for the next product: no zeroing launch)."""
     i = wp.tid()
     if i >= count[0]:
         return
     Ap = p[i]
     if free[i] > _F64(0.0):
         Ap = m_coef * lumped_mass[i] * p[i] + Kp[i]
+    if reset != 0:
+        Kp[i] = wp.vec3d()
     z[i] = alpha * Ap + beta * y[i]
 
 
@@ -516,7 +520,8 @@ class CorotationalFEM:
             self._sub = PackedArrays({"ids": wp.int32, "tets": wp.vec4i, "Dm_inv": wp.mat33d, "volume": wp.float64,
                                       "nodes": wp.int32}, d)
             self._grow = {name: GrowArray(dtype, d, fill) for name, dtype, fill in (
-                ("rotations", wp.mat33d, None), ("_rot_old", wp.mat33d, None), ("_Kp", wp.vec3d, None),
+                ("rotations", wp.mat33d, None), ("_rot_old", wp.mat33d, None),
+                ("_Kp", wp.vec3d, lambda cap: np.zeros((cap, 3))),  # zero between products: see system_product
                 ("_rot_acc", wp.mat33d, None), ("_node_rot", wp.mat33d, None), ("_ones", wp.float64, 1.0),
                 ("_all_tets", wp.int32, lambda cap: np.arange(cap, dtype=np.int32)), ("_rows", wp.int32, None),
                 ("_cols", wp.int32, None), ("_vals", wp.mat33d, None), ("_sub_R", wp.mat33d, None),
@@ -662,14 +667,15 @@ class CorotationalFEM:
         )
 
     def system_product(self, p, y, z, alpha, beta, m_coef, k_coef) -> None:
-        """z = alpha * A p + beta * y with A = m_coef M + k_coef K, filtered on fixed nodes."""
-        self.zero_nodes(self._Kp)
+        """z = alpha * A p + beta * y with A = m_coef M + k_coef K, filtered on fixed nodes. The
+        stiffness product goes into ``_Kp``, which is zero before (allocated zeroed) and after
+        (the combination zeroes each entry it reads; the product writes only the current nodes)."""
         self._stiffness(p, self.free, k_coef, m_coef if self.consistent_mass else 0.0, self._Kp)
         wp.launch(
             combine_kernel,
             self.node_dim,
             [self.n_nodes_dev, p, self.free, self.lumped_mass, 0.0 if self.consistent_mass else float(m_coef), self._Kp,
-             float(alpha), y, float(beta), z],
+             float(alpha), y, float(beta), z, 1],
             device=self.device,
         )
 
@@ -701,7 +707,7 @@ class CorotationalFEM:
             wp.launch(
                 combine_kernel,
                 self.node_dim,
-                [self.n_nodes_dev, p, self._ones(), self.lumped_mass, 1.0, out, 1.0, out, 0.0, out],
+                [self.n_nodes_dev, p, self._ones(), self.lumped_mass, 1.0, out, 1.0, out, 0.0, out, 0],
                 device=self.device,
             )
 

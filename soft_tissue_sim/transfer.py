@@ -65,15 +65,22 @@ class PinnedPool:
 
 PINNED = PinnedPool()
 
-_MIRRORS: OrderedDict = OrderedDict()  # (device, ptr, shape, dtype) -> pinned host array
+_MIRRORS: OrderedDict = OrderedDict()  # (device, ptr, dtype) -> pinned host array
 _MAX_MIRRORS = 256
 
 
-def _mirror(a: wp.array) -> wp.array:
-    key = (str(a.device), a.ptr, a.shape, a.dtype)
+def _mirror(a: wp.array, pool: PinnedPool | None = None) -> wp.array:
+    """The pinned mirror kept for the device array ``a`` (one per address and dtype). Where the
+    source at that address changed its shape (a view of a kept allocation after a mesh change),
+    the old mirror goes back to the pool before the new one is taken, so that the same block
+    serves again within its size class instead of a new page-locked allocation."""
+    key = (str(a.device), a.ptr, a.dtype)
     m = _MIRRORS.get(key)
+    if m is not None and m.shape != a.shape:
+        del _MIRRORS[key]
+        m = None  # the last reference: its block is idle again (unless a NumPy view of it is alive)
     if m is None:
-        m = PINNED.empty(a.shape, a.dtype)
+        m = (pool or PINNED).empty(a.shape, a.dtype)
         _MIRRORS[key] = m
         while len(_MIRRORS) > _MAX_MIRRORS:  # arrays of earlier meshes
             _MIRRORS.popitem(last=False)

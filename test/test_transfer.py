@@ -65,3 +65,28 @@ def test_pinned_pool_recycles_blocks_by_size_and_keeps_a_lent_one_apart():
         wp.synchronize_device(DEVICE)
         np.testing.assert_array_equal(b.numpy(), np.arange(30.0))
 
+
+
+def test_a_mirror_follows_its_source_through_shape_changes_on_one_block():
+    """The views of one allocation at several lengths (the state after mesh changes) are read
+    through one mirror per address: a new length gives the old mirror's block back to the pool,
+    which hands it out again, instead of a new page-locked block per length."""
+    from soft_tissue_sim import transfer as T
+
+    pool = T.PinnedPool(pinned=DEVICE != "cpu")
+    rng = np.random.default_rng(2)
+    full = rng.standard_normal((90, 3))
+    buf = wp.array(full, dtype=wp.vec3d, device=DEVICE)
+    for n in (60, 70, 55, 64):  # 1,320-1,680 bytes: one 2 KiB size class
+        view = buf[:n]
+        m = T._mirror(view, pool)
+        assert m.shape == (n,) and m.dtype == wp.vec3d
+        wp.copy(m, view)
+        wp.synchronize_device(DEVICE)
+        np.testing.assert_array_equal(m.numpy(), full[:n])
+        del m
+        if DEVICE != "cpu":
+            (h,) = to_host(view)
+            np.testing.assert_array_equal(h, full[:n])
+            del h
+    assert pool.allocated == 1

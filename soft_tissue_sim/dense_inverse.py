@@ -14,9 +14,9 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   the rotated vector). It reads the whole matrix once, so its time is the matrix's size over
   the memory bandwidth: with ``precision="float32"`` it reads a single-precision copy of the
   inverse (made after each install, fold and regrow; products summed in double precision),
-  half the bytes, four columns a load (:func:`dense_apply32_kernel`). The preconditioner then differs from A(t_u)^-1 by about 1e-7 relatively,
-  far less than a factor a few steps old does; the corrections, W and the columns U keep
-  using the double-precision inverse;
+  half the bytes, four columns a load (:func:`rows3_dot`). The preconditioner then differs
+  from A(t_u)^-1 by about 1e-7 relatively, far less than a factor a few steps old does; the
+  corrections, W and the columns U keep using the double-precision inverse;
 * the Sherman-Morrison-Woodbury correction of eq. (5)-(7) is exact and folded into the
   inverse: U = P^-1 G is a gather of columns, Q = (I + N S)^-1 N a small solve on the device
   (S = G^T U; cuSOLVER's ``getrf`` and ``getrs``, nothing read back), and P^-1 - U Q U^T
@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -175,41 +176,25 @@ def narrow_kernel(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.fl
     dst[i, j] = wp.float32(src[i, j])
 
 
-@wp.kernel
-def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.float64),
-                       dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
-                       count: wp.array(dtype=wp.int32)):
-    """z_i = dR_i (P s)_i for the nodes i with 3 i < n3 = count[0] (launched over a capacity; P
-    read through its strides, its first n3 rows and columns): a block of threads per node i, its
-    three rows of P (double or single precision) against s, summed in double precision, the left
-    rotation of eq. (2) applied to the result."""
-    t = wp.tid()
-    nt = wp.block_dim()
-    i = t // nt
-    lane = t - i * nt
-    n3 = count[0]
-    r = 3 * i
-    if r >= n3:  # the whole block (one node) leaves
-        return
+@wp.func
+def rows3_dot(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.float64), r: int, n3: int, lane: int,
+              nt: int) -> wp.vec3d:
+    """Lane ``lane`` of ``nt``'s share of rows r, r + 1, r + 2 of P against s: the columns
+    lane, lane + nt, ... below n3."""
     a0 = wp.float64(0.0)
     a1 = wp.float64(0.0)
     a2 = wp.float64(0.0)
     for j in range(lane, n3, nt):
         sj = s[j]
-        a0 += wp.float64(P[r, j]) * sj
-        a1 += wp.float64(P[r + 1, j]) * sj
-        a2 += wp.float64(P[r + 2, j]) * sj
-    a0 = block_sum(a0)
-    a1 = block_sum(a1)
-    a2 = block_sum(a2)
-    if lane == 0:
-        z[i] = dR[i] * wp.vec3d(a0, a1, a2)
+        a0 += P[r, j] * sj
+        a1 += P[r + 1, j] * sj
+        a2 += P[r + 2, j] * sj
+    return wp.vec3d(a0, a1, a2)
 
 
-# three rows of a single-precision P against s: on CUDA 16-byte loads of four columns (rows
-# whose byte stride and base are multiples of 16, as the stores' are) and s read two doubles at
-# a time, the columns past the last multiple of four one by one; each lane's share of the
-# columns, its products summed in double precision (a block's lanes then add their shares up)
+# the same for a single-precision P: on CUDA 16-byte loads of four columns (rows whose byte
+# stride and base are multiples of 16, as the stores' are) and s read two doubles at a time,
+# the columns past the last multiple of four one by one; the products summed in double precision
 @wp.func_native("""
 const char* base = (const char*)P.data + (size_t)r * (size_t)P.strides[0];
 const float* p0 = (const float*)base;
@@ -244,16 +229,18 @@ for (int j = j0; j < n3; j += nt) {
 }
 return wp::vec3d(a0, a1, a2);
 """)
-def rows3_dot32(P: wp.array2d(dtype=wp.float32), s: wp.array(dtype=wp.float64), r: int, n3: int, lane: int,
-                nt: int) -> wp.vec3d: ...
+def rows3_dot(P: wp.array2d(dtype=wp.float32), s: wp.array(dtype=wp.float64),  # noqa: F811 (Warp's overload)
+              r: int, n3: int, lane: int, nt: int) -> wp.vec3d: ...
 
 
 @wp.kernel
-def dense_apply32_kernel(P: wp.array2d(dtype=wp.float32), s: wp.array(dtype=wp.float64),
-                         dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
-                         count: wp.array(dtype=wp.int32)):
-    """:func:`dense_apply_kernel` for a single-precision P (contiguous rows, 16-byte aligned):
-    the block's lanes read four columns at a time (:func:`rows3_dot32`)."""
+def dense_apply_kernel(P: wp.array2d(dtype=Any), s: wp.array(dtype=wp.float64),
+                       dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
+                       count: wp.array(dtype=wp.int32)):
+    """z_i = dR_i (P s)_i for the nodes i with 3 i < n3 = count[0] (launched over a capacity; P
+    read through its strides, its first n3 rows and columns): a block of threads per node i, its
+    three rows of P (double or single precision: :func:`rows3_dot`) against s, summed in double
+    precision, the left rotation of eq. (2) applied to the result."""
     t = wp.tid()
     nt = wp.block_dim()
     i = t // nt
@@ -262,12 +249,20 @@ def dense_apply32_kernel(P: wp.array2d(dtype=wp.float32), s: wp.array(dtype=wp.f
     r = 3 * i
     if r >= n3:  # the whole block (one node) leaves
         return
-    a = rows3_dot32(P, s, r, n3, lane, nt)
+    a = rows3_dot(P, s, r, n3, lane, nt)
     a0 = block_sum(a[0])
     a1 = block_sum(a[1])
     a2 = block_sum(a[2])
     if lane == 0:
         z[i] = dR[i] * wp.vec3d(a0, a1, a2)
+
+
+# both precisions declared with the module, so that building it (bench targets does, first)
+# builds them: an overload first met at a launch would rebuild the module then
+for _p in (wp.float64, wp.float32):
+    wp.overload(dense_apply_kernel, {"P": wp.array2d(dtype=_p), "s": wp.array(dtype=wp.float64),
+                                     "dR": wp.array(dtype=wp.mat33d), "z": wp.array(dtype=wp.vec3d),
+                                     "count": wp.array(dtype=wp.int32)})
 
 
 @wp.func
@@ -758,9 +753,8 @@ class DenseInverse:
         nodes = self._ld // 3
         wp.launch(rotate_in_kernel, nodes, [dR, r, self._s, self._count], device=self.device)
         single = self.precision == "float32"
-        kernel = dense_apply32_kernel if single else dense_apply_kernel
         block = (BLOCK32 if single else BLOCK) if self.device.is_cuda else 1
-        wp.launch(kernel, nodes * block, [self._applied_full(), self._s, dR, z, self._count],
+        wp.launch(dense_apply_kernel, nodes * block, [self._applied_full(), self._s, dR, z, self._count],
                   device=self.device, block_dim=block)
 
     def graph_key(self) -> tuple | None:

@@ -106,9 +106,11 @@ def perturbation(mod: Modification, R_ref: np.ndarray, new_uids: np.ndarray, rot
         D = np.matmul(mod.R, np.swapaxes(R_ref, 1, 2))  # R(t_cut) R_ref^T
     else:
         D = np.tile(np.eye(3), (k, 1, 1))
-    dA = mod.dA.reshape(k, 3, k, 3)
-    blocks = np.swapaxes(D, 1, 2)[:, None] @ dA.transpose(0, 2, 1, 3) @ D[None, :]  # D_a^T dA_ab D_b
-    N = blocks.transpose(0, 2, 1, 3).reshape(3 * k, 3 * k)
+    # D_a^T dA_ab D_b for every block (a, b) as two batches of k products, not k^2: the block
+    # rows a of dA times D_a^T, then the block columns b of that times D_b
+    T = np.swapaxes(D, 1, 2) @ mod.dA.reshape(k, 3, 3 * k)  # (k, 3, 3k): row block a, D_a^T dA_a:
+    T = T.reshape(3 * k, k, 3).transpose(1, 0, 2) @ D  # (k, 3k, 3): column block b, (.) D_b
+    N = T.transpose(1, 0, 2).reshape(3 * k, 3 * k)
     N = 0.5 * (N + N.T)
     pad = np.zeros(k)
     pad[np.isin(mod.uids, new_uids)] -= 1.0

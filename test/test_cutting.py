@@ -1170,3 +1170,33 @@ def test_the_integrators_launches_after_the_solve_replay_across_a_cut():
         for a, b in zip(replayed, plain):
             np.testing.assert_array_equal(a, b)
         assert not np.array_equal(replayed[0], start[0])
+
+
+@pytest.mark.parametrize("k", [1, 7, 40])
+def test_perturbation_is_the_rotated_change_with_the_identity_padding(k):
+    """N of eq. (5) equals D^T dA D with D the block diagonal of R_i R_ref_i^T (dense, built
+    here), symmetrized, -I on the added free nodes and +I on the removed free ones."""
+    from scipy.linalg import block_diag
+    from scipy.spatial.transform import Rotation
+
+    from soft_tissue_sim.sherman_morrison import Modification, perturbation
+
+    rng = np.random.default_rng(k)
+    uids = np.sort(rng.choice(10 * k + 5, k, replace=False))
+    dA = rng.standard_normal((3 * k, 3 * k))
+    R = Rotation.random(k, random_state=k).as_matrix()
+    R_ref = Rotation.random(k, random_state=k + 1).as_matrix()
+    free = (rng.random(k) < 0.8).astype(np.float64)
+    created, removed = uids[: (k + 1) // 2], uids[(k + 1) // 2:][:1]
+    mod = Modification(3, uids, dA, R, free, created, removed)
+    D = block_diag(*(R[i] @ R_ref[i].T for i in range(k)))
+    ref = D.T @ dA @ D
+    ref = 0.5 * (ref + ref.T)
+    pad = np.where(np.isin(uids, created), -1.0, 0.0) + np.where(np.isin(uids, removed), 1.0, 0.0)
+    ref += np.diag(np.repeat(pad * free, 3))
+    N = perturbation(mod, R_ref, created)
+    np.testing.assert_allclose(N, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    assert np.array_equal(N, N.T)
+    unrotated = perturbation(mod, R_ref, created, rotate=False)
+    ref0 = 0.5 * (dA + dA.T) + np.diag(np.repeat(pad * free, 3))
+    np.testing.assert_allclose(unrotated, ref0, rtol=0, atol=1e-12 * np.abs(ref0).max())

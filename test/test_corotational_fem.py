@@ -118,6 +118,11 @@ def test_assembled_matrix_equals_matrix_free_product(mass):
     pw = wp.array(p, dtype=wp.vec3d)
     f.system_product(pw, pw, out, 1.0, 0.0, m_coef, k_coef)
     np.testing.assert_allclose(out.numpy().ravel(), A @ p.ravel(), rtol=1e-12, atol=1e-12 * np.abs(A @ p.ravel()).max())
+    # the stiffness buffer is left zero (the next product adds into it without a zeroing launch)
+    assert not f._Kp.numpy().any()
+    again = wp.zeros_like(out)
+    f.system_product(pw, pw, again, 1.0, 0.0, m_coef, k_coef)
+    np.testing.assert_array_equal(again.numpy(), out.numpy())
     # symmetric positive definite, fixed rows are identity
     assert spla.norm(A - A.T) < 1e-12 * spla.norm(A)
     dense = A.toarray()
@@ -327,4 +332,5 @@ def test_the_steps_launches_captured_at_one_mesh_replay_right_after_a_topology_c
         launches()
         for a, b in zip(replayed, outputs(new.n_nodes)):
             np.testing.assert_array_equal(a, b)
+        assert not f._Kp.numpy().any()  # left zero by every product, through the change
         assert np.abs(replayed[1]).max() > 0.0 and np.isfinite(replayed[3]).all()

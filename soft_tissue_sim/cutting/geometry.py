@@ -348,13 +348,19 @@ def _parts_cut(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, a: wp.vec
 
 
 @wp.func
-def _side(P: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int64), t: wp.int64, a: wp.vec3d, n: wp.vec3d):
-    """Whether tet t's centroid (its nodes summed in order, over 4) is on the positive side of
-    the plane through a with normal n (or on it)."""
-    s = P[int(tets[t, 0])] + P[int(tets[t, 1])]
-    s = s + P[int(tets[t, 2])]
-    s = s + P[int(tets[t, 3])]
+def _centroid_side(X0: wp.vec3d, X1: wp.vec3d, X2: wp.vec3d, X3: wp.vec3d, a: wp.vec3d, n: wp.vec3d):
+    """Whether the centroid of the tet (X0..X3, summed in order, over 4) is on the positive side
+    of the plane through a with normal n (or on it)."""
+    s = X0 + X1
+    s = s + X2
+    s = s + X3
     return _dot3(s / wp.float64(4.0) - a, n) >= wp.float64(0.0)
+
+
+@wp.func
+def _side(P: wp.array(dtype=wp.vec3d), tets: wp.array2d(dtype=wp.int64), t: wp.int64, a: wp.vec3d, n: wp.vec3d):
+    """:func:`_centroid_side` of tet t."""
+    return _centroid_side(P[int(tets[t, 0])], P[int(tets[t, 1])], P[int(tets[t, 2])], P[int(tets[t, 3])], a, n)
 
 
 @wp.kernel

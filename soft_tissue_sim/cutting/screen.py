@@ -23,7 +23,7 @@ import warp as wp
 
 from ..mesh import TetMesh
 from ..transfer import Staged, to_host
-from .geometry import _dot3, _near_and_across, _parts_cut
+from .geometry import _centroid_side, _near_and_across, _parts_cut
 
 # no gradients are taken; no fused multiply-add, so that a GPU's answer is the host's bit for bit
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
@@ -32,13 +32,9 @@ MAX_TRIANGLES = 4  # a blade's sweep is two; more (a scripted patch) is planned 
 
 
 @wp.func
-def _centroid_side(x: wp.array(dtype=wp.vec3d), tet: wp.vec4i, a: wp.vec3d, n: wp.vec3d):
-    """Whether the tet's centroid (its nodes summed in order, over 4) is on the positive side of
-    the plane through a with normal n (or on it): :func:`.geometry._side`."""
-    s = x[tet[0]] + x[tet[1]]
-    s = s + x[tet[2]]
-    s = s + x[tet[3]]
-    return _dot3(s / wp.float64(4.0) - a, n) >= wp.float64(0.0)
+def _side_of(x: wp.array(dtype=wp.vec3d), tet: wp.vec4i, a: wp.vec3d, n: wp.vec3d):
+    """:func:`.geometry._centroid_side` of the tet ``tet`` at the positions ``x``."""
+    return _centroid_side(x[tet[0]], x[tet[1]], x[tet[2]], x[tet[3]], a, n)
 
 
 @wp.kernel
@@ -69,7 +65,7 @@ def sweep_faces_kernel(x: wp.array(dtype=wp.vec3d), tets: wp.array(dtype=wp.vec4
         f = faces[q]
         if f >= 0:  # (nested: the pair is read only for a face)
             pr = pairs[f]
-            if _centroid_side(x, tets[pr[0]], a, n) != _centroid_side(x, tets[pr[1]], a, n):
+            if _side_of(x, tets[pr[0]], a, n) != _side_of(x, tets[pr[1]], a, n):
                 parts[q] = 1
     if _parts_cut(X0, X1, X2, X3, a, b, c, n, tol, parts):
         for q in range(4):

@@ -13,9 +13,11 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   rotations (:func:`dense_apply_kernel`: a block of threads per node, its three rows against
   the rotated vector). It reads the whole matrix once, so its time is the matrix's size over
   the memory bandwidth: with ``precision="float32"`` it reads a single-precision copy of the
-  inverse (made after each install, fold and regrow; products summed in double precision),
-  half the bytes, four columns a load (:func:`rows3_dot`). The preconditioner then differs
-  from A(t_u)^-1 by about 1e-7 relatively, far less than a factor a few steps old does; the
+  inverse's lower triangle (made after each install, fold and regrow), packed in 96 x 96
+  tiles, each tile read once for its own product and its transpose's (:func:`sym_tile`,
+  products summed in double precision, then each node's partial sums in a fixed order): a
+  quarter of the double-precision matrix's bytes. The preconditioner then differs from
+  A(t_u)^-1 by about 1e-7 relatively, far less than a factor a few steps old does; the
   corrections, W and the columns U keep using the double-precision inverse;
 * the Sherman-Morrison-Woodbury correction of eq. (5)-(7) is exact and folded into the
   inverse: U = P^-1 G is a gather of columns, Q = (I + N S)^-1 N a small solve on the device
@@ -55,7 +57,6 @@ from .transfer import PINNED, to_host
 wp.set_module_options({"enable_backward": False})  # no gradients are taken
 
 BLOCK = 256  # threads per node in the double-precision matrix-vector product on CUDA
-BLOCK32 = 128  # threads per node in the single-precision one (16-byte loads: a quarter of the loop)
 LD_MULTIPLE = 96  # leading dimensions are multiples of this: whole nodes, rows 128-byte aligned in float32
 
 
@@ -169,13 +170,6 @@ def rotate_in_kernel(dR: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d),
         s[3 * i + 2] = v[2]
 
 
-@wp.kernel
-def narrow_kernel(src: wp.array2d(dtype=wp.float64), dst: wp.array2d(dtype=wp.float32)):
-    """dst = src rounded to single precision."""
-    i, j = wp.tid()
-    dst[i, j] = wp.float32(src[i, j])
-
-
 @wp.func
 def rows3_dot(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.float64), r: int, n3: int, lane: int,
               nt: int) -> wp.vec3d:
@@ -192,55 +186,14 @@ def rows3_dot(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.float64), r:
     return wp.vec3d(a0, a1, a2)
 
 
-# the same for a single-precision P: on CUDA 16-byte loads of four columns (rows whose byte
-# stride and base are multiples of 16, as the stores' are) and s read two doubles at a time,
-# the columns past the last multiple of four one by one; the products summed in double precision
-@wp.func_native("""
-const char* base = (const char*)P.data + (size_t)r * (size_t)P.strides[0];
-const float* p0 = (const float*)base;
-const float* p1 = (const float*)(base + (size_t)P.strides[0]);
-const float* p2 = (const float*)(base + 2 * (size_t)P.strides[0]);
-const double* sd = s.data;
-double a0 = 0.0, a1 = 0.0, a2 = 0.0;
-int j0 = lane;
-#if defined(__CUDA_ARCH__)
-int n4 = n3 >> 2;
-const float4* q0 = (const float4*)p0;
-const float4* q1 = (const float4*)p1;
-const float4* q2 = (const float4*)p2;
-const double2* s2 = (const double2*)sd;
-for (int k = lane; k < n4; k += nt) {
-    float4 x = __ldg(q0 + k);
-    float4 y = __ldg(q1 + k);
-    float4 z = __ldg(q2 + k);
-    double2 u = s2[2 * k];
-    double2 w = s2[2 * k + 1];
-    a0 += (double)x.x * u.x + (double)x.y * u.y + (double)x.z * w.x + (double)x.w * w.y;
-    a1 += (double)y.x * u.x + (double)y.y * u.y + (double)y.z * w.x + (double)y.w * w.y;
-    a2 += (double)z.x * u.x + (double)z.y * u.y + (double)z.z * w.x + (double)z.w * w.y;
-}
-j0 = 4 * n4 + lane;
-#endif
-for (int j = j0; j < n3; j += nt) {
-    double sj = sd[j];
-    a0 += (double)p0[j] * sj;
-    a1 += (double)p1[j] * sj;
-    a2 += (double)p2[j] * sj;
-}
-return wp::vec3d(a0, a1, a2);
-""")
-def rows3_dot(P: wp.array2d(dtype=wp.float32), s: wp.array(dtype=wp.float64),  # noqa: F811 (Warp's overload)
-              r: int, n3: int, lane: int, nt: int) -> wp.vec3d: ...
-
-
 @wp.kernel
-def dense_apply_kernel(P: wp.array2d(dtype=Any), s: wp.array(dtype=wp.float64),
+def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.float64),
                        dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
                        count: wp.array(dtype=wp.int32)):
     """z_i = dR_i (P s)_i for the nodes i with 3 i < n3 = count[0] (launched over a capacity; P
     read through its strides, its first n3 rows and columns): a block of threads per node i, its
-    three rows of P (double or single precision: :func:`rows3_dot`) against s, summed in double
-    precision, the left rotation of eq. (2) applied to the result."""
+    three rows of P against s (:func:`rows3_dot`), the left rotation of eq. (2) applied to the
+    result."""
     t = wp.tid()
     nt = wp.block_dim()
     i = t // nt
@@ -257,12 +210,196 @@ def dense_apply_kernel(P: wp.array2d(dtype=Any), s: wp.array(dtype=wp.float64),
         z[i] = dR[i] * wp.vec3d(a0, a1, a2)
 
 
-# both precisions declared with the module, so that building it (bench targets does, first)
-# builds them: an overload first met at a launch would rebuild the module then
-for _p in (wp.float64, wp.float32):
-    wp.overload(dense_apply_kernel, {"P": wp.array2d(dtype=_p), "s": wp.array(dtype=wp.float64),
-                                     "dR": wp.array(dtype=wp.mat33d), "z": wp.array(dtype=wp.vec3d),
-                                     "count": wp.array(dtype=wp.int32)})
+# The single-precision copy: the lower triangle of the inverse in TILE x TILE tiles (32 nodes a
+# side), packed by rows of tiles -- tile (i, j), j <= i, is the b-th with b = i (i + 1) / 2 + j,
+# row-major inside -- so that the apply reads each symmetric pair of entries once: half the bytes
+# of the whole matrix. Entries past the size n3 are zero.
+TILE = wp.constant(96)
+TILE_BLOCK = 192  # CUDA threads a tile: 96 rows of its own product, 96 columns of its transpose's
+
+
+def tile_count(tiles: int) -> int:
+    """Packed tiles of a lower triangle ``tiles`` tiles a side."""
+    return tiles * (tiles + 1) // 2
+
+
+@wp.func
+def tile_of(b: int) -> wp.vec2i:
+    """(i, j), j <= i: the b-th tile of a lower triangle packed by rows of tiles."""
+    i = int((wp.sqrt(wp.float64(8.0) * wp.float64(b) + wp.float64(1.0)) - wp.float64(1.0)) * wp.float64(0.5))
+    while (i + 1) * (i + 2) // 2 <= b:
+        i += 1
+    while i * (i + 1) // 2 > b:
+        i -= 1
+    return wp.vec2i(i, b - i * (i + 1) // 2)
+
+
+@wp.kernel
+def pack_lower_kernel(src: wp.array2d(dtype=wp.float64), n3: int, dst: wp.array(dtype=wp.float32)):
+    """dst = the lower triangle of src's first n3 rows and columns, rounded to single precision,
+    packed in tiles (one entry a thread; zero past n3), launched over the tiles of n3."""
+    t = wp.tid()
+    b = t // (TILE * TILE)
+    e = t - b * (TILE * TILE)
+    ij = tile_of(b)
+    r = e // TILE
+    row = ij[0] * TILE + r
+    col = ij[1] * TILE + e - r * TILE
+    v = wp.float32(0.0)
+    if row < n3 and col < n3:  # the lower triangle's entry in the diagonal tiles too: exactly symmetric
+        v = wp.float32(src[wp.max(row, col), wp.min(row, col)])
+    dst[t] = v
+
+
+# One tile (i, j) of the packed copy against the rotated vector s = dR^T r (eq. 2): its product
+# with s's segment j into the partial sums of row block i, and (off the diagonal) its transpose's
+# with segment i into those of row block j; part[(I ntc + K) TILE + k] holds row k of block I's
+# sum over block K. On CUDA the block of TILE_BLOCK threads rotates its 64 nodes, stages the
+# tile in shared memory (16-byte loads, rows padded to 100 floats: both reads free of bank
+# conflicts), then each of 192 threads sums a row or a column in double precision; on the CPU
+# the one thread does all of it.
+@wp.func_native("""
+const float* tile = Pk.data + (size_t)b * 9216;
+double* out = part.data;
+#if defined(__CUDA_ARCH__)
+__shared__ __align__(16) float sh[96 * 100];
+__shared__ double xi[96];
+__shared__ double xj[96];
+if (lane < 64) {
+    int k = lane < 32 ? lane : lane - 32;
+    int node = 32 * (lane < 32 ? i : j) + k;
+    double* x = lane < 32 ? xi : xj;
+    double a0 = 0.0, a1 = 0.0, a2 = 0.0;
+    if (3 * node < n3) {
+        const wp::mat_t<3, 3, double>& R = dR.data[node];
+        const wp::vec_t<3, double>& v = r.data[node];
+        a0 = R.data[0][0] * v.c[0] + R.data[1][0] * v.c[1] + R.data[2][0] * v.c[2];
+        a1 = R.data[0][1] * v.c[0] + R.data[1][1] * v.c[1] + R.data[2][1] * v.c[2];
+        a2 = R.data[0][2] * v.c[0] + R.data[1][2] * v.c[1] + R.data[2][2] * v.c[2];
+    }
+    x[3 * k] = a0;
+    x[3 * k + 1] = a1;
+    x[3 * k + 2] = a2;
+}
+const float4* src = (const float4*)tile;
+for (int q = lane; q < 2304; q += nt) {
+    int row = q / 24;
+    *(float4*)(sh + row * 100 + 4 * (q - 24 * row)) = __ldg(src + q);
+}
+__syncthreads();
+if (lane < 96) {
+    const float4* row = (const float4*)(sh + lane * 100);
+    double a = 0.0;
+    for (int q = 0; q < 24; ++q) {
+        float4 v = row[q];
+        a += (double)v.x * xj[4 * q] + (double)v.y * xj[4 * q + 1] + (double)v.z * xj[4 * q + 2]
+             + (double)v.w * xj[4 * q + 3];
+    }
+    out[((size_t)i * ntc + j) * 96 + lane] = a;
+} else if (lane < 192 && i != j) {
+    int c = lane - 96;
+    double a = 0.0;
+    for (int q = 0; q < 96; ++q)
+        a += (double)sh[q * 100 + c] * xi[q];
+    out[((size_t)j * ntc + i) * 96 + c] = a;
+}
+#else
+double xi[96], xj[96];
+for (int side = 0; side < 2; ++side) {
+    double* x = side == 0 ? xi : xj;
+    for (int k = 0; k < 32; ++k) {
+        int node = 32 * (side == 0 ? i : j) + k;
+        double a0 = 0.0, a1 = 0.0, a2 = 0.0;
+        if (3 * node < n3) {
+            const wp::mat_t<3, 3, double>& R = dR.data[node];
+            const wp::vec_t<3, double>& v = r.data[node];
+            a0 = R.data[0][0] * v.c[0] + R.data[1][0] * v.c[1] + R.data[2][0] * v.c[2];
+            a1 = R.data[0][1] * v.c[0] + R.data[1][1] * v.c[1] + R.data[2][1] * v.c[2];
+            a2 = R.data[0][2] * v.c[0] + R.data[1][2] * v.c[1] + R.data[2][2] * v.c[2];
+        }
+        x[3 * k] = a0;
+        x[3 * k + 1] = a1;
+        x[3 * k + 2] = a2;
+    }
+}
+for (int k = 0; k < 96; ++k) {
+    double a = 0.0;
+    for (int c = 0; c < 96; ++c)
+        a += (double)tile[k * 96 + c] * xj[c];
+    out[((size_t)i * ntc + j) * 96 + k] = a;
+}
+if (i != j) {
+    for (int c = 0; c < 96; ++c) {
+        double a = 0.0;
+        for (int k = 0; k < 96; ++k)
+            a += (double)tile[k * 96 + c] * xi[k];
+        out[((size_t)j * ntc + i) * 96 + c] = a;
+    }
+}
+#endif
+""")
+def sym_tile(Pk: wp.array(dtype=wp.float32), r: wp.array(dtype=wp.vec3d), dR: wp.array(dtype=wp.mat33d),
+             part: wp.array(dtype=wp.float64), b: int, i: int, j: int, lane: int, nt: int, n3: int, ntc: int): ...
+
+
+@wp.kernel
+def sym_tiles_kernel(Pk: wp.array(dtype=wp.float32), r: wp.array(dtype=wp.vec3d), dR: wp.array(dtype=wp.mat33d),
+                     part: wp.array(dtype=wp.float64), count: wp.array(dtype=wp.int32), ntc: int):
+    """The packed copy's tiles against dR^T r (:func:`sym_tile`), a block of threads a tile,
+    launched over the tiles of the capacity (``ntc`` a side); the tiles past n3 = count[0] leave."""
+    t = wp.tid()
+    nt = wp.block_dim()
+    b = t // nt
+    lane = t - b * nt
+    n3 = count[0]
+    ij = tile_of(b)
+    if ij[0] * TILE >= n3:  # the whole block leaves
+        return
+    sym_tile(Pk, r, dR, part, b, ij[0], ij[1], lane, nt, n3, ntc)
+
+
+@wp.kernel
+def sym_gather_kernel(part: wp.array(dtype=wp.float64), dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
+                      count: wp.array(dtype=wp.int32), ntc: int):
+    """z_i = dR_i (the partial sums of node i's rows over the tile columns below n3 = count[0],
+    in their order), launched over a capacity."""
+    i = wp.tid()
+    n3 = count[0]
+    r = 3 * i
+    if r >= n3:
+        return
+    blocks = (n3 + TILE - 1) // TILE
+    row_block = r // TILE
+    k = r - row_block * TILE
+    a0 = wp.float64(0.0)
+    a1 = wp.float64(0.0)
+    a2 = wp.float64(0.0)
+    for c in range(blocks):
+        at = (row_block * ntc + c) * TILE + k
+        a0 += part[at]
+        a1 += part[at + 1]
+        a2 += part[at + 2]
+    z[i] = dR[i] * wp.vec3d(a0, a1, a2)
+
+
+def lower_symmetric(P: np.ndarray) -> np.ndarray:
+    """The symmetric matrix of P's lower triangle (what the packed copy holds, before rounding)."""
+    return np.tril(P) + np.tril(P, -1).T
+
+
+def unpack_lower(packed: np.ndarray, n3: int) -> np.ndarray:
+    """The (n3, n3) symmetric matrix of a packed copy (host arrays)."""
+    tiles = -(-n3 // TILE)
+    out = np.zeros((tiles * TILE, tiles * TILE), packed.dtype)
+    T = packed[: tile_count(tiles) * TILE * TILE].reshape(-1, TILE, TILE)
+    b = 0
+    for i in range(tiles):
+        for j in range(i + 1):
+            out[i * TILE:(i + 1) * TILE, j * TILE:(j + 1) * TILE] = T[b]
+            if i != j:
+                out[j * TILE:(j + 1) * TILE, i * TILE:(i + 1) * TILE] = T[b].T
+            b += 1
+    return out[:n3, :n3]
 
 
 @wp.func
@@ -496,16 +633,18 @@ class DenseInverse:
         self.precision = precision
         self.xp = array_module(self.device)
         self.inv: wp.array | None = None  # (n3, n3) the inverse in use: a view of store 0, row stride ld
-        self.inv32: wp.array | None = None  # precision float32: its single-precision copy (same layout)
+        self.packed: wp.array | None = None  # precision float32: its single-precision copy, packed tiles
         self.work: wp.array | None = None  # (n3, n3) the next one (contiguous)
         self._ld = 0  # the stores' leading dimension (0: none yet)
-        # (ld^2 each) the inverse in use, and a regrow's gather target; the single-precision copy;
-        # kept across node-count changes while n3 <= ld (a cut allocates nothing)
+        # (ld^2 each) the inverse in use, and a regrow's gather target; the single-precision copy
+        # (the lower triangle's tiles of the capacity) and the apply's partial sums; kept across
+        # node-count changes while n3 <= ld (a cut allocates nothing)
         self._store = self._empty_stores()
-        self._inv32_buf = GrowArray(wp.float32, self.device, headroom=1.0)
-        # (ld, ld) views of the stores: the matrix apply reads (its first count[0] rows and columns)
+        self._packed_buf = GrowArray(wp.float32, self.device, headroom=1.0)
+        self._part_buf = GrowArray(wp.float64, self.device, headroom=1.0)
+        self._part: wp.array | None = None
+        # (ld, ld) view of store 0: the matrix apply reads (its first count[0] rows and columns)
         self._full: wp.array | None = None
-        self._full32: wp.array | None = None
         self._s: wp.array | None = None  # (ld,) the rotated vector of apply
         self._count = wp.zeros(1, dtype=wp.int32, device=self.device)  # n3, as apply reads it
         self._keep_in = PackedArrays({"keep": wp.int32}, self.device)  # a regrow's indices (page-locked)
@@ -672,7 +811,7 @@ class DenseInverse:
         n = self._result.shape[0]
         if self.inv is None or self.inv.shape[0] != n:
             if n > self._ld:
-                self.inv = self.inv32 = None  # its contents are not needed: the old store goes first
+                self.inv = self.packed = None  # its contents are not needed: the old store goes first
             self._reserve(n)
             self._resize(n, stream)
         wp.copy(self.inv, self._result, stream=stream)
@@ -691,7 +830,7 @@ class DenseInverse:
             return
         ld = leading_dimension(n)
         self._store[1].release()
-        self._full = self._full32 = self.inv32 = None
+        self._full = self.packed = self._part = None
         self._ld = ld
         self._full = strided_square(self._store[0].view(ld * ld), ld, ld)
         self._s = wp.empty(ld, dtype=wp.float64, device=self.device)
@@ -718,32 +857,35 @@ class DenseInverse:
                 self._narrow()
 
     def _narrow(self, stream=None) -> None:
-        """precision float32: the single-precision copy := the inverse in use (same address
-        while the size holds); inside :meth:`changing`, marked to be made at its end."""
+        """precision float32: the single-precision copy := the inverse in use's lower triangle,
+        packed in tiles (same address while the capacity holds); inside :meth:`changing`, marked
+        to be made at its end."""
         if self.precision != "float32":
             return
         if self._deferred:
             self._stale = True
             return
         self._stale = False
-        n, ld = self.inv.shape[0], self._ld
-        buf = self._inv32_buf.view(ld * ld)
-        if self._full32 is None or self._full32._ref is not buf:
-            self._full32 = strided_square(buf, ld, ld)
-            self.inv32 = None
-        if self.inv32 is None or self.inv32.shape[0] != n:
-            self.inv32 = strided_square(buf, n, ld)
-        wp.launch(narrow_kernel, (n, n), [self.inv, self.inv32], device=self.device, stream=stream)
+        n, ntc = self.inv.shape[0], self._ld // TILE
+        if self.packed is None:
+            self.packed = self._packed_buf.view(tile_count(ntc) * TILE * TILE)
+            self._part = self._part_buf.view(ntc * ntc * TILE)
+        size = tile_count(-(-n // TILE)) * TILE * TILE
+        wp.launch(pack_lower_kernel, size, [self._full, n, self.packed], device=self.device, stream=stream)
+
+    def single(self) -> np.ndarray:
+        """The (n3, n3) single-precision matrix the apply reads (precision float32), on the host."""
+        return unpack_lower(self.packed.numpy(), self.n3)
 
     @property
     def applied(self) -> wp.array:
-        """The matrix :meth:`apply` reads: the inverse in use, or its single-precision copy
-        ((n3, n3) views, row stride ld)."""
-        return self.inv32 if self.precision == "float32" else self.inv
+        """The matrix :meth:`apply` reads: the inverse in use ((n3, n3) view, row stride ld), or
+        its packed single-precision copy (the capacity's tiles)."""
+        return self.packed if self.precision == "float32" else self.inv
 
     def _applied_full(self) -> wp.array | None:
-        """:attr:`applied`'s store as an (ld, ld) view (what a captured apply holds)."""
-        return self._full32 if self.precision == "float32" else self._full
+        """What a captured apply holds: the inverse's store as an (ld, ld) view, or the packed copy."""
+        return self.packed if self.precision == "float32" else self._full
 
     # ------------------------------------------------------------- using it
     def apply(self, r: wp.array, z: wp.array, dR: wp.array) -> None:
@@ -751,10 +893,16 @@ class DenseInverse:
         over the capacity (ld / 3 nodes), so that a captured one serves every n3 <= ld. r, z and
         dR need n3 / 3 entries; their shapes are not read."""
         nodes = self._ld // 3
+        if self.precision == "float32":  # the packed tiles, then each node's partial sums
+            ntc = self._ld // TILE
+            block = TILE_BLOCK if self.device.is_cuda else 1
+            wp.launch(sym_tiles_kernel, tile_count(ntc) * block, [self.packed, r, dR, self._part, self._count, ntc],
+                      device=self.device, block_dim=block)
+            wp.launch(sym_gather_kernel, nodes, [self._part, dR, z, self._count, ntc], device=self.device)
+            return
         wp.launch(rotate_in_kernel, nodes, [dR, r, self._s, self._count], device=self.device)
-        single = self.precision == "float32"
-        block = (BLOCK32 if single else BLOCK) if self.device.is_cuda else 1
-        wp.launch(dense_apply_kernel, nodes * block, [self._applied_full(), self._s, dR, z, self._count],
+        block = BLOCK if self.device.is_cuda else 1
+        wp.launch(dense_apply_kernel, nodes * block, [self._full, self._s, dR, z, self._count],
                   device=self.device, block_dim=block)
 
     def graph_key(self) -> tuple | None:
@@ -763,7 +911,7 @@ class DenseInverse:
         P = self._applied_full()
         if self.inv is None or P is None:
             return None
-        return (P.ptr, self._ld, self._s.ptr, self._count.ptr)
+        return (P.ptr, self._ld, self._s.ptr, self._count.ptr, self._part.ptr if self._part is not None else 0)
 
     def matrix(self):
         """The inverse in use as an ``xp`` array (a view, row stride ld)."""
@@ -847,7 +995,7 @@ class DenseInverse:
     def reset(self) -> None:
         """Forget the inverse in use (a new one must be installed before the next apply; the
         stores are kept)."""
-        self.inv = self.inv32 = None
+        self.inv = self.packed = None
 
     def close(self) -> None:
         if self._handle is not None:
@@ -863,10 +1011,11 @@ class DenseInverse:
         if self._library_fold is not None:
             self._library_fold.close()
             self._library_fold = None
-        self.inv = self.inv32 = self.work = self._workspace = self._rhs = self._result = self._triplets = None
-        self._full = self._full32 = self._s = None
+        self.inv = self.packed = self.work = self._workspace = self._rhs = self._result = self._triplets = None
+        self._full = self._s = self._part = None
         self._ld = 0
         self._store = self._empty_stores()
-        self._inv32_buf = GrowArray(wp.float32, self.device, headroom=1.0)
+        self._packed_buf = GrowArray(wp.float32, self.device, headroom=1.0)
+        self._part_buf = GrowArray(wp.float64, self.device, headroom=1.0)
         self._work_buf, self._rhs_buf = (GrowArray(b.dtype, self.device) for b in (self._work_buf, self._rhs_buf))
 

@@ -100,9 +100,9 @@ def _check(D, P, rng, tol=1e-12):
     n3 = P.shape[0]
     assert D.n3 == n3 and int(D._count.numpy()[0]) == n3
     np.testing.assert_allclose(D.inv.numpy(), P, rtol=0, atol=tol * np.abs(P).max())
-    Pa = D.inv32.numpy().astype(np.float64) if D.precision == "float32" else P
+    Pa = D.single().astype(np.float64) if D.precision == "float32" else P
     if D.precision == "float32":
-        assert np.array_equal(D.inv32.numpy(), D.inv.numpy().astype(np.float32))
+        assert np.array_equal(D.single(), DI.lower_symmetric(D.inv.numpy()).astype(np.float32))
     n = n3 // 3
     r, dR = rng.standard_normal((n, 3)), _rotations(n, rng)
     ref = _reference(Pa, dR, r)
@@ -162,7 +162,7 @@ def test_install_fold_and_regrows_within_the_capacity_keep_the_address(precision
     assert (D.inv.ptr, D.ld, D.graph_key()) == (ptr, ld, key)
     assert D._store[0].allocations == 1 and D._store[1].allocations == 1
     if precision == "float32":
-        assert D._inv32_buf.allocations == 1
+        assert D._packed_buf.allocations == 1
     D.close()
 
 

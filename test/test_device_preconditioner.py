@@ -16,6 +16,7 @@ import warp as wp
 
 from soft_tissue_sim import load_scene
 from soft_tissue_sim.cg import PCG, DevicePCG
+from soft_tissue_sim.dense_inverse import lower_symmetric
 from soft_tissue_sim.device_preconditioner import AsyncDevicePreconditioner, constraint_rows
 from soft_tissue_sim.material import ParameterError
 from soft_tissue_sim.preconditioner import choose_backend
@@ -572,7 +573,7 @@ def test_dense_inverse_after_chained_cuts_equals_a_fresh_factorization(precision
         P = sim.preconditioner.backend
         assert sim.preconditioner.correction.folds >= 3
         if precision == "float32":
-            assert np.array_equal(P.inv32.numpy(), P.inv.numpy().astype(np.float32))
+            assert np.array_equal(P.single(), lower_symmetric(P.inv.numpy()).astype(np.float32))
 
 
 def test_an_install_folds_the_modifications_since_its_request_at_once():
@@ -630,12 +631,12 @@ def test_single_precision_apply_follows_the_double_precision_inverse(scene):
             P = pre.backend
             expect = precision if precision != "auto" else ("float32" if CUDA else "float64")
             assert P.precision == expect
-            assert (P.applied is P.inv32) == (expect == "float32")
+            assert (P.applied is P.packed) == (expect == "float32")
             ptr = P.applied.ptr
             pre.refresh(integ)  # a new factor installed: the copy refreshed in place
             assert P.applied.ptr == ptr
             if expect == "float32":
-                assert np.array_equal(P.inv32.numpy(), P.inv.numpy().astype(np.float32))
+                assert np.array_equal(P.single(), lower_symmetric(P.inv.numpy()).astype(np.float32))
             pre.begin_step(integ)
             rng = np.random.default_rng(5)
             runs[precision] = [_apply(pre, rng.standard_normal((sim.mesh.n_nodes, 3)), DEVICE) for _ in range(3)]
@@ -687,17 +688,17 @@ def test_changes_in_one_scope_make_the_single_precision_copy_once():
         D._prepare_gpu(n, None)
     D.factorize()
     assert D.install() is None
-    first = D.inv32.numpy().copy()
-    assert np.array_equal(first, D.inv.numpy().astype(np.float32))
+    first = D.packed.numpy().copy()
+    assert np.array_equal(D.single(), lower_symmetric(D.inv.numpy()).astype(np.float32))
     N = 0.1 * np.eye(3)
     with D.changing():
         D.fold(np.arange(3), N)
         D.regrow(np.arange(n), 3)
         assert D.inv.shape[0] == n + 3
-        assert np.array_equal(D.inv32.numpy(), first)  # not remade yet
-    assert np.array_equal(D.inv32.numpy(), D.inv.numpy().astype(np.float32))
+        assert np.array_equal(D.packed.numpy(), first)  # not remade yet
+    assert np.array_equal(D.single(), lower_symmetric(D.inv.numpy()).astype(np.float32))
     D.fold(np.arange(3, 6), N)
-    assert np.array_equal(D.inv32.numpy(), D.inv.numpy().astype(np.float32))
+    assert np.array_equal(D.single(), lower_symmetric(D.inv.numpy()).astype(np.float32))
     D.close()
 
 
@@ -723,11 +724,11 @@ def test_factors_of_changing_sizes_reuse_the_dense_buffers():
         D.factorize()
         assert D.install() is None
         np.testing.assert_allclose(D.inv.numpy() @ A, np.eye(n3), atol=1e-9)
-        assert np.array_equal(D.inv32.numpy(), D.inv.numpy().astype(np.float32))
-        now = (D.work.ptr, D.inv32.ptr) + ((D._rhs.ptr,) if D.device.is_cuda else ())
+        assert np.array_equal(D.single(), lower_symmetric(D.inv.numpy()).astype(np.float32))
+        now = (D.work.ptr, D.packed.ptr) + ((D._rhs.ptr,) if D.device.is_cuda else ())
         assert ptrs is None or now == ptrs
         ptrs = now
-    assert D._work_buf.allocations == D._inv32_buf.allocations == 1
+    assert D._work_buf.allocations == D._packed_buf.allocations == 1
     D.close()
 
 

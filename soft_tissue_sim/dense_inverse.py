@@ -14,9 +14,9 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   the rotated vector). It reads the whole matrix once, so its time is the matrix's size over
   the memory bandwidth: with ``precision="float32"`` it reads a single-precision copy of the
   inverse's lower triangle (made after each install, fold and regrow), packed in 96 x 96
-  tiles, each tile read once for its own product and its transpose's (:func:`sym_tile`,
-  products summed in double precision, then each node's partial sums in a fixed order): a
-  quarter of the double-precision matrix's bytes. The preconditioner then differs from
+  tiles, each tile read once for its own product and its transpose's (:func:`sym_tile`:
+  single-precision products eight at a time, their sums added in double precision, in a fixed
+  order): a quarter of the double-precision matrix's bytes. The preconditioner then differs from
   A(t_u)^-1 by about 1e-7 relatively, far less than a factor a few steps old does; the
   corrections, W and the columns U keep using the double-precision inverse;
 * the Sherman-Morrison-Woodbury correction of eq. (5)-(7) is exact and folded into the
@@ -216,6 +216,7 @@ def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.flo
 # of the whole matrix. Entries past the size n3 are zero.
 TILE = wp.constant(96)
 TILE_BLOCK = 192  # CUDA threads a tile: 96 rows of its own product, 96 columns of its transpose's
+GATHER_BLOCK = 32  # CUDA threads a node adding up its partial sums
 
 
 def tile_count(tiles: int) -> int:
@@ -256,19 +257,19 @@ def pack_lower_kernel(src: wp.array2d(dtype=wp.float64), n3: int, dst: wp.array(
 # with segment i into those of row block j; part[(I ntc + K) TILE + k] holds row k of block I's
 # sum over block K. On CUDA the block of TILE_BLOCK threads rotates its 64 nodes, stages the
 # tile in shared memory (16-byte loads, rows padded to 100 floats: both reads free of bank
-# conflicts), then each of 192 threads sums a row or a column in double precision; on the CPU
-# the one thread does all of it.
+# conflicts), then each of 192 threads sums a row or a column: single-precision products eight
+# at a time, their sums added in double precision; on the CPU the one thread does all of it.
 @wp.func_native("""
 const float* tile = Pk.data + (size_t)b * 9216;
 double* out = part.data;
 #if defined(__CUDA_ARCH__)
 __shared__ __align__(16) float sh[96 * 100];
-__shared__ double xi[96];
-__shared__ double xj[96];
+__shared__ __align__(16) float xi[96];
+__shared__ __align__(16) float xj[96];
 if (lane < 64) {
     int k = lane < 32 ? lane : lane - 32;
     int node = 32 * (lane < 32 ? i : j) + k;
-    double* x = lane < 32 ? xi : xj;
+    float* x = lane < 32 ? xi : xj;
     double a0 = 0.0, a1 = 0.0, a2 = 0.0;
     if (3 * node < n3) {
         const wp::mat_t<3, 3, double>& R = dR.data[node];
@@ -277,9 +278,9 @@ if (lane < 64) {
         a1 = R.data[0][1] * v.c[0] + R.data[1][1] * v.c[1] + R.data[2][1] * v.c[2];
         a2 = R.data[0][2] * v.c[0] + R.data[1][2] * v.c[1] + R.data[2][2] * v.c[2];
     }
-    x[3 * k] = a0;
-    x[3 * k + 1] = a1;
-    x[3 * k + 2] = a2;
+    x[3 * k] = (float)a0;
+    x[3 * k + 1] = (float)a1;
+    x[3 * k + 2] = (float)a2;
 }
 const float4* src = (const float4*)tile;
 for (int q = lane; q < 2304; q += nt) {
@@ -289,24 +290,28 @@ for (int q = lane; q < 2304; q += nt) {
 __syncthreads();
 if (lane < 96) {
     const float4* row = (const float4*)(sh + lane * 100);
+    const float4* x4 = (const float4*)xj;
     double a = 0.0;
-    for (int q = 0; q < 24; ++q) {
-        float4 v = row[q];
-        a += (double)v.x * xj[4 * q] + (double)v.y * xj[4 * q + 1] + (double)v.z * xj[4 * q + 2]
-             + (double)v.w * xj[4 * q + 3];
+    for (int q = 0; q < 24; q += 2) {
+        float4 v = row[q], w = row[q + 1], x = x4[q], y = x4[q + 1];
+        a += (double)(v.x * x.x + v.y * x.y + v.z * x.z + v.w * x.w + w.x * y.x + w.y * y.y + w.z * y.z
+                      + w.w * y.w);
     }
     out[((size_t)i * ntc + j) * 96 + lane] = a;
 } else if (lane < 192 && i != j) {
     int c = lane - 96;
     double a = 0.0;
-    for (int q = 0; q < 96; ++q)
-        a += (double)sh[q * 100 + c] * xi[q];
+    for (int q = 0; q < 96; q += 8) {
+        const float* t = sh + q * 100 + c;
+        a += (double)(t[0] * xi[q] + t[100] * xi[q + 1] + t[200] * xi[q + 2] + t[300] * xi[q + 3]
+                      + t[400] * xi[q + 4] + t[500] * xi[q + 5] + t[600] * xi[q + 6] + t[700] * xi[q + 7]);
+    }
     out[((size_t)j * ntc + i) * 96 + c] = a;
 }
 #else
-double xi[96], xj[96];
+float xi[96], xj[96];
 for (int side = 0; side < 2; ++side) {
-    double* x = side == 0 ? xi : xj;
+    float* x = side == 0 ? xi : xj;
     for (int k = 0; k < 32; ++k) {
         int node = 32 * (side == 0 ? i : j) + k;
         double a0 = 0.0, a1 = 0.0, a2 = 0.0;
@@ -317,22 +322,30 @@ for (int side = 0; side < 2; ++side) {
             a1 = R.data[0][1] * v.c[0] + R.data[1][1] * v.c[1] + R.data[2][1] * v.c[2];
             a2 = R.data[0][2] * v.c[0] + R.data[1][2] * v.c[1] + R.data[2][2] * v.c[2];
         }
-        x[3 * k] = a0;
-        x[3 * k + 1] = a1;
-        x[3 * k + 2] = a2;
+        x[3 * k] = (float)a0;
+        x[3 * k + 1] = (float)a1;
+        x[3 * k + 2] = (float)a2;
     }
 }
 for (int k = 0; k < 96; ++k) {
     double a = 0.0;
-    for (int c = 0; c < 96; ++c)
-        a += (double)tile[k * 96 + c] * xj[c];
+    for (int c = 0; c < 96; c += 8) {
+        float g = 0.0f;
+        for (int e = c; e < c + 8; ++e)
+            g += tile[k * 96 + e] * xj[e];
+        a += (double)g;
+    }
     out[((size_t)i * ntc + j) * 96 + k] = a;
 }
 if (i != j) {
     for (int c = 0; c < 96; ++c) {
         double a = 0.0;
-        for (int k = 0; k < 96; ++k)
-            a += (double)tile[k * 96 + c] * xi[k];
+        for (int k = 0; k < 96; k += 8) {
+            float g = 0.0f;
+            for (int e = k; e < k + 8; ++e)
+                g += tile[e * 96 + c] * xi[e];
+            a += (double)g;
+        }
         out[((size_t)j * ntc + i) * 96 + c] = a;
     }
 }
@@ -361,12 +374,16 @@ def sym_tiles_kernel(Pk: wp.array(dtype=wp.float32), r: wp.array(dtype=wp.vec3d)
 @wp.kernel
 def sym_gather_kernel(part: wp.array(dtype=wp.float64), dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
                       count: wp.array(dtype=wp.int32), ntc: int):
-    """z_i = dR_i (the partial sums of node i's rows over the tile columns below n3 = count[0],
-    in their order), launched over a capacity."""
-    i = wp.tid()
+    """z_i = dR_i (the partial sums of node i's rows over the tile columns below n3 = count[0]),
+    a block of threads a node (lanes over the tile columns, then a block sum: a fixed order),
+    launched over a capacity."""
+    t = wp.tid()
+    nt = wp.block_dim()
+    i = t // nt
+    lane = t - i * nt
     n3 = count[0]
     r = 3 * i
-    if r >= n3:
+    if r >= n3:  # the whole block (one node) leaves
         return
     blocks = (n3 + TILE - 1) // TILE
     row_block = r // TILE
@@ -374,12 +391,16 @@ def sym_gather_kernel(part: wp.array(dtype=wp.float64), dR: wp.array(dtype=wp.ma
     a0 = wp.float64(0.0)
     a1 = wp.float64(0.0)
     a2 = wp.float64(0.0)
-    for c in range(blocks):
+    for c in range(lane, blocks, nt):
         at = (row_block * ntc + c) * TILE + k
         a0 += part[at]
         a1 += part[at + 1]
         a2 += part[at + 2]
-    z[i] = dR[i] * wp.vec3d(a0, a1, a2)
+    a0 = block_sum(a0)
+    a1 = block_sum(a1)
+    a2 = block_sum(a2)
+    if lane == 0:
+        z[i] = dR[i] * wp.vec3d(a0, a1, a2)
 
 
 def lower_symmetric(P: np.ndarray) -> np.ndarray:
@@ -898,7 +919,9 @@ class DenseInverse:
             block = TILE_BLOCK if self.device.is_cuda else 1
             wp.launch(sym_tiles_kernel, tile_count(ntc) * block, [self.packed, r, dR, self._part, self._count, ntc],
                       device=self.device, block_dim=block)
-            wp.launch(sym_gather_kernel, nodes, [self._part, dR, z, self._count, ntc], device=self.device)
+            block = GATHER_BLOCK if self.device.is_cuda else 1
+            wp.launch(sym_gather_kernel, nodes * block, [self._part, dR, z, self._count, ntc], device=self.device,
+                      block_dim=block)
             return
         wp.launch(rotate_in_kernel, nodes, [dR, r, self._s, self._count], device=self.device)
         block = BLOCK if self.device.is_cuda else 1

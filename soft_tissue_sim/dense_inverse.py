@@ -255,15 +255,16 @@ def pack_lower_kernel(src: wp.array2d(dtype=wp.float64), n3: int, dst: wp.array(
 # One tile (i, j) of the packed copy against the rotated vector s = dR^T r (eq. 2): its product
 # with s's segment j into the partial sums of row block i, and (off the diagonal) its transpose's
 # with segment i into those of row block j; part[(I ntc + K) TILE + k] holds row k of block I's
-# sum over block K. On CUDA the block of TILE_BLOCK threads rotates its 64 nodes, stages the
-# tile in shared memory (16-byte loads, rows padded to 100 floats: both reads free of bank
-# conflicts), then each of 192 threads sums a row or a column: single-precision products eight
-# at a time, their sums added in double precision; on the CPU the one thread does all of it.
+# sum over block K. On CUDA the block of TILE_BLOCK threads rotates its 64 nodes, then stages
+# the tile in shared memory half by half (48 rows: more blocks resident; 16-byte loads, rows
+# padded to 100 floats: both reads free of bank conflicts), 48 threads summing its rows and 96
+# its columns: single-precision products eight at a time, their sums added in double precision;
+# on the CPU the one thread does all of it.
 @wp.func_native("""
 const float* tile = Pk.data + (size_t)b * 9216;
 double* out = part.data;
 #if defined(__CUDA_ARCH__)
-__shared__ __align__(16) float sh[96 * 100];
+__shared__ __align__(16) float sh[48 * 100];
 __shared__ __align__(16) float xi[96];
 __shared__ __align__(16) float xj[96];
 if (lane < 64) {
@@ -282,32 +283,36 @@ if (lane < 64) {
     x[3 * k + 1] = (float)a1;
     x[3 * k + 2] = (float)a2;
 }
-const float4* src = (const float4*)tile;
-for (int q = lane; q < 2304; q += nt) {
-    int row = q / 24;
-    *(float4*)(sh + row * 100 + 4 * (q - 24 * row)) = __ldg(src + q);
-}
-__syncthreads();
-if (lane < 96) {
-    const float4* row = (const float4*)(sh + lane * 100);
-    const float4* x4 = (const float4*)xj;
-    double a = 0.0;
-    for (int q = 0; q < 24; q += 2) {
-        float4 v = row[q], w = row[q + 1], x = x4[q], y = x4[q + 1];
-        a += (double)(v.x * x.x + v.y * x.y + v.z * x.z + v.w * x.w + w.x * y.x + w.y * y.y + w.z * y.z
-                      + w.w * y.w);
+double col = 0.0;
+for (int h = 0; h < 2; ++h) {  // the tile's two halves of 48 rows in turn
+    if (h)
+        __syncthreads();
+    const float4* src = (const float4*)(tile + h * 4608);
+    for (int q = lane; q < 1152; q += nt) {
+        int row = q / 24;
+        *(float4*)(sh + row * 100 + 4 * (q - 24 * row)) = __ldg(src + q);
     }
-    out[((size_t)i * ntc + j) * 96 + lane] = a;
-} else if (lane < 192 && i != j) {
-    int c = lane - 96;
-    double a = 0.0;
-    for (int q = 0; q < 96; q += 8) {
-        const float* t = sh + q * 100 + c;
-        a += (double)(t[0] * xi[q] + t[100] * xi[q + 1] + t[200] * xi[q + 2] + t[300] * xi[q + 3]
-                      + t[400] * xi[q + 4] + t[500] * xi[q + 5] + t[600] * xi[q + 6] + t[700] * xi[q + 7]);
+    __syncthreads();
+    if (lane < 48) {
+        const float4* row = (const float4*)(sh + lane * 100);
+        const float4* x4 = (const float4*)xj;
+        double a = 0.0;
+        for (int q = 0; q < 24; q += 2) {
+            float4 v = row[q], w = row[q + 1], x = x4[q], y = x4[q + 1];
+            a += (double)(v.x * x.x + v.y * x.y + v.z * x.z + v.w * x.w + w.x * y.x + w.y * y.y + w.z * y.z
+                          + w.w * y.w);
+        }
+        out[((size_t)i * ntc + j) * 96 + 48 * h + lane] = a;
+    } else if (lane >= 96 && lane < 192 && i != j) {
+        const float* t = sh + lane - 96;
+        const float* x = xi + 48 * h;
+        for (int q = 0; q < 48; q += 8, t += 800)
+            col += (double)(t[0] * x[q] + t[100] * x[q + 1] + t[200] * x[q + 2] + t[300] * x[q + 3]
+                            + t[400] * x[q + 4] + t[500] * x[q + 5] + t[600] * x[q + 6] + t[700] * x[q + 7]);
     }
-    out[((size_t)j * ntc + i) * 96 + c] = a;
 }
+if (lane >= 96 && lane < 192 && i != j)
+    out[((size_t)j * ntc + i) * 96 + lane - 96] = col;
 #else
 float xi[96], xj[96];
 for (int side = 0; side < 2; ++side) {

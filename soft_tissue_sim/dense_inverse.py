@@ -14,9 +14,9 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   the rotated vector). It reads the whole matrix once, so its time is the matrix's size over
   the memory bandwidth: with ``precision="float32"`` it reads a single-precision copy of the
   inverse's lower triangle (made after each install, fold and regrow), packed in 96 x 96
-  tiles, each tile read once for its own product and its transpose's (:func:`sym_tile`:
-  single-precision products eight at a time, their sums added in double precision, in a fixed
-  order): a quarter of the double-precision matrix's bytes. The preconditioner then differs from
+  tiles, each tile read once for its own product and its transpose's (:func:`sym_tile`,
+  products summed in double precision, then each node's partial sums in a fixed order): a
+  quarter of the double-precision matrix's bytes. The preconditioner then differs from
   A(t_u)^-1 by about 1e-7 relatively, far less than a factor a few steps old does; the
   corrections, W and the columns U keep using the double-precision inverse;
 * the Sherman-Morrison-Woodbury correction of eq. (5)-(7) is exact and folded into the
@@ -258,19 +258,18 @@ def pack_lower_kernel(src: wp.array2d(dtype=wp.float64), n3: int, dst: wp.array(
 # sum over block K. On CUDA the block of TILE_BLOCK threads rotates its 64 nodes, then stages
 # the tile in shared memory half by half (48 rows: more blocks resident; 16-byte loads, rows
 # padded to 100 floats: both reads free of bank conflicts), 48 threads summing its rows and 96
-# its columns: single-precision products eight at a time, their sums added in double precision;
-# on the CPU the one thread does all of it.
+# its columns in double precision; on the CPU the one thread does all of it.
 @wp.func_native("""
 const float* tile = Pk.data + (size_t)b * 9216;
 double* out = part.data;
 #if defined(__CUDA_ARCH__)
 __shared__ __align__(16) float sh[48 * 100];
-__shared__ __align__(16) float xi[96];
-__shared__ __align__(16) float xj[96];
+__shared__ __align__(16) double xi[96];
+__shared__ __align__(16) double xj[96];
 if (lane < 64) {
     int k = lane < 32 ? lane : lane - 32;
     int node = 32 * (lane < 32 ? i : j) + k;
-    float* x = lane < 32 ? xi : xj;
+    double* x = lane < 32 ? xi : xj;
     double a0 = 0.0, a1 = 0.0, a2 = 0.0;
     if (3 * node < n3) {
         const wp::mat_t<3, 3, double>& R = dR.data[node];
@@ -279,9 +278,9 @@ if (lane < 64) {
         a1 = R.data[0][1] * v.c[0] + R.data[1][1] * v.c[1] + R.data[2][1] * v.c[2];
         a2 = R.data[0][2] * v.c[0] + R.data[1][2] * v.c[1] + R.data[2][2] * v.c[2];
     }
-    x[3 * k] = (float)a0;
-    x[3 * k + 1] = (float)a1;
-    x[3 * k + 2] = (float)a2;
+    x[3 * k] = a0;
+    x[3 * k + 1] = a1;
+    x[3 * k + 2] = a2;
 }
 double col = 0.0;
 for (int h = 0; h < 2; ++h) {  // the tile's two halves of 48 rows in turn
@@ -295,28 +294,27 @@ for (int h = 0; h < 2; ++h) {  // the tile's two halves of 48 rows in turn
     __syncthreads();
     if (lane < 48) {
         const float4* row = (const float4*)(sh + lane * 100);
-        const float4* x4 = (const float4*)xj;
+        const double2* x2 = (const double2*)xj;
         double a = 0.0;
-        for (int q = 0; q < 24; q += 2) {
-            float4 v = row[q], w = row[q + 1], x = x4[q], y = x4[q + 1];
-            a += (double)(v.x * x.x + v.y * x.y + v.z * x.z + v.w * x.w + w.x * y.x + w.y * y.y + w.z * y.z
-                          + w.w * y.w);
+        for (int q = 0; q < 24; ++q) {
+            float4 v = row[q];
+            double2 x = x2[2 * q], y = x2[2 * q + 1];
+            a += (double)v.x * x.x + (double)v.y * x.y + (double)v.z * y.x + (double)v.w * y.y;
         }
         out[((size_t)i * ntc + j) * 96 + 48 * h + lane] = a;
     } else if (lane >= 96 && lane < 192 && i != j) {
         const float* t = sh + lane - 96;
-        const float* x = xi + 48 * h;
-        for (int q = 0; q < 48; q += 8, t += 800)
-            col += (double)(t[0] * x[q] + t[100] * x[q + 1] + t[200] * x[q + 2] + t[300] * x[q + 3]
-                            + t[400] * x[q + 4] + t[500] * x[q + 5] + t[600] * x[q + 6] + t[700] * x[q + 7]);
+        const double* x = xi + 48 * h;
+        for (int q = 0; q < 48; ++q)
+            col += (double)t[100 * q] * x[q];
     }
 }
 if (lane >= 96 && lane < 192 && i != j)
     out[((size_t)j * ntc + i) * 96 + lane - 96] = col;
 #else
-float xi[96], xj[96];
+double xi[96], xj[96];
 for (int side = 0; side < 2; ++side) {
-    float* x = side == 0 ? xi : xj;
+    double* x = side == 0 ? xi : xj;
     for (int k = 0; k < 32; ++k) {
         int node = 32 * (side == 0 ? i : j) + k;
         double a0 = 0.0, a1 = 0.0, a2 = 0.0;
@@ -327,30 +325,22 @@ for (int side = 0; side < 2; ++side) {
             a1 = R.data[0][1] * v.c[0] + R.data[1][1] * v.c[1] + R.data[2][1] * v.c[2];
             a2 = R.data[0][2] * v.c[0] + R.data[1][2] * v.c[1] + R.data[2][2] * v.c[2];
         }
-        x[3 * k] = (float)a0;
-        x[3 * k + 1] = (float)a1;
-        x[3 * k + 2] = (float)a2;
+        x[3 * k] = a0;
+        x[3 * k + 1] = a1;
+        x[3 * k + 2] = a2;
     }
 }
 for (int k = 0; k < 96; ++k) {
     double a = 0.0;
-    for (int c = 0; c < 96; c += 8) {
-        float g = 0.0f;
-        for (int e = c; e < c + 8; ++e)
-            g += tile[k * 96 + e] * xj[e];
-        a += (double)g;
-    }
+    for (int c = 0; c < 96; ++c)
+        a += (double)tile[k * 96 + c] * xj[c];
     out[((size_t)i * ntc + j) * 96 + k] = a;
 }
 if (i != j) {
     for (int c = 0; c < 96; ++c) {
         double a = 0.0;
-        for (int k = 0; k < 96; k += 8) {
-            float g = 0.0f;
-            for (int e = k; e < k + 8; ++e)
-                g += tile[e * 96 + c] * xi[e];
-            a += (double)g;
-        }
+        for (int k = 0; k < 96; ++k)
+            a += (double)tile[k * 96 + c] * xi[k];
         out[((size_t)j * ntc + i) * 96 + c] = a;
     }
 }

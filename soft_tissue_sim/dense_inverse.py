@@ -262,14 +262,8 @@ def pack_lower_kernel(src: wp.array2d(dtype=wp.float64), n3: int, dst: wp.array(
 @wp.func_native("""
 const float* tile = Pk.data + (size_t)b * 9216;
 double* out = part.data;
-#if defined(__CUDA_ARCH__)
-__shared__ __align__(16) float sh[48 * 100];
-__shared__ __align__(16) double xi[96];
-__shared__ __align__(16) double xj[96];
-if (lane < 64) {
-    int k = lane < 32 ? lane : lane - 32;
-    int node = 32 * (lane < 32 ? i : j) + k;
-    double* x = lane < 32 ? xi : xj;
+// x[0..2] = dR_node^T r_node, zero past n3
+auto rotated = [&](int node, double* x) {
     double a0 = 0.0, a1 = 0.0, a2 = 0.0;
     if (3 * node < n3) {
         const wp::mat_t<3, 3, double>& R = dR.data[node];
@@ -278,9 +272,17 @@ if (lane < 64) {
         a1 = R.data[0][1] * v.c[0] + R.data[1][1] * v.c[1] + R.data[2][1] * v.c[2];
         a2 = R.data[0][2] * v.c[0] + R.data[1][2] * v.c[1] + R.data[2][2] * v.c[2];
     }
-    x[3 * k] = a0;
-    x[3 * k + 1] = a1;
-    x[3 * k + 2] = a2;
+    x[0] = a0;
+    x[1] = a1;
+    x[2] = a2;
+};
+#if defined(__CUDA_ARCH__)
+__shared__ __align__(16) float sh[48 * 100];
+__shared__ __align__(16) double xi[96];
+__shared__ __align__(16) double xj[96];
+if (lane < 64) {
+    int k = lane < 32 ? lane : lane - 32;
+    rotated(32 * (lane < 32 ? i : j) + k, (lane < 32 ? xi : xj) + 3 * k);
 }
 double col = 0.0;
 for (int h = 0; h < 2; ++h) {  // the tile's two halves of 48 rows in turn
@@ -313,22 +315,9 @@ if (lane >= 96 && lane < 192 && i != j)
     out[((size_t)j * ntc + i) * 96 + lane - 96] = col;
 #else
 double xi[96], xj[96];
-for (int side = 0; side < 2; ++side) {
-    double* x = side == 0 ? xi : xj;
-    for (int k = 0; k < 32; ++k) {
-        int node = 32 * (side == 0 ? i : j) + k;
-        double a0 = 0.0, a1 = 0.0, a2 = 0.0;
-        if (3 * node < n3) {
-            const wp::mat_t<3, 3, double>& R = dR.data[node];
-            const wp::vec_t<3, double>& v = r.data[node];
-            a0 = R.data[0][0] * v.c[0] + R.data[1][0] * v.c[1] + R.data[2][0] * v.c[2];
-            a1 = R.data[0][1] * v.c[0] + R.data[1][1] * v.c[1] + R.data[2][1] * v.c[2];
-            a2 = R.data[0][2] * v.c[0] + R.data[1][2] * v.c[1] + R.data[2][2] * v.c[2];
-        }
-        x[3 * k] = a0;
-        x[3 * k + 1] = a1;
-        x[3 * k + 2] = a2;
-    }
+for (int k = 0; k < 32; ++k) {
+    rotated(32 * i + k, xi + 3 * k);
+    rotated(32 * j + k, xj + 3 * k);
 }
 for (int k = 0; k < 96; ++k) {
     double a = 0.0;

@@ -255,10 +255,11 @@ def pack_lower_kernel(src: wp.array2d(dtype=wp.float64), n3: int, dst: wp.array(
 # One tile (i, j) of the packed copy against the rotated vector s = dR^T r (eq. 2): its product
 # with s's segment j into the partial sums of row block i, and (off the diagonal) its transpose's
 # with segment i into those of row block j; part[(I ntc + K) TILE + k] holds row k of block I's
-# sum over block K. On CUDA the block of TILE_BLOCK threads rotates its 64 nodes, then stages
-# the tile in shared memory half by half (48 rows: more blocks resident; 16-byte loads, rows
-# padded to 100 floats: both reads free of bank conflicts), 48 threads summing its rows and 96
-# its columns in double precision; on the CPU the one thread does all of it.
+# sum over block K. On CUDA the block of TILE_BLOCK threads loads the whole tile into registers
+# (16-byte loads, all issued before the rotation of its 64 nodes), then passes it through shared
+# memory half by half (48 rows: more blocks resident; rows padded to 100 floats: both reads free
+# of bank conflicts), 48 threads summing its rows and 96 its columns in double precision; on the
+# CPU the one thread does all of it.
 @wp.func_native("""
 const float* tile = Pk.data + (size_t)b * 9216;
 double* out = part.data;
@@ -280,18 +281,26 @@ auto rotated = [&](int node, double* x) {
 __shared__ __align__(16) float sh[48 * 100];
 __shared__ __align__(16) double xi[96];
 __shared__ __align__(16) double xj[96];
+// the whole tile's loads issued at once, into registers (6 + 6 16-byte loads a thread of the
+// 192: the launch's block is TILE_BLOCK), before the rotation's
+const float4* src = (const float4*)tile;
+float4 held[12];
+#pragma unroll
+for (int m = 0; m < 12; ++m)
+    held[m] = __ldg(src + lane + 192 * m);
 if (lane < 64) {
     int k = lane < 32 ? lane : lane - 32;
     rotated(32 * (lane < 32 ? i : j) + k, (lane < 32 ? xi : xj) + 3 * k);
 }
 double col = 0.0;
-for (int h = 0; h < 2; ++h) {  // the tile's two halves of 48 rows in turn
+for (int h = 0; h < 2; ++h) {  // the tile's two halves of 48 rows in turn through shared memory
     if (h)
         __syncthreads();
-    const float4* src = (const float4*)(tile + h * 4608);
-    for (int q = lane; q < 1152; q += nt) {
+#pragma unroll
+    for (int m = 0; m < 6; ++m) {
+        int q = lane + 192 * m;
         int row = q / 24;
-        *(float4*)(sh + row * 100 + 4 * (q - 24 * row)) = __ldg(src + q);
+        *(float4*)(sh + row * 100 + 4 * (q - 24 * row)) = held[6 * h + m];
     }
     __syncthreads();
     if (lane < 48) {

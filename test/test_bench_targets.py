@@ -40,7 +40,7 @@ def test_the_resection_rows_include_the_cut_rows(monkeypatch):
     """brain_resection_rows takes the cut rows from the same run (no second run)."""
     calls = []
 
-    def fake_run(device, progress=False):
+    def fake_run(device, progress=False, ldlt=None):
         calls.append(device)
         rows = _rows([0.0, 4.0, 0.0, 6.0, 8.0], [False, True, False, True, True])
         graphs = {"after the solve": {"captures": 4, "replays": 655, "plain": 6}}
@@ -82,3 +82,43 @@ def test_the_cut_beam_note_splits_the_steps_by_their_place_around_the_cuts():
     assert note.startswith("steps between cuts 1.00 (solve 0.50), a cut's step 11.00 of which its cutting phase 10.00")
     assert "(planning 3.00, FEM, state and identities 2.00, correction 4.00, debris 0.50)" in note
     assert note.endswith("the step after a cut 3.00 (solve 1.50)")
+
+
+def test_ldlt_settings_reach_every_brain_row(monkeypatch):
+    """--ldlt KEY=VALUE: values read as JSON where they parse; laid over the brain scene's
+    solver.ldlt in the rows' scene and passed to the resection's run; a malformed one refused."""
+    assert targets.parse_ldlt(["reserve_sms=48", "apply_precision=float64", "rotate=false"]) == {
+        "reserve_sms": 48, "apply_precision": "float64", "rotate": False}
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        targets.parse_ldlt(["reserve_sms"])
+    base = targets._brain(contact=True)["solver"]["ldlt"]
+    monkeypatch.setattr(targets, "LDLT", {"reserve_sms": 48, "device_refresh_iterations": 8})
+    cfg = targets._brain(contact=True)
+    assert cfg["solver"]["ldlt"] == {**base, "reserve_sms": 48, "device_refresh_iterations": 8}
+    assert "device_refresh_iterations" in base and base["device_refresh_iterations"] != 8
+    seen = {}
+
+    def fake_run(device, progress=False, ldlt=None):
+        seen["ldlt"] = ldlt
+        rows = _rows([0.0, 4.0], [False, True])
+        graphs = {"after the solve": {"captures": 0, "replays": 0, "plain": 2}}
+        return rows, [{}], True, True, 0, 0, {"inverted_tets_end": 0, "step_graphs": graphs}
+
+    monkeypatch.setattr(brain, "run", fake_run)
+    targets.brain_resection_rows("cpu")
+    assert seen["ldlt"] == {"reserve_sms": 48, "device_refresh_iterations": 8}
+
+
+def test_the_resection_run_lays_ldlt_settings_over_the_scene(monkeypatch):
+    """brain.run(ldlt=...) loads the scene with those solver.ldlt settings over its own."""
+    loaded = {}
+
+    def fake_load(scene, device=None, overrides=None):
+        loaded["ldlt"] = overrides["solver"]["ldlt"]
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(brain, "load_scene", fake_load)
+    with pytest.raises(RuntimeError, match="stop here"):
+        brain.run("cpu", ldlt={"reserve_sms": 48})
+    assert loaded["ldlt"]["reserve_sms"] == 48 and loaded["ldlt"]["backend"] == "auto"
+    assert loaded["ldlt"]["device_refresh_iterations"] == 4  # the scene's own kept

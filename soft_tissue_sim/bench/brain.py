@@ -39,10 +39,10 @@ from .common import columns, figure, parser, publish, resolved_device, save_figu
 
 def run(device, scene="brain_resection.yaml", turns=4, step_len=0.0012, max_cleanup=60, cleanup_radius=0.005,
         backend="auto", scheme=None, worker=None, synchronous=False, refresh_every=None, snap=None,
-        margin=0.0, radial=0, progress=False, lag=0, reserve_sms=None):
+        margin=0.0, radial=0, progress=False, lag=0, reserve_sms=None, ldlt=None):
     cfg = read_scene(scene)[0]
     solver = dict(cfg.get("solver") or {})
-    solver["ldlt"] = {**(solver.get("ldlt") or {}), "backend": backend}
+    solver["ldlt"] = {**(solver.get("ldlt") or {}), "backend": backend, **(ldlt or {})}
     if worker is not None:
         solver["ldlt"]["worker"] = worker
     if refresh_every is not None:  # on every device

@@ -25,6 +25,10 @@ Rows (scenes of ``config/scenes``):
   mesh change, FEM and state arrays, the preconditioner's correction, the contact surface's
   rebuild) plus a removal asked before the step (the surgeon's bites), the same parts;
 * ``close_s``: ``Simulation.close()`` of the brain while a factorization is in flight.
+
+``--ldlt KEY=VALUE`` (repeatable) lays a ``solver.ldlt`` setting over the brain scene's in every
+brain row (e.g. ``--ldlt reserve_sms=48``), to measure the targets under another factor policy;
+the settings are recorded in the result (``ldlt_overrides``).
 """
 
 from __future__ import annotations
@@ -59,8 +63,29 @@ def _row(name, value, unit, goal, better="<=", note=None):
     return r
 
 
+# solver.ldlt settings laid over the brain scene's in every brain row (``--ldlt KEY=VALUE``)
+LDLT: dict = {}
+
+
+def parse_ldlt(items) -> dict:
+    """``KEY=VALUE`` strings as a dict, each value read as JSON where it parses (numbers,
+    booleans), else kept as a string."""
+    out = {}
+    for item in items or ():
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--ldlt takes KEY=VALUE, got {item!r}")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
 def _brain(contact=False):
     cfg, base = read_scene("brain_resection.yaml")
+    if LDLT:
+        cfg["solver"] = {**cfg["solver"], "ldlt": {**cfg["solver"].get("ldlt", {}), **LDLT}}
     cfg.pop("cutting", None)
     if not contact:
         cfg.pop("instruments", None)
@@ -176,7 +201,7 @@ def brain_contact_rows(device, steps=200, ramp=20):
 def brain_resection_rows(device):
     from .brain import run
 
-    rows, mods, freed, finite, _, _, info = run(device, progress=True)
+    rows, mods, freed, finite, _, _, info = run(device, progress=True, ldlt=dict(LDLT) or None)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
     g = info["step_graphs"]["after the solve"]
@@ -283,10 +308,17 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default=None, help=f"comma list of {', '.join(GROUPS)} (default: all)")
     ap.add_argument("--out", default=str(RESULTS_DIR))
     ap.add_argument("--markdown", nargs="+", metavar="JSON", help="only print the table of these result files")
+    ap.add_argument("--ldlt", action="append", metavar="KEY=VALUE",
+                    help="a solver.ldlt setting for the brain's rows (repeatable; recorded in the result)")
     args = ap.parse_args(argv)
     if args.markdown:
         print(markdown(args.markdown))
         return 0
+    try:
+        LDLT.clear()
+        LDLT.update(parse_ldlt(args.ldlt))
+    except ValueError as exc:
+        ap.error(str(exc))
     device = resolve_device(args.device)
     _compile_kernels(device)
     groups = args.only.split(",") if args.only else list(GROUPS)
@@ -309,7 +341,10 @@ def main(argv=None) -> int:
                   f" {r.get('note', '')}", flush=True)
         print(f"  [{g}: {time.perf_counter() - t0:.1f} s]", file=sys.stderr, flush=True)
         targets += rows
-    path = write_result("targets", device, {"targets": targets, "wall_s": time.perf_counter() - t_all}, args.out)
+    figures = {"targets": targets, "wall_s": time.perf_counter() - t_all}
+    if LDLT:
+        figures["ldlt_overrides"] = dict(LDLT)
+    path = write_result("targets", device, figures, args.out)
     doc = json.load(open(path))
     doc["targets"] = doc["figures"].pop("targets")
     with open(path, "w") as fh:

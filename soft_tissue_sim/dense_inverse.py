@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import contextlib
 import sys
-from typing import Any
 
 import numpy as np
 import warp as wp
@@ -170,30 +169,14 @@ def rotate_in_kernel(dR: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d),
         s[3 * i + 2] = v[2]
 
 
-@wp.func
-def rows3_dot(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.float64), r: int, n3: int, lane: int,
-              nt: int) -> wp.vec3d:
-    """Lane ``lane`` of ``nt``'s share of rows r, r + 1, r + 2 of P against s: the columns
-    lane, lane + nt, ... below n3."""
-    a0 = wp.float64(0.0)
-    a1 = wp.float64(0.0)
-    a2 = wp.float64(0.0)
-    for j in range(lane, n3, nt):
-        sj = s[j]
-        a0 += P[r, j] * sj
-        a1 += P[r + 1, j] * sj
-        a2 += P[r + 2, j] * sj
-    return wp.vec3d(a0, a1, a2)
-
-
 @wp.kernel
 def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.float64),
                        dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
                        count: wp.array(dtype=wp.int32)):
     """z_i = dR_i (P s)_i for the nodes i with 3 i < n3 = count[0] (launched over a capacity; P
     read through its strides, its first n3 rows and columns): a block of threads per node i, its
-    three rows of P against s (:func:`rows3_dot`), the left rotation of eq. (2) applied to the
-    result."""
+    three rows of P against s (the lanes over the columns), the left rotation of eq. (2) applied
+    to the result."""
     t = wp.tid()
     nt = wp.block_dim()
     i = t // nt
@@ -202,10 +185,17 @@ def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.flo
     r = 3 * i
     if r >= n3:  # the whole block (one node) leaves
         return
-    a = rows3_dot(P, s, r, n3, lane, nt)
-    a0 = block_sum(a[0])
-    a1 = block_sum(a[1])
-    a2 = block_sum(a[2])
+    a0 = wp.float64(0.0)
+    a1 = wp.float64(0.0)
+    a2 = wp.float64(0.0)
+    for j in range(lane, n3, nt):
+        sj = s[j]
+        a0 += P[r, j] * sj
+        a1 += P[r + 1, j] * sj
+        a2 += P[r + 2, j] * sj
+    a0 = block_sum(a0)
+    a1 = block_sum(a1)
+    a2 = block_sum(a2)
     if lane == 0:
         z[i] = dR[i] * wp.vec3d(a0, a1, a2)
 
@@ -394,11 +384,6 @@ def sym_gather_kernel(part: wp.array(dtype=wp.float64), dR: wp.array(dtype=wp.ma
     a2 = block_sum(a2)
     if lane == 0:
         z[i] = dR[i] * wp.vec3d(a0, a1, a2)
-
-
-def lower_symmetric(P: np.ndarray) -> np.ndarray:
-    """The symmetric matrix of P's lower triangle (what the packed copy holds, before rounding)."""
-    return np.tril(P) + np.tril(P, -1).T
 
 
 def unpack_lower(packed: np.ndarray, n3: int) -> np.ndarray:
@@ -829,7 +814,7 @@ class DenseInverse:
             self._reserve(n)
             self._resize(n, stream)
         wp.copy(self.inv, self._result, stream=stream)
-        self._narrow(stream)
+        self._pack(stream)
         return None
 
     def _empty_stores(self) -> tuple:
@@ -868,9 +853,9 @@ class DenseInverse:
         finally:
             self._deferred -= 1
             if not self._deferred and self._stale and self.inv is not None:
-                self._narrow()
+                self._pack()
 
-    def _narrow(self, stream=None) -> None:
+    def _pack(self, stream=None) -> None:
         """precision float32: the single-precision copy := the inverse in use's lower triangle,
         packed in tiles (same address while the capacity holds); inside :meth:`changing`, marked
         to be made at its end."""
@@ -971,7 +956,7 @@ class DenseInverse:
             self._library_fold(self.inv, np.asarray(rows, np.int32), N, wp.get_stream(self.device).cuda_stream)
         else:
             fold_into(self.xp, self.matrix(), rows, N)
-        self._narrow()
+        self._pack()
 
     def regrow(self, keep: np.ndarray, added: int) -> None:
         """Change the node set of the inverse in use: keep the DOFs ``keep`` (in that order),
@@ -990,7 +975,7 @@ class DenseInverse:
                 self._resize(n)
             if added:
                 wp.launch(pad_identity_kernel, (n, added), [self.inv, k], device=self.device)
-            self._narrow()
+            self._pack()
             return
         staged = self._keep_in
         staged.reserve({"keep": k})
@@ -1006,7 +991,7 @@ class DenseInverse:
             wp.copy(self._store[0].buffer, self._store[1].buffer, count=(n - 1) * ld + n)
             if n != old.shape[0]:
                 self._resize(n)
-        self._narrow()
+        self._pack()
 
     def reset(self) -> None:
         """Forget the inverse in use (a new one must be installed before the next apply; the

@@ -95,6 +95,12 @@ def _apply(D, r, dR):
     return z.numpy()
 
 
+def lower_symmetric(P):
+    """The symmetric matrix of P's lower triangle (what the packed single-precision copy holds,
+    before rounding)."""
+    return np.tril(P) + np.tril(P, -1).T
+
+
 def _check(D, P, rng, tol=1e-12):
     """D's apply equals NumPy's dR P dR^T r, the size on the device is P's, the view is P."""
     n3 = P.shape[0]
@@ -102,7 +108,7 @@ def _check(D, P, rng, tol=1e-12):
     np.testing.assert_allclose(D.inv.numpy(), P, rtol=0, atol=tol * np.abs(P).max())
     Pa = D.single().astype(np.float64) if D.precision == "float32" else P
     if D.precision == "float32":
-        assert np.array_equal(D.single(), DI.lower_symmetric(D.inv.numpy()).astype(np.float32))
+        assert np.array_equal(D.single(), lower_symmetric(D.inv.numpy()).astype(np.float32))
     n = n3 // 3
     r, dR = rng.standard_normal((n, 3)), _rotations(n, rng)
     ref = _reference(Pa, dR, r)

@@ -16,8 +16,8 @@ import warp as wp
 
 from soft_tissue_sim import load_scene
 from soft_tissue_sim.cg import PCG, DevicePCG
-from soft_tissue_sim.dense_inverse import lower_symmetric
 from soft_tissue_sim.device_preconditioner import AsyncDevicePreconditioner, constraint_rows
+from test_dense_capacity import lower_symmetric
 from soft_tissue_sim.material import ParameterError
 from soft_tissue_sim.preconditioner import choose_backend
 from soft_tissue_sim.scene import read_scene, resolve_path

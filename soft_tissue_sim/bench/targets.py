@@ -201,7 +201,7 @@ def brain_contact_rows(device, steps=200, ramp=20):
 def brain_resection_rows(device):
     from .brain import run
 
-    rows, mods, freed, finite, _, _, info = run(device, progress=True, ldlt=dict(LDLT) or None)
+    rows, mods, freed, finite, _, _, info = run(device, progress=True, ldlt=LDLT)
     wall = np.array([r["wall_ms"] for r in rows])
     its = np.array([r["iterations"] for r in rows])
     g = info["step_graphs"]["after the solve"]

@@ -26,7 +26,8 @@ its factor becomes dense linear algebra that a GPU does at memory speed:
   kept buffers;
 * the Delassus operator W = H P^-1 H^T of eq. (4) gathers the 3x3 blocks of the contact
   nodes (:func:`delassus_kernel`, an entry of W per thread; :func:`delassus_matrix_kernel`
-  for a row count read on the device, the contact LCP solved there).
+  for a row count read on the device, the contact LCP solved there), and the response
+  P^-1 H^T lambda reads the contact nodes' columns (:func:`rows_apply`).
 
 The matrix is symmetric and stored row-major (C order); LAPACK and cuSOLVER see it as its
 column-major transpose, the same matrix. On the CPU ``potri`` fills one triangle, which
@@ -447,31 +448,68 @@ def delassus_matrix_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dt
 
 
 @wp.kernel
-def rows_apply_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.int32),
-                      coef: wp.array2d(dtype=wp.vec3d), lam: wp.array(dtype=wp.float64),
-                      sizes: wp.array(dtype=wp.int32), dR: wp.array(dtype=wp.mat33d), scale: wp.float64,
-                      free: wp.array(dtype=wp.float64), count: wp.array(dtype=wp.int32),
-                      out: wp.array(dtype=wp.vec3d)):
-    """out_i = scale free_i dR_i sum_r lam_r sum_s P_(i, n_rs) dR_(n_rs)^T c_rs for the first
-    sizes[0] constraint rows (nodes n_rs, coefficients c_rs): scale P^-1 H^T lambda (eq. 2) on
-    the free nodes from the columns of the rows' nodes only, H^T lambda never formed. P is
-    symmetric: node i's block is read from the rows' nodes' rows, contiguous across threads.
-    The nodes i with 3 i < n3 = count[0] (launched over a capacity)."""
-    i = wp.tid()
+def rows_part_kernel(P: wp.array2d(dtype=wp.float64), nodes: wp.array2d(dtype=wp.int32),
+                     coef: wp.array2d(dtype=wp.vec3d), lam: wp.array(dtype=wp.float64),
+                     sizes: wp.array(dtype=wp.int32), dR: wp.array(dtype=wp.mat33d),
+                     count: wp.array(dtype=wp.int32), part: wp.array2d(dtype=wp.vec3d)):
+    """part[c, i] = sum_r lam_r sum_s P_(i, n_rs) dR_(n_rs)^T c_rs over the rows r = c, c + S,
+    c + 2 S, ... < sizes[0] (S = part.shape[0]; nodes n_rs, coefficients c_rs): node i's share
+    of P^-1 H^T lambda from every S-th row, H^T lambda never formed. P is symmetric: node i's
+    block is read from the rows' nodes' rows, contiguous across threads. The nodes i with
+    3 i < count[0] (launched over a capacity: thread (c, i))."""
+    c, i = wp.tid()
     if 3 * i >= count[0]:
         return
     acc = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    for r in range(sizes[0]):
+    r = c
+    while r < sizes[0]:
         lr = lam[r]
         if lr != wp.float64(0.0):
             for k in range(4):
                 j = nodes[r, k]
                 if j >= 0:
-                    c = lr * (wp.transpose(dR[j]) * coef[r, k])
+                    v = lr * (wp.transpose(dR[j]) * coef[r, k])
                     for q in range(3):
                         row = 3 * j + q
-                        acc += c[q] * wp.vec3d(P[row, 3 * i], P[row, 3 * i + 1], P[row, 3 * i + 2])
+                        acc += v[q] * wp.vec3d(P[row, 3 * i], P[row, 3 * i + 1], P[row, 3 * i + 2])
+        r += part.shape[0]
+    part[c, i] = acc
+
+
+@wp.kernel
+def rows_sum_kernel(part: wp.array2d(dtype=wp.vec3d), dR: wp.array(dtype=wp.mat33d), scale: wp.float64,
+                    free: wp.array(dtype=wp.float64), count: wp.array(dtype=wp.int32),
+                    out: wp.array(dtype=wp.vec3d)):
+    """out_i = scale free_i dR_i sum_c part[c, i] (in the order of c) for the nodes i with
+    3 i < count[0]: :func:`rows_part_kernel`'s shares added, the rotation of eq. (2) applied."""
+    i = wp.tid()
+    if 3 * i >= count[0]:
+        return
+    acc = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for c in range(part.shape[0]):
+        acc += part[c, i]
     out[i] = (scale * free[i]) * (dR[i] * acc)
+
+
+ROWS_SPLIT = 16  # CUDA: the threads a node in rows_apply, each summing every ROWS_SPLIT-th row
+
+
+def rows_part(device, nodes: int, split: int | None = None) -> wp.array:
+    """The partial sums :func:`rows_apply` needs for ``nodes`` nodes, ``split`` shares a node
+    (default: ROWS_SPLIT on a GPU, the rows' loop spread over more threads; one on the CPU)."""
+    if split is None:
+        split = ROWS_SPLIT if wp.get_device(device).is_cuda else 1
+    return wp.empty((split, nodes), dtype=wp.vec3d, device=device)
+
+
+def rows_apply(P: wp.array, nodes: wp.array, coef: wp.array, lam: wp.array, sizes: wp.array, dR: wp.array,
+               scale: float, free: wp.array, count: wp.array, part: wp.array, out: wp.array, device) -> None:
+    """out_i = scale free_i dR_i sum_r lam_r sum_s P_(i, n_rs) dR_(n_rs)^T c_rs for the first
+    sizes[0] constraint rows (nodes n_rs, coefficients c_rs): scale dR P^-1 dR^T H^T lambda (eq. 2)
+    on the free nodes from the columns of the rows' nodes only. Launched over ``part``'s nodes
+    (:func:`rows_part`: the capacity), for the nodes i with 3 i < count[0] (read on the device)."""
+    wp.launch(rows_part_kernel, part.shape, [P, nodes, coef, lam, sizes, dR, count, part], device=device)
+    wp.launch(rows_sum_kernel, part.shape[1], [part, dR, float(scale), free, count, out], device=device)
 
 
 def _matrix_view(buf: GrowArray, rows: int, cols: int) -> wp.array:
@@ -645,6 +683,7 @@ class DenseInverse:
         # (ld, ld) view of store 0: the matrix apply reads (its first count[0] rows and columns)
         self._full: wp.array | None = None
         self._s: wp.array | None = None  # (ld,) the rotated vector of apply
+        self._rows_part: wp.array | None = None  # apply_rows' partial sums (rows_part, ld / 3 nodes)
         self._count = wp.zeros(1, dtype=wp.int32, device=self.device)  # n3, as apply reads it
         self._keep_in = PackedArrays({"keep": wp.int32}, self.device)  # a regrow's indices (page-locked)
         # the work buffer and the GPU's second buffer as views of allocations kept across
@@ -833,6 +872,7 @@ class DenseInverse:
         self._ld = ld
         self._full = strided_square(self._store[0].view(ld * ld), ld, ld)
         self._s = wp.empty(ld, dtype=wp.float64, device=self.device)
+        self._rows_part = rows_part(self.device, ld // 3)
 
     def _view(self, k: int, n: int) -> wp.array:
         """The (n, n) view of store ``k`` with row stride ld."""
@@ -943,8 +983,8 @@ class DenseInverse:
         inverse in use, in double precision, as :meth:`delassus_matrix` reads it), launched over
         the capacity (ld / 3 nodes) with the size read on the device, as :meth:`apply` is. ``out``
         holds at least the node count."""
-        wp.launch(rows_apply_kernel, self._ld // 3,
-                  [self._full, nodes, coef, lam, sizes, dR, float(scale), free, self._count, out], device=self.device)
+        rows_apply(self._full, nodes, coef, lam, sizes, dR, scale, free, self._count, self._rows_part, out,
+                   self.device)
 
     # ----------------------------------------------------------- changing it
     def fold(self, rows: np.ndarray, N: np.ndarray) -> None:
@@ -1013,7 +1053,7 @@ class DenseInverse:
             self._library_fold.close()
             self._library_fold = None
         self.inv = self.packed = self.work = self._workspace = self._rhs = self._result = self._triplets = None
-        self._full = self._s = self._part = None
+        self._full = self._s = self._part = self._rows_part = None
         self._ld = 0
         self._store = self._empty_stores()
         self._packed_buf = GrowArray(wp.float32, self.device, headroom=1.0)

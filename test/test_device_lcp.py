@@ -392,15 +392,17 @@ def test_the_blocks_lanes_give_the_one_lanes_lambda(cap):
 
 
 def test_the_correction_from_the_rows_columns_is_the_inverse_applied_to_h_transpose_lambda():
-    """rows_apply_kernel: dt^2 dR P dR^T H^T lambda on the free nodes, summed from the rows'
-    nodes' columns, equals the whole product (rows sharing a node, absent nodes, a zero
-    lambda, rotated nodes, a fixed node)."""
+    """rows_apply: dt^2 dR P dR^T H^T lambda on the free nodes, summed from the rows' nodes'
+    columns, equals the whole product (rows sharing a node, absent nodes, a zero lambda,
+    rotated nodes, a fixed node; each node's rows summed by four threads, so that a thread sums
+    several, and by the device's default split; a row count read on the device below the rows
+    given)."""
     from scipy.spatial.transform import Rotation
 
-    from soft_tissue_sim.dense_inverse import rows_apply_kernel
+    from soft_tissue_sim.dense_inverse import rows_apply, rows_part
 
     rng = np.random.default_rng(3)
-    n, m = 9, 5
+    n, m = 9, 21
     B = rng.standard_normal((3 * n, 3 * n))
     P = B @ B.T + 3 * n * np.eye(3 * n)
     dR = Rotation.random(n, random_state=4).as_matrix()
@@ -410,10 +412,11 @@ def test_the_correction_from_the_rows_columns_is_the_inverse_applied_to_h_transp
     coef = rng.standard_normal((m, 4, 3))
     lam = rng.random(m)
     lam[2] = 0.0
+    m_used = m - 2  # the last two rows past the count the device reads
     free = np.ones(n)
     free[nodes[0, 1]] = 0.0
     r = np.zeros((n, 3))
-    for i in range(m):
+    for i in range(m_used):
         for k in range(4):
             if nodes[i, k] >= 0:
                 r[nodes[i, k]] += lam[i] * coef[i, k]
@@ -422,15 +425,16 @@ def test_the_correction_from_the_rows_columns_is_the_inverse_applied_to_h_transp
     expected = 1e-4 * free[:, None] * z
     d = DEVICE
     cap = n + 5  # launched over a capacity: the nodes past the count (read on the device) untouched
-    out = wp.zeros(cap, dtype=wp.vec3d, device=d)
-    wp.launch(rows_apply_kernel, cap, [wp.array(P, dtype=wp.float64, device=d), wp.array(nodes, dtype=wp.int32, device=d),
-                                       wp.array(coef, dtype=wp.vec3d, device=d), wp.array(lam, dtype=wp.float64, device=d),
-                                       wp.array([m, m], dtype=wp.int32, device=d), wp.array(dR, dtype=wp.mat33d, device=d),
-                                       1e-4, wp.array(free, dtype=wp.float64, device=d),
-                                       wp.array([3 * n], dtype=wp.int32, device=d), out], device=d)
-    np.testing.assert_allclose(out.numpy()[:n], expected, rtol=1e-12, atol=1e-18)
-    assert not out.numpy()[n:].any()
-    assert not out.numpy()[nodes[0, 1]].any()
+    for split in (4, None):
+        out = wp.zeros(cap, dtype=wp.vec3d, device=d)
+        rows_apply(wp.array(P, dtype=wp.float64, device=d), wp.array(nodes, dtype=wp.int32, device=d),
+                   wp.array(coef, dtype=wp.vec3d, device=d), wp.array(lam, dtype=wp.float64, device=d),
+                   wp.array([m_used, m_used], dtype=wp.int32, device=d), wp.array(dR, dtype=wp.mat33d, device=d),
+                   1e-4, wp.array(free, dtype=wp.float64, device=d), wp.array([3 * n], dtype=wp.int32, device=d),
+                   rows_part(d, cap, split), out, d)
+        np.testing.assert_allclose(out.numpy()[:n], expected, rtol=1e-12, atol=1e-18)
+        assert not out.numpy()[n:].any()
+        assert not out.numpy()[nodes[0, 1]].any()
 
 
 def test_each_set_is_solved_by_the_kernel_of_its_size():

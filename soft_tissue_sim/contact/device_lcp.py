@@ -30,7 +30,7 @@ correction, the penetration detection and the guard (one graph a step):
    the finishes are the host's to rounding (the face solves by an updated inverse, the friction
    finish's sums in loop order, the host's by BLAS and LAPACK);
 4. dx = dt^2 P^-1 H^T lambda (eq. 2), zeroed on the fixed nodes, from the columns of the rows'
-   nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply_kernel`, in double precision as
+   nodes only (:func:`~soft_tissue_sim.dense_inverse.rows_apply`, in double precision as
    W is gathered).
 
 lambda, the sweeps, the residual and the check's verdict are read with the guard after the

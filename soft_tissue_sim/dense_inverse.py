@@ -852,9 +852,24 @@ class DenseInverse:
                 self.inv = self.packed = None  # its contents are not needed: the old store goes first
             self._reserve(n)
             self._resize(n, stream)
-        wp.copy(self.inv, self._result, stream=stream)
+        self._copy_in(self._result, stream)
         self._pack(stream)
         return None
+
+    def _copy_in(self, src: wp.array, stream=None) -> None:
+        """The inverse in use (row stride ld) := ``src`` (contiguous n x n), on ``stream``: on a
+        GPU one pitched copy of the runtime (Warp's copy of a strided view is a generic kernel
+        moving a byte at a time)."""
+        n = src.shape[0]
+        if not self.device.is_cuda:
+            wp.copy(self.inv, src, stream=stream)
+            return
+        assert src.strides == (8 * n, 8) and self.inv.strides == (8 * self._ld, 8)
+        rt = self.xp.cuda.runtime
+        stream = stream if stream is not None else wp.get_stream(self.device)
+        with wp.ScopedDevice(self.device):  # the runtime call in the device's context
+            rt.memcpy2DAsync(self.inv.ptr, 8 * self._ld, src.ptr, 8 * n, 8 * n, n, rt.memcpyDeviceToDevice,
+                             stream.cuda_stream)
 
     def _empty_stores(self) -> tuple:
         return GrowArray(wp.float64, self.device, headroom=1.0), GrowArray(wp.float64, self.device, headroom=1.0)

@@ -22,9 +22,10 @@ right after the detection, the tangent rows of friction with them:
 3. the warm start: the last step's force of the same slot (an object's node or face, a
    node's self-collision: the host's contact names within one surface), where that step was
    solved here (a stamp per slot against an epoch counter, both on the device);
-4. :func:`device_forces_kernel`, after the LCP, makes the contacts' forces (into the record),
-   the objects' wrenches and the counts the statistics report, keeps the pressed contacts'
-   forces for the next step and advances the epoch.
+4. :func:`contact_forces_kernel`, after the LCP, makes the contacts' forces (into the record, a
+   thread a contact) and keeps the pressed contacts' forces for the next step;
+   :func:`wrench_sums_kernel` the objects' wrenches (a thread an object, in the contacts' order)
+   and the counts the statistics report, and advances the epoch.
 
 The host reads the header, the wrenches and the LCP's output with the guard after the
 correction; the contact record and the host's warm start are made from the read record only
@@ -273,57 +274,72 @@ def device_rows_kernel(
 
 
 @wp.kernel
-def device_forces_kernel(sizes: wp.array(dtype=wp.int32), row_start: wp.array(dtype=wp.int32),
-                         n_rows: wp.array(dtype=wp.int32), record: wp.array2d(dtype=wp.float64),
-                         out: wp.array(dtype=wp.float64), origins: wp.array(dtype=wp.vec3d),
-                         warm_force: wp.array(dtype=wp.vec3d), warm_stamp: wp.array(dtype=wp.int32),
-                         epoch: wp.array(dtype=wp.int32), wrench: wp.array2d(dtype=wp.float64),
-                         header: wp.array(dtype=wp.float64)):
-    """After the LCP (``out`` = [sweeps, residual, W usable | lambda]): each contact's force on the
+def contact_forces_kernel(sizes: wp.array(dtype=wp.int32), row_start: wp.array(dtype=wp.int32),
+                          n_rows: wp.array(dtype=wp.int32), record: wp.array2d(dtype=wp.float64),
+                          out: wp.array(dtype=wp.float64), warm_force: wp.array(dtype=wp.vec3d),
+                          warm_stamp: wp.array(dtype=wp.int32), epoch: wp.array(dtype=wp.int32)):
+    """After the LCP (``out`` = [sweeps, residual, W usable | lambda]), contact c's force on the
     tissue f = lambda_n n (+ lambda_t1 t1 + lambda_t2 t2 with its tangent rows), kept in its
-    record row with lambda_n; the wrench on each object, F = -sum f, T = sum (p - o) x (-f)
-    about its origin o (``wrench`` rows: force, torque); the counts header[3:6] = [self
-    contacts, face contacts, pressed contacts]; each pressed contact's force kept at its slot
-    for the next step's warm start, stamped with the next epoch; then the epoch advances (the
-    other slots' forces are no longer current). One thread."""
-    for oi in range(wrench.shape[0]):
-        for k in range(6):
-            wrench[oi, k] = F64(0.0)
-    e = epoch[0] + 1
+    record row with lambda_n; a pressed contact's force kept at its slot for the next step's
+    warm start, stamped with the next epoch (:func:`wrench_sums_kernel` then advances it). A
+    thread a contact, over the record's capacity (the count sizes[1] read on the device)."""
+    c = wp.tid()
+    if c >= sizes[1]:
+        return
+    r = row_start[c]
+    lam = out[3 + r]
+    n = wp.vec3d(record[c, 6], record[c, 7], record[c, 8])
+    f = lam * n
+    if n_rows[c] == 3:
+        t1, t2 = tangent_frame(n)
+        f = f + (out[3 + r + 1] * t1 + out[3 + r + 2] * t2)
+    for k in range(3):
+        record[c, 16 + k] = f[k]
+    record[c, 19] = lam
+    if lam > F64(0.0):
+        s = int(record[c, 0])
+        warm_force[s] = f
+        warm_stamp[s] = epoch[0] + 1
+
+
+@wp.kernel
+def wrench_sums_kernel(sizes: wp.array(dtype=wp.int32), record: wp.array2d(dtype=wp.float64),
+                       origins: wp.array(dtype=wp.vec3d), epoch: wp.array(dtype=wp.int32),
+                       wrench: wp.array2d(dtype=wp.float64), header: wp.array(dtype=wp.float64)):
+    """After :func:`contact_forces_kernel`, thread oi < the objects' count: object oi's wrench
+    from the contacts' forces in the record, F = -sum f, T = sum (p - o) x (-f) about its origin
+    o (``wrench`` rows: force, torque), summed in the contacts' order; the last thread: the
+    counts header[3:6] = [self contacts, face contacts, pressed contacts], then the epoch
+    advances (the other slots' forces are no longer current)."""
+    oi = wp.tid()
+    if oi < wrench.shape[0]:
+        F = wp.vec3d()
+        T = wp.vec3d()
+        o = origins[oi]
+        for c in range(sizes[1]):
+            if int(record[c, 2]) == oi:
+                f = wp.vec3d(record[c, 16], record[c, 17], record[c, 18])
+                p = wp.vec3d(record[c, 3], record[c, 4], record[c, 5])
+                F = F - f
+                T = T + wp.cross(p - o, -f)
+        for k in range(3):
+            wrench[oi, k] = F[k]
+            wrench[oi, 3 + k] = T[k]
+        return
     n_self = int(0)
     n_face = int(0)
     n_pressed = int(0)
     for c in range(sizes[1]):
-        r = row_start[c]
-        lam = out[3 + r]
-        n = wp.vec3d(record[c, 6], record[c, 7], record[c, 8])
-        f = lam * n
-        if n_rows[c] == 3:
-            t1, t2 = tangent_frame(n)
-            f = f + (out[3 + r + 1] * t1 + out[3 + r + 2] * t2)
-        for k in range(3):
-            record[c, 16 + k] = f[k]
-        record[c, 19] = lam
-        obj = int(record[c, 2])
-        if obj < 0:
+        if int(record[c, 2]) < 0:
             n_self += 1
         elif int(record[c, 1]) < 0:
             n_face += 1
-        if obj >= 0:
-            p = wp.vec3d(record[c, 3], record[c, 4], record[c, 5])
-            t = wp.cross(p - origins[obj], -f)
-            for k in range(3):
-                wrench[obj, k] = wrench[obj, k] - f[k]
-                wrench[obj, 3 + k] = wrench[obj, 3 + k] + t[k]
-        if lam > F64(0.0):
+        if record[c, 19] > F64(0.0):
             n_pressed += 1
-            s = int(record[c, 0])
-            warm_force[s] = f
-            warm_stamp[s] = e
     header[3] = F64(float(n_self))
     header[4] = F64(float(n_face))
     header[5] = F64(float(n_pressed))
-    epoch[0] = e
+    epoch[0] = epoch[0] + 1
 
 
 @wp.kernel
@@ -441,6 +457,9 @@ class DeviceRows:
     def forces(self, lcp, origins: wp.array) -> None:
         """Step 4, after ``lcp``'s launch: the forces, the objects' wrenches about ``origins``
         (one per object), the counts, the warm start kept. Launches only."""
-        wp.launch(device_forces_kernel, 1, [lcp.sizes, lcp.row_start, lcp.n_rows, self.record, lcp.out, origins,
-                                            self.warm_force, self.warm_stamp, self.epoch, self.wrench, self.header],
-                  device=self.device)
+        d = self.device
+        wp.launch(contact_forces_kernel, self.record.shape[0],
+                  [lcp.sizes, lcp.row_start, lcp.n_rows, self.record, lcp.out, self.warm_force, self.warm_stamp,
+                   self.epoch], device=d)
+        wp.launch(wrench_sums_kernel, self.wrench.shape[0] + 1,
+                  [lcp.sizes, self.record, origins, self.epoch, self.wrench, self.header], device=d)

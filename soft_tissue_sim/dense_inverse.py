@@ -170,6 +170,27 @@ def rotate_in_kernel(dR: wp.array(dtype=wp.mat33d), r: wp.array(dtype=wp.vec3d),
         s[3 * i + 2] = v[2]
 
 
+@wp.func
+def block_node(t: int):
+    """Thread t in blocks of wp.block_dim() threads an item (a node, a tile): (item, lane,
+    threads a block)."""
+    nt = wp.block_dim()
+    i = t // nt
+    return i, t - i * nt, nt
+
+
+@wp.func
+def store_rotated(a0: wp.float64, a1: wp.float64, a2: wp.float64, lane: int, i: int,
+                  dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d)):
+    """z_i = dR_i (the block's sums of its lanes' a0, a1, a2: node i's three rows), written by
+    lane 0 (the left rotation of eq. 2)."""
+    s0 = block_sum(a0)
+    s1 = block_sum(a1)
+    s2 = block_sum(a2)
+    if lane == 0:
+        z[i] = dR[i] * wp.vec3d(s0, s1, s2)
+
+
 @wp.kernel
 def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.float64),
                        dR: wp.array(dtype=wp.mat33d), z: wp.array(dtype=wp.vec3d),
@@ -178,10 +199,7 @@ def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.flo
     read through its strides, its first n3 rows and columns): a block of threads per node i, its
     three rows of P against s (the lanes over the columns), the left rotation of eq. (2) applied
     to the result."""
-    t = wp.tid()
-    nt = wp.block_dim()
-    i = t // nt
-    lane = t - i * nt
+    i, lane, nt = block_node(wp.tid())
     n3 = count[0]
     r = 3 * i
     if r >= n3:  # the whole block (one node) leaves
@@ -194,11 +212,7 @@ def dense_apply_kernel(P: wp.array2d(dtype=wp.float64), s: wp.array(dtype=wp.flo
         a0 += P[r, j] * sj
         a1 += P[r + 1, j] * sj
         a2 += P[r + 2, j] * sj
-    a0 = block_sum(a0)
-    a1 = block_sum(a1)
-    a2 = block_sum(a2)
-    if lane == 0:
-        z[i] = dR[i] * wp.vec3d(a0, a1, a2)
+    store_rotated(a0, a1, a2, lane, i, dR, z)
 
 
 # The single-precision copy: the lower triangle of the inverse in TILE x TILE tiles (32 nodes a
@@ -344,10 +358,7 @@ def sym_tiles_kernel(Pk: wp.array(dtype=wp.float32), r: wp.array(dtype=wp.vec3d)
                      part: wp.array(dtype=wp.float64), count: wp.array(dtype=wp.int32), ntc: int):
     """The packed copy's tiles against dR^T r (:func:`sym_tile`), a block of threads a tile,
     launched over the tiles of the capacity (``ntc`` a side); the tiles past n3 = count[0] leave."""
-    t = wp.tid()
-    nt = wp.block_dim()
-    b = t // nt
-    lane = t - b * nt
+    b, lane, nt = block_node(wp.tid())
     n3 = count[0]
     ij = tile_of(b)
     if ij[0] * TILE >= n3:  # the whole block leaves
@@ -361,10 +372,7 @@ def sym_gather_kernel(part: wp.array(dtype=wp.float64), dR: wp.array(dtype=wp.ma
     """z_i = dR_i (the partial sums of node i's rows over the tile columns below n3 = count[0]),
     a block of threads a node (lanes over the tile columns, then a block sum: a fixed order),
     launched over a capacity."""
-    t = wp.tid()
-    nt = wp.block_dim()
-    i = t // nt
-    lane = t - i * nt
+    i, lane, nt = block_node(wp.tid())
     n3 = count[0]
     r = 3 * i
     if r >= n3:  # the whole block (one node) leaves
@@ -380,11 +388,7 @@ def sym_gather_kernel(part: wp.array(dtype=wp.float64), dR: wp.array(dtype=wp.ma
         a0 += part[at]
         a1 += part[at + 1]
         a2 += part[at + 2]
-    a0 = block_sum(a0)
-    a1 = block_sum(a1)
-    a2 = block_sum(a2)
-    if lane == 0:
-        z[i] = dR[i] * wp.vec3d(a0, a1, a2)
+    store_rotated(a0, a1, a2, lane, i, dR, z)
 
 
 def unpack_lower(packed: np.ndarray, n3: int) -> np.ndarray:
